@@ -1,0 +1,28 @@
+//! edbbgen compiles error-sensitive Extended Double Ball Bar (EDBB) measurement programs.
+//!
+//! The pipeline (one stage, one module; only [`pipeline`] chains them):
+//!
+//! ```text
+//! load ─▶ model ─▶ sample ─▶ select ─▶ order ─▶ emit ─▶ verify
+//! robot   L(q,p), J  joint grid,  cond(J)   TSP      template  re-read
+//! ```
+//!
+//! - [`robot`]: `.dh.toml` / `.urdf` → [`robot::Robot`] (standard DH between fixed transforms).
+//! - [`model`]: the measurement model L(q,p) (Eq. 1-2), its identification Jacobian (Eq. 3-5),
+//!   identifiability (Section 2.1.2) and the observability indices O1..O4 (Table 2).
+//! - [`sample`]: streaming joint-space grid → candidate poses whose MAP lies in the EDBB shell.
+//! - [`select`]: condition-number pruning of the candidates (Section 2.1.3, Fig. 5).
+//! - [`order`]: time-optimal open tour (Eq. 7).
+//! - [`emit`]: dialect templates → program text.
+//!
+//! Internally everything is SI (m, rad, s); millimetres and degrees exist only at the edges.
+
+pub mod emit;
+pub mod ir;
+pub mod model;
+pub mod order;
+pub mod pipeline;
+pub mod robot;
+pub mod sample;
+pub mod select;
+pub mod units;

@@ -1,0 +1,188 @@
+//! Robot model: in = a `.dh.toml` or `.urdf` file; out = [`Robot`], a 6-revolute-joint chain in
+//! standard DH form between two fixed transforms (robot base → DH frame 0, DH frame 6 → flange).
+//!
+//! Every robot, whatever file it came from, ends up in this one form so that the measurement
+//! model (Eq. 1-6) and its 30-parameter vector work the same for all of them.
+
+pub mod dh;
+pub mod kinematics;
+pub mod urdf;
+
+use nalgebra::{Matrix3, Vector3};
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+
+pub use kinematics::Frame;
+
+/// One row of a standard DH table (SI: metres, radians).
+/// T_i = RotZ(theta + q) · TransZ(d) · TransX(a) · RotX(alpha).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Dh {
+    pub alpha: f64,
+    pub a: f64,
+    pub d: f64,
+    pub theta: f64,
+}
+
+/// A revolute joint as the controller sees it (SI: radians, radians per second).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Joint {
+    pub name: String,
+    pub lower: f64,
+    pub upper: f64,
+    pub max_speed: f64,
+}
+
+/// A collision primitive attached to a DH frame (0 = base frame, i = after joint i).
+/// Used by later stages; the URDF and DH loaders fill it where the file has geometry.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct LinkShape {
+    /// DH frame the shape is rigidly attached to: 0 = robot base, i = moves with joint i.
+    pub frame: usize,
+    /// Pose of the shape in that frame.
+    pub origin: Frame,
+    pub geometry: Geometry,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum Geometry {
+    Box { size: [f64; 3] },
+    Cylinder { radius: f64, length: f64 },
+    Sphere { radius: f64 },
+    Mesh { path: PathBuf, scale: [f64; 3] },
+}
+
+/// The robot: the immutable model every stage shares (across rayon threads too).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Robot {
+    pub name: String,
+    /// File name the robot came from (no directory: output must not depend on where it lives).
+    pub source: String,
+    /// Robot base frame (URDF root link) → DH frame 0. Identity for a DH file.
+    pub base: Frame,
+    pub dh: [Dh; 6],
+    /// DH frame 6 → flange. Identity for a DH file.
+    pub flange: Frame,
+    pub joints: [Joint; 6],
+    /// The measurement application point (tool ball centre) in the flange frame, metres,
+    /// when the robot file declares one.
+    pub tool: Option<Vector3<f64>>,
+    pub shapes: Vec<LinkShape>,
+}
+
+/// How to find and resolve the robot in its file.
+#[derive(Clone, Debug, Default)]
+pub struct LoadOptions {
+    /// URDF: the link that ends the chain (default: `flange`, `tool0`, or the chain's last link).
+    pub flange_link: Option<String>,
+    /// URDF: directories searched for `package://NAME/...` mesh paths.
+    pub package_paths: Vec<PathBuf>,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum LoadError {
+    #[error("{path}: cannot read: {source}")]
+    Io {
+        path: String,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{path}: {msg}")]
+    Invalid { path: String, msg: String },
+}
+
+impl LoadError {
+    pub fn invalid(path: &Path, msg: impl Into<String>) -> Self {
+        LoadError::Invalid {
+            path: path.display().to_string(),
+            msg: msg.into(),
+        }
+    }
+}
+
+/// Loads a robot from a `.urdf` or a `.dh.toml` (any `.toml`) file.
+pub fn load(path: &Path, opts: &LoadOptions) -> Result<Robot, LoadError> {
+    let text = std::fs::read_to_string(path).map_err(|source| LoadError::Io {
+        path: path.display().to_string(),
+        source,
+    })?;
+    let ext = path
+        .extension()
+        .and_then(|e| e.to_str())
+        .unwrap_or("")
+        .to_ascii_lowercase();
+    let robot = match ext.as_str() {
+        "urdf" | "xml" => urdf::from_str(&text, path, opts)?,
+        "toml" => dh::from_str(&text, path)?,
+        _ => {
+            return Err(LoadError::invalid(
+                path,
+                "unknown robot file type (expected .urdf or .dh.toml)",
+            ))
+        }
+    };
+    robot.validate(path)?;
+    Ok(robot)
+}
+
+impl Robot {
+    /// Checks what every stage relies on: finite numbers, ordered limits, positive speeds.
+    pub fn validate(&self, path: &Path) -> Result<(), LoadError> {
+        for (i, (j, dh)) in self.joints.iter().zip(&self.dh).enumerate() {
+            let n = i + 1;
+            if ![dh.alpha, dh.a, dh.d, dh.theta]
+                .iter()
+                .all(|v| v.is_finite())
+            {
+                return Err(LoadError::invalid(
+                    path,
+                    format!("joint {n} ({}): DH value is not finite", j.name),
+                ));
+            }
+            if !(j.lower.is_finite() && j.upper.is_finite()) || j.lower >= j.upper {
+                return Err(LoadError::invalid(
+                    path,
+                    format!(
+                        "joint {n} ({}): limits must be finite with lower < upper",
+                        j.name
+                    ),
+                ));
+            }
+            if !(j.max_speed.is_finite() && j.max_speed > 0.0) {
+                return Err(LoadError::invalid(
+                    path,
+                    format!(
+                        "joint {n} ({}): max speed missing or zero; give each joint a velocity limit",
+                        j.name
+                    ),
+                ));
+            }
+        }
+        if let Some(t) = self.tool {
+            if !t.iter().all(|v| v.is_finite()) {
+                return Err(LoadError::invalid(path, "tool: not finite"));
+            }
+        }
+        Ok(())
+    }
+
+    /// Joint limits as arrays (radians).
+    pub fn limits(&self) -> ([f64; 6], [f64; 6]) {
+        (
+            std::array::from_fn(|i| self.joints[i].lower),
+            std::array::from_fn(|i| self.joints[i].upper),
+        )
+    }
+
+    pub fn max_speeds(&self) -> [f64; 6] {
+        std::array::from_fn(|i| self.joints[i].max_speed)
+    }
+}
+
+/// A rotation about a unit axis by `angle` (Rodrigues).
+pub fn axis_angle(axis: &Vector3<f64>, angle: f64) -> Matrix3<f64> {
+    let (s, c) = angle.sin_cos();
+    let k = axis;
+    let kx = Matrix3::new(0.0, -k.z, k.y, k.z, 0.0, -k.x, -k.y, k.x, 0.0);
+    Matrix3::identity() + kx * s + kx * kx * (1.0 - c)
+}

@@ -1,0 +1,32 @@
+//! Unit conversion and the one float formatter used by every text output.
+
+pub const MM: f64 = 1e-3;
+pub const DEG: f64 = std::f64::consts::PI / 180.0;
+
+pub fn to_mm(m: f64) -> f64 {
+    m / MM
+}
+
+pub fn to_deg(rad: f64) -> f64 {
+    rad / DEG
+}
+
+/// Formats `v` with `decimals` fixed decimals; never prints `-0.000`.
+pub fn fmt_fixed(v: f64, decimals: usize) -> String {
+    let s = format!("{:.*}", decimals, v);
+    if s.starts_with('-') && s[1..].chars().all(|c| c == '0' || c == '.') {
+        s[1..].to_string()
+    } else {
+        s
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn negative_zero_is_printed_as_zero() {
+        assert_eq!(super::fmt_fixed(-0.00001, 3), "0.000");
+        assert_eq!(super::fmt_fixed(-1.25, 1), "-1.2");
+        assert_eq!(super::fmt_fixed(2.0, 2), "2.00");
+    }
+}
