@@ -1,1 +1,568 @@
-//! placeholder
+//! Candidate sampling: in = robot, measurement model, cell, grid steps; out = the [`Pool`] of
+//! joint-grid poses whose MAP lies in the EDBB shell above the floor, plus a [`SampleReport`].
+//!
+//! The grid is never materialised. Restrictions that make it cheap, none of which loses a pose
+//! that the brute-force grid would keep (a test compares against brute force):
+//! 1. **q1 is solved, not searched.** Joint 1 turns the whole arm about z0, so for fixed q2..q6
+//!    the MAP runs on a horizontal circle; the q1 intervals where that circle lies in the shell
+//!    are solved in closed form and only the grid values inside them are visited (then checked
+//!    exactly, so boundary rounding cannot add or drop a pose).
+//! 2. **Reach pruning.** After q2..qk are fixed, the MAP lies within a ball of radius R_k (sum of
+//!    the remaining link offsets plus the tool) around frame k, and q1 sweeps that ball around
+//!    z0; when no position of the ball meets the shell, the whole branch is skipped.
+//! 3. **One turn per joint.** A joint whose range covers 360° or more is enumerated over one turn
+//!    centred on zero: q and q ± 360° give the same pose and the same Jacobian row.
+//! 4. **Joints that cannot move the MAP are held** (at 0, or the limit nearest to it), e.g. q6
+//!    when the MAP lies on the flange axis: every value gives the same MAP and the same L.
+//!
+//! Streaming: survivors are reduced to a fixed-size, thread-count-independent subset (the
+//! `max_candidates` poses with the smallest seeded hash of their grid index), so memory does not
+//! grow with the grid, and the result is identical on any number of threads.
+
+use crate::ir::{Candidate, Cell, Pool};
+use crate::model::MeasurementModel;
+use crate::robot::kinematics::dh_transform;
+use crate::robot::{Frame, Robot};
+use nalgebra::Vector3;
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use std::collections::BinaryHeap;
+use std::f64::consts::{PI, TAU};
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SampleConfig {
+    /// Grid step per joint (rad).
+    pub step: [f64; 6],
+    /// At most this many valid poses are kept (a seeded, uniform subset of the valid ones).
+    pub max_candidates: usize,
+    pub seed: u64,
+    /// Which joints can move the MAP ([`crate::model::movable_joints`]); the others are held.
+    pub movable: [bool; 6],
+}
+
+/// How one joint was enumerated.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct JointGrid {
+    /// Grid values are `k · step` for k in `k_lo..=k_hi` (or the single `held` value).
+    pub step: f64,
+    pub k_lo: i64,
+    pub k_hi: i64,
+    pub held: Option<f64>,
+    /// Why the enumerated range is what it is.
+    pub note: String,
+}
+
+impl JointGrid {
+    pub fn len(&self) -> u64 {
+        if self.held.is_some() {
+            1
+        } else {
+            (self.k_hi - self.k_lo + 1).max(0) as u64
+        }
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    #[inline]
+    pub fn value(&self, j: u64) -> f64 {
+        match self.held {
+            Some(v) => v,
+            None => (self.k_lo + j as i64) as f64 * self.step,
+        }
+    }
+
+    pub fn first(&self) -> f64 {
+        self.value(0)
+    }
+
+    pub fn last(&self) -> f64 {
+        self.value(self.len().saturating_sub(1))
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SampleReport {
+    pub grids: Vec<JointGrid>,
+    /// Poses in the full grid over the enumerated ranges (what brute force would visit).
+    pub grid_size: u64,
+    /// Poses actually evaluated after the q1 solution and reach pruning.
+    pub evaluated: u64,
+    /// Valid poses: MAP in the shell and above the floor.
+    pub valid: u64,
+    /// Valid poses kept in the pool (≤ max_candidates).
+    pub kept: usize,
+    /// Per joint, [min, max] of q over the valid poses (rad); NaN when there are none.
+    pub valid_range: [[f64; 2]; 6],
+}
+
+/// Progress callbacks (the CLI draws a bar; stages never print).
+pub trait Progress: Sync {
+    fn start(&self, _total: u64) {}
+    fn inc(&self, _n: u64) {}
+    fn finish(&self) {}
+}
+
+pub struct NoProgress;
+impl Progress for NoProgress {}
+
+/// The grid of one joint: one turn for ranges ≥ 360°, the held value for immobile joints.
+pub fn joint_grid(lo: f64, hi: f64, step: f64, movable: bool) -> JointGrid {
+    if !movable {
+        let v = 0.0f64.clamp(lo, hi);
+        return JointGrid { step, k_lo: 0, k_hi: 0, held: Some(v), note: "held: cannot move the MAP".into() };
+    }
+    let tol = 1e-9;
+    if hi - lo >= TAU - tol {
+        // One turn [w, w + 2π), as close to centred on zero as the limits allow.
+        let w = (-PI).clamp(lo, hi - TAU);
+        let k_lo = (w / step - tol).ceil() as i64;
+        let mut k_hi = ((w + TAU) / step - tol).ceil() as i64 - 1;
+        while (k_hi as f64) * step > hi + tol {
+            k_hi -= 1;
+        }
+        JointGrid { step, k_lo, k_hi, held: None, note: "one turn of a range >= 360 deg (poses repeat)".into() }
+    } else {
+        let k_lo = (lo / step - tol).ceil() as i64;
+        let k_hi = (hi / step + tol).floor() as i64;
+        JointGrid { step, k_lo, k_hi, held: None, note: "full joint range".into() }
+    }
+}
+
+/// Enumerates the grid and keeps the valid poses. See the module docs.
+pub fn run(robot: &Robot, model: &MeasurementModel, cell: &Cell, cfg: &SampleConfig, progress: &dyn Progress) -> (Pool, SampleReport) {
+    let (lo, hi) = robot.limits();
+    let mut grids: Vec<JointGrid> = (0..6).map(|i| joint_grid(lo[i], hi[i], cfg.step[i], cfg.movable[i])).collect();
+    if cfg.movable[0] {
+        grids[0].note = "solved per wrist configuration: only values whose MAP is in the shell".into();
+    }
+    for g in grids.iter_mut().take(5).skip(1) {
+        if g.held.is_none() {
+            g.note.push_str("; branches pruned by reach");
+        }
+    }
+    let grid_size = grids.iter().map(|g| g.len()).fold(1u64, |a, b| a.saturating_mul(b));
+    let ctx = Ctx::new(model, cell, &grids);
+
+    let n2 = grids[1].len();
+    let n3 = grids[2].len();
+    let units = n2 * n3;
+    progress.start(units);
+    let acc = (0..units)
+        .into_par_iter()
+        .fold(
+            || Acc::new(cfg.max_candidates),
+            |mut acc, u| {
+                ctx.unit(u / n3, u % n3, cfg, &mut acc);
+                progress.inc(1);
+                acc
+            },
+        )
+        .reduce(|| Acc::new(cfg.max_candidates), Acc::merge);
+    progress.finish();
+
+    let mut kept: Vec<Entry> = acc.heap.into_vec();
+    kept.sort_by_key(|e| e.cand.grid);
+    let candidates: Vec<Candidate> = kept.into_iter().map(|e| e.cand).collect();
+    let report = SampleReport {
+        grids,
+        grid_size,
+        evaluated: acc.evaluated,
+        valid: acc.valid,
+        kept: candidates.len(),
+        valid_range: acc.range,
+    };
+    (Pool { candidates }, report)
+}
+
+/// Everything the hot loop needs, precomputed once.
+struct Ctx<'a> {
+    cell: &'a Cell,
+    base: Frame,
+    grids: &'a [JointGrid],
+    /// Joint 1's fixed part TransZ(d1)·TransX(a1)·RotX(α1); T1 = RotZ(θ1 + q1)·a1.
+    a1: Frame,
+    theta1: f64,
+    /// DH transforms of joints 2..6 at every grid value.
+    t: [Vec<Frame>; 5],
+    /// MAP in DH frame 5 for every q6 grid value.
+    map5: Vec<Vector3<f64>>,
+    /// Reach radius after joints 2..5 (index k−2 for frame k).
+    reach: [f64; 4],
+    /// Fixture in DH frame 0, cylindrical.
+    f0: Vector3<f64>,
+    rf: f64,
+    phif: f64,
+    radix: [u64; 6],
+}
+
+impl<'a> Ctx<'a> {
+    fn new(model: &MeasurementModel, cell: &'a Cell, grids: &'a [JointGrid]) -> Self {
+        let dh = &model.nominal.dh;
+        let mut a1 = dh_transform(&dh[0], 0.0);
+        // Remove RotZ(θ1): a1 = RotZ(−θ1)·T1(0).
+        let rz = dh_transform(&crate::robot::Dh { alpha: 0.0, a: 0.0, d: 0.0, theta: -dh[0].theta }, 0.0);
+        a1 = rz.mul(&a1);
+        let t: [Vec<Frame>; 5] = std::array::from_fn(|k| {
+            let g = &grids[k + 1];
+            (0..g.len()).map(|j| dh_transform(&dh[k + 1], g.value(j))).collect()
+        });
+        let tool = model.flange.apply(&model.nominal.map);
+        let map5 = t[4].iter().map(|t6| t6.apply(&tool)).collect();
+        let link = |i: usize| dh[i].a.hypot(dh[i].d);
+        let tail = tool.norm();
+        let reach = std::array::from_fn(|k| ((k + 2)..6).map(link).sum::<f64>() + tail);
+        let f0 = model.base.inverse().apply(&cell.fixture);
+        let radix = std::array::from_fn(|i| grids[i].len());
+        Ctx {
+            cell,
+            base: model.base,
+            grids,
+            a1,
+            theta1: dh[0].theta,
+            t,
+            map5,
+            reach,
+            rf: f0.x.hypot(f0.y),
+            phif: f0.y.atan2(f0.x),
+            f0,
+            radix,
+        }
+    }
+
+    /// Can the MAP, within `reach` of point `o` (DH frame 0, any q1), meet the shell?
+    #[inline]
+    fn ball_meets_shell(&self, o: &Vector3<f64>, reach: f64) -> bool {
+        let r = o.x.hypot(o.y);
+        let dz = o.z - self.f0.z;
+        let dmin = (r - self.rf).hypot(dz);
+        let dmax = (r + self.rf).hypot(dz);
+        dmin - reach <= self.cell.bar_max && dmax + reach >= self.cell.bar_min
+    }
+
+    fn unit(&self, i2: u64, i3: u64, cfg: &SampleConfig, acc: &mut Acc) {
+        let f2 = self.a1.mul(&self.t[0][i2 as usize]);
+        if !self.ball_meets_shell(&f2.t, self.reach[0]) {
+            return;
+        }
+        let f3 = f2.mul(&self.t[1][i3 as usize]);
+        if !self.ball_meets_shell(&f3.t, self.reach[1]) {
+            return;
+        }
+        for (i4, t4) in self.t[2].iter().enumerate() {
+            let f4 = f3.mul(t4);
+            if !self.ball_meets_shell(&f4.t, self.reach[2]) {
+                continue;
+            }
+            for (i5, t5) in self.t[3].iter().enumerate() {
+                let f5 = f4.mul(t5);
+                if !self.ball_meets_shell(&f5.t, self.reach[3]) {
+                    continue;
+                }
+                for (i6, m5) in self.map5.iter().enumerate() {
+                    let x = f5.apply(m5);
+                    let idx = [0, i2, i3, i4 as u64, i5 as u64, i6 as u64];
+                    self.solve_q1(&x, &idx, cfg, acc);
+                }
+            }
+        }
+    }
+
+    /// Visits the q1 grid values whose MAP can lie in the shell, for the q1-free MAP position x.
+    #[inline]
+    fn solve_q1(&self, x: &Vector3<f64>, idx: &[u64; 6], cfg: &SampleConfig, acc: &mut Acc) {
+        let g = &self.grids[0];
+        if let Some(v) = g.held {
+            self.check(x, v, 0, idx, cfg, acc);
+            return;
+        }
+        let (rmin, rmax) = (self.cell.bar_min, self.cell.bar_max);
+        let r = x.x.hypot(x.y);
+        let dz = x.z - self.f0.z;
+        let s = r * r + self.rf * self.rf + dz * dz;
+        let mut iv = [(0.0f64, 0.0f64); 2];
+        let n_iv;
+        if r * self.rf < 1e-12 {
+            // The circle degenerates (MAP or fixture on the joint-1 axis): L does not depend on q1.
+            if s < rmin * rmin * (1.0 - 1e-9) || s > rmax * rmax * (1.0 + 1e-9) {
+                return;
+            }
+            iv[0] = (g.k_lo as f64 * g.step - 1.0, g.k_hi as f64 * g.step + 1.0);
+            n_iv = 1;
+        } else {
+            // D² = s − 2·r·rf·cos Δ; Rmin² ≤ D² ≤ Rmax²  ⇔  cmin ≤ cos Δ ≤ cmax.
+            let cmin = (s - rmax * rmax) / (2.0 * r * self.rf);
+            let cmax = (s - rmin * rmin) / (2.0 * r * self.rf);
+            if cmin > 1.0 + 1e-12 || cmax < -1.0 - 1e-12 {
+                return;
+            }
+            let eps = 1e-7; // widen, then check exactly: the grid set equals brute force
+            let d1 = (cmax.min(1.0)).acos() - eps;
+            let d2 = (cmin.max(-1.0)).acos() + eps;
+            let c = self.phif - self.theta1 - x.y.atan2(x.x);
+            if d1 <= 0.0 || d2 >= PI {
+                // The two mirrored intervals touch: one interval.
+                if d1 <= 0.0 && d2 >= PI {
+                    iv[0] = (c - PI, c + PI);
+                } else if d1 <= 0.0 {
+                    iv[0] = (c - d2, c + d2);
+                } else {
+                    iv[0] = (c + d1, c + TAU - d1);
+                }
+                n_iv = 1;
+            } else {
+                iv[0] = (c - d2, c - d1);
+                iv[1] = (c + d1, c + d2);
+                n_iv = 2;
+            }
+        }
+        let (wlo, whi) = (g.k_lo as f64 * g.step, g.k_hi as f64 * g.step);
+        // Intervals are at most 2π wide; shifting by whole turns covers the window, and
+        // `last_k` stops a grid value reached from two shifted intervals being visited twice.
+        let mut ks: [(i64, i64); 8] = [(0, -1); 8];
+        let mut nk = 0;
+        for &(a, b) in &iv[..n_iv] {
+            let base_shift = ((wlo - b) / TAU).ceil();
+            let mut sh = base_shift;
+            while a + sh * TAU <= whi + 1e-12 && nk < ks.len() {
+                let lo = (((a + sh * TAU) / g.step).ceil() as i64).max(g.k_lo);
+                let hi = (((b + sh * TAU) / g.step).floor() as i64).min(g.k_hi);
+                if lo <= hi {
+                    ks[nk] = (lo, hi);
+                    nk += 1;
+                }
+                sh += 1.0;
+            }
+        }
+        let ks = &mut ks[..nk];
+        ks.sort_unstable();
+        let mut last_k = i64::MIN;
+        for &(lo, hi) in ks.iter() {
+            for k in lo.max(last_k.saturating_add(1))..=hi {
+                self.check(x, k as f64 * g.step, (k - g.k_lo) as u64, idx, cfg, acc);
+                last_k = k;
+            }
+        }
+    }
+
+    /// The exact test of one pose.
+    #[inline]
+    fn check(&self, x: &Vector3<f64>, q1: f64, j1: u64, idx: &[u64; 6], cfg: &SampleConfig, acc: &mut Acc) {
+        acc.evaluated += 1;
+        let (s, c) = (self.theta1 + q1).sin_cos();
+        let p0 = Vector3::new(c * x.x - s * x.y, s * x.x + c * x.y, x.z);
+        let p = self.base.apply(&p0);
+        if !self.cell.admits(&p) {
+            return;
+        }
+        let mut grid = 0u64;
+        let mut q = [0.0; 6];
+        for i in 0..6 {
+            let j = if i == 0 { j1 } else { idx[i] };
+            grid = grid * self.radix[i] + j;
+            q[i] = if i == 0 { q1 } else { self.grids[i].value(j) };
+        }
+        acc.valid += 1;
+        for i in 0..6 {
+            acc.range[i][0] = acc.range[i][0].min(q[i]);
+            acc.range[i][1] = acc.range[i][1].max(q[i]);
+        }
+        let key = splitmix64(cfg.seed ^ grid.wrapping_mul(0x9e37_79b9_7f4a_7c15));
+        acc.offer(Entry {
+            key,
+            cand: Candidate { q, map: [p.x, p.y, p.z], length: (p - self.cell.fixture).norm(), grid },
+        });
+    }
+}
+
+/// SplitMix64 finaliser: a well-mixed 64-bit hash, identical on every platform.
+fn splitmix64(mut z: u64) -> u64 {
+    z = z.wrapping_add(0x9e37_79b9_7f4a_7c15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+    z ^ (z >> 31)
+}
+
+struct Entry {
+    key: u64,
+    cand: Candidate,
+}
+
+impl PartialEq for Entry {
+    fn eq(&self, o: &Self) -> bool {
+        (self.key, self.cand.grid) == (o.key, o.cand.grid)
+    }
+}
+impl Eq for Entry {}
+impl PartialOrd for Entry {
+    fn partial_cmp(&self, o: &Self) -> Option<std::cmp::Ordering> {
+        Some(self.cmp(o))
+    }
+}
+impl Ord for Entry {
+    fn cmp(&self, o: &Self) -> std::cmp::Ordering {
+        (self.key, self.cand.grid).cmp(&(o.key, o.cand.grid))
+    }
+}
+
+/// Per-thread accumulator: counts and the bottom-K (by hash key) of the valid poses.
+struct Acc {
+    cap: usize,
+    heap: BinaryHeap<Entry>,
+    evaluated: u64,
+    valid: u64,
+    range: [[f64; 2]; 6],
+}
+
+impl Acc {
+    fn new(cap: usize) -> Self {
+        Acc { cap, heap: BinaryHeap::new(), evaluated: 0, valid: 0, range: [[f64::INFINITY, f64::NEG_INFINITY]; 6] }
+    }
+
+    #[inline]
+    fn offer(&mut self, e: Entry) {
+        if self.heap.len() < self.cap {
+            self.heap.push(e);
+        } else if self.heap.peek().is_some_and(|top| e < *top) {
+            self.heap.pop();
+            self.heap.push(e);
+        }
+    }
+
+    fn merge(mut self, mut other: Acc) -> Acc {
+        if other.heap.len() > self.heap.len() {
+            std::mem::swap(&mut self.heap, &mut other.heap);
+        }
+        for e in other.heap.into_vec() {
+            self.offer(e);
+        }
+        self.evaluated += other.evaluated;
+        self.valid += other.valid;
+        for i in 0..6 {
+            self.range[i][0] = self.range[i][0].min(other.range[i][0]);
+            self.range[i][1] = self.range[i][1].max(other.range[i][1]);
+        }
+        self
+    }
+}
+
+impl SampleReport {
+    /// `valid_range` with NaN for joints without valid poses (for reports).
+    pub fn valid_range_or_nan(&self) -> [[f64; 2]; 6] {
+        self.valid_range.map(|r| if r[0] > r[1] { [f64::NAN; 2] } else { r })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::units::{DEG, MM};
+
+    fn setup(map: Vector3<f64>, fixture: Vector3<f64>, bar: (f64, f64)) -> (Robot, MeasurementModel, Cell) {
+        let robot = crate::robot::load(
+            std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/robots/comau_nj130/robot.dh.toml")),
+            &Default::default(),
+        )
+        .expect("bundled NJ-130");
+        let model = MeasurementModel::new(&robot, fixture, map);
+        let cell = Cell { fixture, map, bar_min: bar.0, bar_max: bar.1, floor_z: 0.0 };
+        (robot, model, cell)
+    }
+
+    /// Every grid pose, FK'd from scratch through the measurement model.
+    fn brute_force(model: &MeasurementModel, cell: &Cell, grids: &[JointGrid]) -> Vec<u64> {
+        let mut out = Vec::new();
+        let n: Vec<u64> = grids.iter().map(|g| g.len()).collect();
+        let total: u64 = n.iter().product();
+        for idx in 0..total {
+            let mut rem = idx;
+            let mut q = [0.0; 6];
+            for i in (0..6).rev() {
+                q[i] = grids[i].value(rem % n[i]);
+                rem /= n[i];
+            }
+            if cell.admits(&model.map_position(&model.nominal, &q)) {
+                out.push(idx);
+            }
+        }
+        out
+    }
+
+    fn near_boundary(model: &MeasurementModel, cell: &Cell, grids: &[JointGrid], idx: u64) -> bool {
+        let n: Vec<u64> = grids.iter().map(|g| g.len()).collect();
+        let mut rem = idx;
+        let mut q = [0.0; 6];
+        for i in (0..6).rev() {
+            q[i] = grids[i].value(rem % n[i]);
+            rem /= n[i];
+        }
+        let p = model.map_position(&model.nominal, &q);
+        let d = (p - cell.fixture).norm();
+        (d - cell.bar_min).abs() < 1e-9 || (d - cell.bar_max).abs() < 1e-9 || (p.z - cell.floor_z).abs() < 1e-9
+    }
+
+    #[test]
+    fn streaming_sampler_keeps_exactly_the_brute_force_poses() {
+        let cases = [
+            (Vector3::new(0.06, 0.03, 0.12), Vector3::new(0.258, 1.468, 0.708), (0.30, 0.52), [30.0; 6]),
+            (Vector3::new(0.0, 0.0, 0.12), Vector3::new(1.2, -0.4, 0.3), (0.25, 0.60), [25.0, 20.0, 20.0, 40.0, 30.0, 45.0]),
+            // Fixture on the joint-1 axis: q1 does not change L.
+            (Vector3::new(0.05, 0.0, 0.1), Vector3::new(0.0, 0.0, 2.3), (0.5, 0.9), [30.0; 6]),
+        ];
+        for (map, fixture, bar, step_deg) in cases {
+            let (robot, model, cell) = setup(map, fixture, bar);
+            let cfg = SampleConfig {
+                step: step_deg.map(|s| s * DEG),
+                max_candidates: usize::MAX,
+                seed: 1,
+                movable: crate::model::movable_joints(&model, &robot),
+            };
+            let (pool, report) = run(&robot, &model, &cell, &cfg, &NoProgress);
+            let want = brute_force(&model, &cell, &report.grids);
+            let got: Vec<u64> = pool.candidates.iter().map(|c| c.grid).collect();
+            assert!(!want.is_empty(), "test case must have valid poses");
+            let missing: Vec<_> = want.iter().filter(|i| !got.contains(i)).filter(|&&i| !near_boundary(&model, &cell, &report.grids, i)).collect();
+            let extra: Vec<_> = got.iter().filter(|i| !want.contains(i)).filter(|&&i| !near_boundary(&model, &cell, &report.grids, i)).collect();
+            assert!(missing.is_empty() && extra.is_empty(), "missing {missing:?} extra {extra:?}");
+            assert_eq!(report.valid as usize, got.len());
+            assert!(report.evaluated < report.grid_size / 3, "pruning should cut the grid: {} of {}", report.evaluated, report.grid_size);
+            for c in &pool.candidates {
+                let p = model.map_position(&model.nominal, &c.q);
+                assert!((p - Vector3::from(c.map)).norm() < 1e-12);
+                assert!(cell.admits(&p));
+            }
+        }
+    }
+
+    #[test]
+    fn pool_cap_keeps_a_thread_count_independent_subset() {
+        let (robot, model, cell) = setup(Vector3::new(0.06, 0.03, 0.12), Vector3::new(0.258, 1.468, 0.708), (0.30, 0.52));
+        let cfg = SampleConfig { step: [20.0 * DEG; 6], max_candidates: 500, seed: 3, movable: [true; 6] };
+        let run_on = |threads| {
+            rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap().install(|| run(&robot, &model, &cell, &cfg, &NoProgress))
+        };
+        let (a, ra) = run_on(1);
+        let (b, _) = run_on(2);
+        assert_eq!(a, b);
+        assert_eq!(a.candidates.len(), 500);
+        assert!(ra.valid > 500);
+        let full = run(&robot, &model, &cell, &SampleConfig { max_candidates: usize::MAX, ..cfg.clone() }, &NoProgress).0;
+        assert!(a.candidates.iter().all(|c| full.candidates.contains(c)));
+        let _ = MM;
+    }
+
+    #[test]
+    fn one_turn_windows_and_held_joints() {
+        let g = joint_grid(-2.0 * TAU / 2.0 * 2.0, TAU, 10.0 * DEG, true); // −360..360
+        assert_eq!(g.len(), 36);
+        assert!((g.first() + PI).abs() < 1e-12 && (g.last() - 170.0 * DEG).abs() < 1e-12);
+        let g = joint_grid(-185.0 * DEG, 185.0 * DEG, 10.0 * DEG, true);
+        assert_eq!(g.len(), 36);
+        let g = joint_grid(-60.0 * DEG, 85.0 * DEG, 10.0 * DEG, true);
+        assert_eq!((g.first() / DEG).round() as i64, -60);
+        assert_eq!((g.last() / DEG).round() as i64, 80);
+        let g = joint_grid(0.2, 1.0, 0.1, false);
+        assert_eq!((g.len(), g.value(0)), (1, 0.2));
+    }
+}
