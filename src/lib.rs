@@ -17,6 +17,7 @@
 //!
 //! Internally everything is SI (m, rad, s); millimetres and degrees exist only at the edges.
 
+pub mod cli;
 pub mod emit;
 pub mod ir;
 pub mod model;

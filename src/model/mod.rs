@@ -14,7 +14,7 @@ use crate::robot::{Dh, Frame, Robot};
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 
-pub use identify::{analyse, observability, Identifiability, IdentifyOptions, Observability, Status};
+pub use identify::{analyse, observability, Identifiability, IdentifyOptions, Observability, ParamInfo, Status};
 
 pub const N_PARAMS: usize = 30;
 

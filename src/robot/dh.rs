@@ -116,5 +116,6 @@ pub fn from_str(text: &str, path: &Path) -> Result<Robot, LoadError> {
         joints,
         tool: spec.tool.map(|t| Vector3::from(t) * lscale),
         shapes: Vec::new(),
+        digest: String::new(),
     })
 }

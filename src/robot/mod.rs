@@ -68,6 +68,8 @@ pub struct Robot {
     /// when the robot file declares one.
     pub tool: Option<Vector3<f64>>,
     pub shapes: Vec<LinkShape>,
+    /// SHA-256 of the robot file's bytes (set by [`load`]): part of the program's input hash.
+    pub digest: String,
 }
 
 /// How to find and resolve the robot in its file.
@@ -122,7 +124,7 @@ pub fn load(path: &Path, opts: &LoadOptions) -> Result<Robot, LoadError> {
         }
     };
     robot.validate(path)?;
-    Ok(robot)
+    Ok(Robot { digest: sha256_hex(text.as_bytes()), ..robot })
 }
 
 impl Robot {
@@ -185,4 +187,10 @@ pub fn axis_angle(axis: &Vector3<f64>, angle: f64) -> Matrix3<f64> {
     let k = axis;
     let kx = Matrix3::new(0.0, -k.z, k.y, k.z, 0.0, -k.x, -k.y, k.x, 0.0);
     Matrix3::identity() + kx * s + kx * kx * (1.0 - c)
+}
+
+/// Lower-case hex SHA-256.
+pub fn sha256_hex(bytes: &[u8]) -> String {
+    use sha2::{Digest, Sha256};
+    Sha256::digest(bytes).iter().map(|b| format!("{b:02x}")).collect()
 }

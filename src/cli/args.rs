@@ -1,0 +1,114 @@
+//! Flags as clap parses them, close to argv; [`super::run`] resolves them once into checked,
+//! SI-unit options.
+
+use clap::{Args, Parser, Subcommand};
+use std::path::PathBuf;
+
+#[derive(Parser, Debug)]
+#[command(
+    name = "edbbgen",
+    version,
+    about = "Compiles error-sensitive Extended Double Ball Bar (EDBB) measurement programs for 6-axis robots",
+    args_conflicts_with_subcommands = true,
+    subcommand_negates_reqs = true
+)]
+pub struct Cli {
+    #[command(subcommand)]
+    pub command: Option<Command>,
+    #[command(flatten)]
+    pub compile: CompileArgs,
+}
+
+#[derive(Subcommand, Debug)]
+pub enum Command {
+    /// Identifiability of the 30 model parameters and observability of a rich pose set.
+    Model(ModelArgs),
+}
+
+/// Robot, cell and instrument: shared by the compiler and `model`.
+#[derive(Args, Debug, Clone)]
+pub struct CellArgs {
+    /// MAP (tool ball centre) in the flange frame, mm [default: the robot file's tool, else the
+    /// flange origin].
+    #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true)]
+    pub tool: Option<String>,
+    /// Usable bar length range (ball-centre distance), mm.
+    #[arg(long, value_name = "MIN..MAX", default_value = "300..520")]
+    pub bar: String,
+    /// Floor height in the robot base frame, mm: the MAP stays above it.
+    #[arg(long, value_name = "MM", default_value = "0", allow_hyphen_values = true)]
+    pub floor: String,
+    /// URDF: the link that ends the chain [default: flange, tool0, or the chain's last link].
+    #[arg(long, value_name = "LINK")]
+    pub flange: Option<String>,
+    /// URDF: directory searched for package:// paths (repeatable).
+    #[arg(long = "package-path", value_name = "DIR")]
+    pub package_path: Vec<PathBuf>,
+    /// Seed of every random choice (the pool subset, the model's pose set).
+    #[arg(long, value_name = "N", default_value_t = crate::pipeline::DEFAULT_SEED)]
+    pub seed: u64,
+    /// No progress bars.
+    #[arg(short, long)]
+    pub quiet: bool,
+}
+
+#[derive(Args, Debug)]
+pub struct CompileArgs {
+    /// Robot description: a .urdf or a .dh.toml file.
+    #[arg(value_name = "ROBOT", required = true)]
+    pub robot: Option<PathBuf>,
+    /// Fixture ball centre in the robot base frame, mm.
+    #[arg(long, value_name = "X,Y,Z", required = true, allow_hyphen_values = true)]
+    pub fixture: Option<String>,
+    /// Output program.
+    #[arg(short, long, value_name = "PATH.nc", required = true)]
+    pub output: Option<PathBuf>,
+    #[command(flatten)]
+    pub cell: CellArgs,
+    /// Joint grid step, degrees: one value for all joints or six comma-separated values.
+    #[arg(long, value_name = "DEG", default_value = "10")]
+    pub step: String,
+    /// Keep at most this many valid poses for pruning (a seeded uniform subset).
+    #[arg(long, value_name = "N", default_value_t = crate::pipeline::DEFAULT_MAX_CANDIDATES)]
+    pub max_candidates: usize,
+    /// Number of measurement poses [default: the knee of the cond(n) curve].
+    #[arg(long, value_name = "N")]
+    pub poses: Option<usize>,
+    /// Corner blend distance at the MAP, mm.
+    #[arg(long, value_name = "MM", default_value = "10")]
+    pub blend: String,
+    /// Start configuration, degrees: the tour starts at the selected pose nearest to it.
+    #[arg(long, value_name = "Q1,..,Q6", allow_hyphen_values = true)]
+    pub start: Option<String>,
+    /// Output dialect (a template under templates/).
+    #[arg(long, value_name = "NAME", default_value = "ngc")]
+    pub dialect: String,
+    /// Use this template file instead of a bundled dialect.
+    #[arg(long, value_name = "FILE")]
+    pub template: Option<PathBuf>,
+    /// Golden-file mode: compile, compare with the file at -o, write nothing; exit 1 with a
+    /// unified diff when they differ.
+    #[arg(long)]
+    pub check: bool,
+    /// Also print a stage's result as JSON on stdout: model, sample, pool, selection, path, program.
+    #[arg(long, value_name = "STAGE")]
+    pub emit: Option<String>,
+}
+
+#[derive(Args, Debug)]
+pub struct ModelArgs {
+    /// Robot description: a .urdf or a .dh.toml file.
+    #[arg(value_name = "ROBOT")]
+    pub robot: PathBuf,
+    /// Fixture ball centre in the robot base frame, mm.
+    #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true)]
+    pub fixture: String,
+    #[command(flatten)]
+    pub cell: CellArgs,
+    /// Size of the random pose set the analysis uses.
+    #[arg(long, value_name = "N", default_value_t = 400)]
+    pub samples: usize,
+    /// Print the report as JSON.
+    #[arg(long)]
+    pub json: bool,
+}

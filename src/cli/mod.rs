@@ -1,0 +1,407 @@
+//! The command line: parse argv, resolve flags once into checked options, call the pipeline,
+//! write files (temp file + rename) and print results. Progress bars live here and only here.
+
+pub mod args;
+
+use crate::model::{self, IdentifyOptions, MeasurementModel, Status};
+use crate::pipeline::{self, CompileOptions};
+use crate::robot::{self, LoadOptions, Robot};
+use crate::units::{fmt_fixed, to_mm, DEG, MM};
+use args::{CellArgs, Cli, Command, CompileArgs, ModelArgs};
+use clap::Parser;
+use nalgebra::{DMatrix, Vector3};
+use std::io::{IsTerminal, Write};
+use std::path::{Path, PathBuf};
+
+/// Everything that ends the program with exit code 2: one line, naming the file, field or flag.
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    #[error("{0}")]
+    Usage(String),
+    #[error(transparent)]
+    Load(#[from] robot::LoadError),
+    #[error(transparent)]
+    Pipeline(#[from] pipeline::PipelineError),
+    #[error("{path}: {msg}")]
+    File { path: String, msg: String },
+}
+
+fn usage(msg: impl Into<String>) -> Error {
+    Error::Usage(msg.into())
+}
+
+/// Runs the CLI on `argv`; returns the exit code (0 ok, 1 check failed) or an exit-2 error.
+pub fn run(argv: Vec<std::ffi::OsString>) -> Result<i32, Error> {
+    let cli = match Cli::try_parse_from(argv) {
+        Ok(c) => c,
+        Err(e) => {
+            use clap::error::ErrorKind;
+            if matches!(e.kind(), ErrorKind::DisplayHelp | ErrorKind::DisplayVersion) {
+                let _ = e.print();
+                return Ok(0);
+            }
+            // clap's message spans several lines; the first names the problem.
+            let text = e.render().to_string();
+            let line = text.lines().find(|l| !l.trim().is_empty()).unwrap_or("invalid arguments");
+            return Err(usage(line.trim_start_matches("error: ").to_string()));
+        }
+    };
+    match cli.command {
+        Some(Command::Model(m)) => run_model(&m),
+        None => run_compile(&cli.compile),
+    }
+}
+
+// ---- flag parsing -------------------------------------------------------------------------
+
+fn numbers(flag: &str, s: &str, n: Option<usize>) -> Result<Vec<f64>, Error> {
+    let vals: Result<Vec<f64>, _> = s.split(',').map(|t| t.trim().parse::<f64>()).collect();
+    let vals = vals.map_err(|_| usage(format!("{flag}: '{s}' is not a comma-separated list of numbers")))?;
+    if vals.iter().any(|v| !v.is_finite()) {
+        return Err(usage(format!("{flag}: '{s}' contains a value that is not finite")));
+    }
+    if let Some(n) = n {
+        if vals.len() != n {
+            return Err(usage(format!("{flag}: '{s}' has {} values, expected {n}", vals.len())));
+        }
+    }
+    Ok(vals)
+}
+
+fn xyz_mm(flag: &str, s: &str) -> Result<Vector3<f64>, Error> {
+    let v = numbers(flag, s, Some(3))?;
+    Ok(Vector3::new(v[0], v[1], v[2]) * MM)
+}
+
+fn scalar(flag: &str, s: &str) -> Result<f64, Error> {
+    Ok(numbers(flag, s, Some(1))?[0])
+}
+
+fn bar_range(s: &str) -> Result<(f64, f64), Error> {
+    let (a, b) = s.split_once("..").ok_or_else(|| usage(format!("--bar: '{s}' is not MIN..MAX (mm)")))?;
+    let (a, b) = (scalar("--bar", a)?, scalar("--bar", b)?);
+    if !(a > 0.0 && b > a) {
+        return Err(usage(format!("--bar: '{s}' needs 0 < MIN < MAX")));
+    }
+    Ok((a * MM, b * MM))
+}
+
+fn steps(s: &str) -> Result<[f64; 6], Error> {
+    let v = numbers("--step", s, None)?;
+    let v: Vec<f64> = match v.len() {
+        1 => vec![v[0]; 6],
+        6 => v,
+        n => return Err(usage(format!("--step: '{s}' has {n} values, expected 1 or 6"))),
+    };
+    if v.iter().any(|&x| !(x >= 0.1 && x <= 180.0)) {
+        return Err(usage(format!("--step: '{s}': each step must be between 0.1 and 180 degrees")));
+    }
+    Ok(std::array::from_fn(|i| v[i] * DEG))
+}
+
+fn load_robot(path: &Path, cell: &CellArgs) -> Result<Robot, Error> {
+    let opts = LoadOptions { flange_link: cell.flange.clone(), package_paths: cell.package_path.clone() };
+    Ok(robot::load(path, &opts)?)
+}
+
+struct Resolved {
+    tool: Option<Vector3<f64>>,
+    bar: (f64, f64),
+    floor: f64,
+}
+
+fn resolve_cell(cell: &CellArgs) -> Result<Resolved, Error> {
+    Ok(Resolved {
+        tool: cell.tool.as_deref().map(|s| xyz_mm("--tool", s)).transpose()?,
+        bar: bar_range(&cell.bar)?,
+        floor: scalar("--floor", &cell.floor)? * MM,
+    })
+}
+
+// ---- progress -----------------------------------------------------------------------------
+
+struct Bar(Option<indicatif::ProgressBar>);
+
+impl Bar {
+    fn new(quiet: bool, label: &'static str) -> Self {
+        if quiet || !std::io::stderr().is_terminal() {
+            return Bar(None);
+        }
+        let pb = indicatif::ProgressBar::with_draw_target(Some(0), indicatif::ProgressDrawTarget::stderr());
+        if let Ok(style) = indicatif::ProgressStyle::with_template("{msg:>10} [{bar:40}] {percent:>3}% {elapsed}/{eta}") {
+            pb.set_style(style.progress_chars("=> "));
+        }
+        pb.set_message(label);
+        Bar(Some(pb))
+    }
+}
+
+impl crate::sample::Progress for Bar {
+    fn start(&self, total: u64) {
+        if let Some(p) = &self.0 {
+            p.set_length(total);
+        }
+    }
+    fn inc(&self, n: u64) {
+        if let Some(p) = &self.0 {
+            p.inc(n);
+        }
+    }
+    fn finish(&self) {
+        if let Some(p) = &self.0 {
+            p.finish_and_clear();
+        }
+    }
+}
+
+// ---- the compiler -------------------------------------------------------------------------
+
+fn run_compile(a: &CompileArgs) -> Result<i32, Error> {
+    // Required by clap; the Options only exist because subcommands negate the requirement.
+    let (Some(robot_path), Some(fixture), Some(output)) = (&a.robot, &a.fixture, &a.output) else {
+        return Err(usage("ROBOT, --fixture and -o are required"));
+    };
+    let fixture = xyz_mm("--fixture", fixture)?;
+    let cell = resolve_cell(&a.cell)?;
+    let blend = scalar("--blend", &a.blend)?;
+    if !(0.0..=100.0).contains(&blend) {
+        return Err(usage(format!("--blend: {blend} mm is outside 0..100 mm")));
+    }
+    let start = match &a.start {
+        Some(s) => {
+            let v = numbers("--start", s, Some(6))?;
+            std::array::from_fn(|i| v[i] * DEG)
+        }
+        None => [0.0; 6],
+    };
+    if a.max_candidates < 30 {
+        return Err(usage("--max-candidates: must be at least 30"));
+    }
+    let template = match &a.template {
+        Some(p) => std::fs::read_to_string(p).map_err(|e| Error::File { path: p.display().to_string(), msg: format!("cannot read template: {e}") })?,
+        None => crate::emit::dialect(&a.dialect)
+            .ok_or_else(|| {
+                let names: Vec<&str> = crate::emit::DIALECTS.iter().map(|d| d.0).collect();
+                usage(format!("--dialect: unknown dialect '{}' (available: {})", a.dialect, names.join(", ")))
+            })?
+            .to_string(),
+    };
+    if let Some(stage) = &a.emit {
+        if !EMIT_STAGES.contains(&stage.as_str()) {
+            return Err(usage(format!("--emit: unknown stage '{stage}' (one of: {})", EMIT_STAGES.join(", "))));
+        }
+    }
+    let robot = load_robot(robot_path, &a.cell)?;
+    let (lo, hi) = robot.limits();
+    let start = std::array::from_fn(|i| f64::clamp(start[i], lo[i], hi[i]));
+    let opts = CompileOptions {
+        fixture,
+        tool: cell.tool,
+        bar_min: cell.bar.0,
+        bar_max: cell.bar.1,
+        floor_z: cell.floor,
+        step: steps(&a.step)?,
+        max_candidates: a.max_candidates,
+        seed: a.cell.seed,
+        poses: a.poses,
+        blend: blend * MM,
+        start,
+    };
+    let bar = Bar::new(a.cell.quiet, "sampling");
+    let out = pipeline::compile(&robot, &opts, &template, &bar)?;
+    for w in &out.warnings {
+        eprintln!("edbbgen: warning: {w}");
+    }
+    if let Some(stage) = &a.emit {
+        println!("{}", emit_stage(&out, stage));
+    }
+
+    if a.check {
+        let old = std::fs::read_to_string(output).unwrap_or_default();
+        if old == out.text {
+            eprintln!("edbbgen: {} is up to date", output.display());
+            return Ok(0);
+        }
+        if !output.exists() {
+            eprintln!("edbbgen: {} does not exist", output.display());
+        }
+        let name = output.display().to_string();
+        let diff = similar::TextDiff::from_lines(&old, &out.text);
+        print!("{}", diff.unified_diff().context_radius(3).header(&format!("{name} (on disk)"), &format!("{name} (compiled)")));
+        return Ok(1);
+    }
+    write_atomic(output, &out.text)?;
+    if a.emit.is_none() {
+        let h = &out.program.header;
+        println!(
+            "{}: {} poses ({} identifiable parameters, cond {}), estimated {} s in tour order ({} s unsorted); {} valid of {} grid poses",
+            output.display(),
+            h.poses,
+            h.identifiable,
+            fmt_fixed(h.cond, 2),
+            fmt_fixed(h.time_s, 1),
+            fmt_fixed(h.time_unsorted_s, 1),
+            out.sample.valid,
+            out.sample.grid_size
+        );
+    }
+    Ok(0)
+}
+
+const EMIT_STAGES: &[&str] = &["model", "identifiability", "sample", "pool", "selection", "path", "program"];
+
+fn emit_stage(c: &pipeline::Compiled, stage: &str) -> String {
+    let v = match stage {
+        "model" => serde_json::to_value(&c.model),
+        "identifiability" => serde_json::to_value(&c.identifiability),
+        "sample" => serde_json::to_value(&c.sample),
+        "pool" => serde_json::to_value(&c.pool),
+        "selection" => serde_json::to_value(&c.selection),
+        "path" => serde_json::to_value(&c.path),
+        _ => serde_json::to_value(&c.program),
+    };
+    v.and_then(|v| serde_json::to_string_pretty(&v)).unwrap_or_default()
+}
+
+/// Writes the whole file or nothing: a temp file beside the target, then rename.
+fn write_atomic(path: &Path, text: &str) -> Result<(), Error> {
+    let err = |msg: String| Error::File { path: path.display().to_string(), msg };
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
+        _ => PathBuf::from("."),
+    };
+    let mut tmp = tempfile::Builder::new()
+        .prefix(".edbbgen-")
+        .suffix(".tmp")
+        .tempfile_in(&dir)
+        .map_err(|e| err(format!("cannot write (directory {}): {e}", dir.display())))?;
+    tmp.write_all(text.as_bytes()).map_err(|e| err(format!("cannot write: {e}")))?;
+    tmp.as_file().sync_all().map_err(|e| err(format!("cannot write: {e}")))?;
+    tmp.persist(path).map_err(|e| err(format!("cannot write: {}", e.error)))?;
+    Ok(())
+}
+
+// ---- model --------------------------------------------------------------------------------
+
+fn run_model(a: &ModelArgs) -> Result<i32, Error> {
+    let fixture = xyz_mm("--fixture", &a.fixture)?;
+    let cell_opts = resolve_cell(&a.cell)?;
+    if a.samples < 60 {
+        return Err(usage("--samples: must be at least 60"));
+    }
+    let robot = load_robot(&a.robot, &a.cell)?;
+    let (map, mut warnings) = pipeline::resolve_map(&robot, cell_opts.tool);
+    let cell = crate::ir::Cell { fixture, map, bar_min: cell_opts.bar.0, bar_max: cell_opts.bar.1, floor_z: cell_opts.floor };
+    let model = MeasurementModel::new(&robot, fixture, map);
+    let rows = pipeline::rich_rows(&robot, &model, &cell, a.samples, a.cell.seed).map_err(|closest| {
+        if closest > cell.bar_max {
+            pipeline::PipelineError::OutOfReach {
+                x: fmt_fixed(to_mm(fixture.x), 1),
+                y: fmt_fixed(to_mm(fixture.y), 1),
+                z: fmt_fixed(to_mm(fixture.z), 1),
+                closest: fmt_fixed(to_mm(closest), 1),
+                min: fmt_fixed(to_mm(cell.bar_min), 1),
+                max: fmt_fixed(to_mm(cell.bar_max), 1),
+            }
+        } else {
+            pipeline::PipelineError::EmptyShell { min: fmt_fixed(to_mm(cell.bar_min), 1), max: fmt_fixed(to_mm(cell.bar_max), 1) }
+        }
+    })?;
+    let known = model::analyse(&rows, &IdentifyOptions::default());
+    let free = model::analyse(&rows, &IdentifyOptions { fixture_known: false, map_known: true });
+    warnings.extend(pipeline::map_warnings(&model, &known));
+    let ids = &known.identifiable;
+    let norms: Vec<f64> = ids.iter().map(|&j| (rows.iter().map(|r| r[j] * r[j]).sum::<f64>() / rows.len() as f64).sqrt()).collect();
+    let jm = DMatrix::from_fn(rows.len(), ids.len(), |i, k| rows[i][ids[k]] / norms[k]);
+    let obs = model::observability(&jm);
+
+    let changes: Vec<serde_json::Value> = free
+        .params
+        .iter()
+        .zip(&known.params)
+        .filter(|(f, k)| f.status != k.status)
+        .map(|(f, k)| serde_json::json!({"name": f.name, "fixture_known": k.status, "fixture_free": f.status}))
+        .collect();
+    let fixed = |id: &model::Identifiability| -> Vec<serde_json::Value> {
+        id.params
+            .iter()
+            .filter(|p| !matches!(p.status, Status::Identifiable))
+            .map(|p| serde_json::to_value(p).unwrap_or_default())
+            .collect()
+    };
+    if a.json {
+        let report = serde_json::json!({
+            "schema": "edbbgen.model/1",
+            "robot": robot.name,
+            "robot_file": robot.source,
+            "fixture_mm": fixture.map(to_mm).as_slice(),
+            "map_mm": map.map(to_mm).as_slice(),
+            "bar_mm": [to_mm(cell.bar_min), to_mm(cell.bar_max)],
+            "poses": rows.len(),
+            "seed": a.cell.seed,
+            "fixture_known": {
+                "identifiable_count": known.count(),
+                "identifiable": known.identifiable.iter().map(|&j| model::PARAM_NAMES[j]).collect::<Vec<_>>(),
+                "fixed": fixed(&known),
+            },
+            "fixture_free": {
+                "identifiable_count": free.count(),
+                "identifiable": free.identifiable.iter().map(|&j| model::PARAM_NAMES[j]).collect::<Vec<_>>(),
+                "changes": changes,
+            },
+            "params": known.params,
+            "observability": obs,
+            "map_on_flange_axis": model::map_offset_from_joint6_axis(&model) < model::AXIS_TOLERANCE,
+            "warnings": warnings,
+        });
+        println!("{}", serde_json::to_string_pretty(&report).unwrap_or_default());
+    } else {
+        print!("{}", model_text(&robot, &cell, &known, &free, &obs, rows.len()));
+        for w in &warnings {
+            eprintln!("edbbgen: warning: {w}");
+        }
+    }
+    if a.json {
+        for w in &warnings {
+            eprintln!("edbbgen: warning: {w}");
+        }
+    }
+    Ok(0)
+}
+
+fn describe(p: &model::ParamInfo) -> String {
+    match &p.status {
+        Status::Dependent { on } => format!("{} (dependent on {})", p.name, on.join(", ")),
+        Status::Negligible => format!("{} (negligible)", p.name),
+        Status::Known => format!("{} (known)", p.name),
+        Status::Identifiable => p.name.clone(),
+    }
+}
+
+fn model_text(robot: &Robot, cell: &crate::ir::Cell, known: &model::Identifiability, free: &model::Identifiability, obs: &model::Observability, n: usize) -> String {
+    let v3 = |v: &Vector3<f64>| format!("{}, {}, {}", fmt_fixed(to_mm(v.x), 1), fmt_fixed(to_mm(v.y), 1), fmt_fixed(to_mm(v.z), 1));
+    let mut s = String::new();
+    s += &format!("{} [{}]\n", robot.name, robot.source);
+    s += &format!("fixture {} mm (base), MAP {} mm (flange), bar {}..{} mm\n", v3(&cell.fixture), v3(&cell.map), fmt_fixed(to_mm(cell.bar_min), 1), fmt_fixed(to_mm(cell.bar_max), 1));
+    s += &format!("pose set: {n} random poses with the MAP in the bar shell\n\n");
+    s += &format!("fixture and MAP known: {} identifiable parameters\n", known.count());
+    let names = |id: &model::Identifiability| id.identifiable.iter().map(|&j| model::PARAM_NAMES[j]).collect::<Vec<_>>().join(" ");
+    s += &format!("  identifiable: {}\n", names(known));
+    let fixed: Vec<String> = known.params.iter().filter(|p| matches!(p.status, Status::Dependent { .. } | Status::Negligible)).map(describe).collect();
+    s += &format!("  fixed:        {}\n", if fixed.is_empty() { "-".into() } else { fixed.join("; ") });
+    s += "  known:        x_fix y_fix z_fix x_map y_map z_map\n\n";
+    s += &format!("fixture free: {} identifiable parameters\n", free.count());
+    for (f, k) in free.params.iter().zip(&known.params) {
+        if f.status != k.status {
+            s += &format!("  {}\n", describe(f));
+        }
+    }
+    s += &format!(
+        "\nobservability (scaled Jacobian, {n} poses): O1 {}  O2 (cond) {}  O3 {}  O4 {}\n",
+        fmt_fixed(obs.o1, 4),
+        fmt_fixed(obs.o2, 2),
+        fmt_fixed(obs.o3, 4),
+        fmt_fixed(obs.o4, 4)
+    );
+    s
+}
