@@ -19,11 +19,13 @@ use urdf_rs::JointType;
 /// this name fixed to the flange's link marks the tool ball centre.
 const MAP_LINK: &str = "edbb_map";
 
-/// Two axes count as parallel when the sine of their angle is below this. Treating slightly
-/// skew axes as parallel costs angle × lever arm of accuracy, while the exact common normal of
-/// nearly parallel axes lies ~offset/angle away and costs eps × that in rounding: both are
-/// ~1e-9 m here, so this is where they break even.
-const PARALLEL_SIN: f64 = 1e-9;
+/// Two axes count as parallel when the sine of their angle is below this. Standard DH cannot
+/// hold nearly parallel axes exactly and cheaply: treating them as parallel costs about
+/// angle × reach, while their exact common normal lies ~spacing/angle away and the huge d
+/// values that puts in the table cost about eps × spacing/angle in rounding. The two meet near
+/// sqrt(eps); at this threshold neither exceeds ~3e-8 m on a 2 m arm (measured in
+/// `nearly_parallel_axes_stay_close`); exactly parallel or clearly skew axes stay at ~1e-15 m.
+const PARALLEL_SIN: f64 = 1.5e-8;
 
 /// Lengths below `LENGTH_TOL × robot size` are zero (intersecting or collinear axes).
 const LENGTH_TOL: f64 = 1e-9;
@@ -781,6 +783,108 @@ mod tests {
         )
         .unwrap();
         assert_eq!(r.joints[0].name, "j1");
+    }
+
+    #[test]
+    fn continuous_joints_misplaced_map_and_truncated_files() {
+        let path = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/inline.urdf"));
+        let o = LoadOptions::default();
+        let cont = arm(6, "").replacen("type=\"revolute\"", "type=\"continuous\"", 1);
+        let r = from_str(&cont, path, &o).unwrap();
+        assert_eq!((r.joints[0].lower, r.joints[0].upper), (-TAU, TAU));
+
+        let map = "<link name=\"edbb_map\"/><joint name=\"m\" type=\"fixed\"><parent link=\"l6\"/>\
+            <child link=\"edbb_map\"/><origin xyz=\"0.01 0.02 0.03\"/></joint>";
+        let r = from_str(
+            &arm(6, map),
+            path,
+            &LoadOptions {
+                flange_link: Some("l6".into()),
+                ..o.clone()
+            },
+        );
+        assert!((r.unwrap().tool.unwrap() - V3::new(0.01, 0.02, 0.03)).norm() < 1e-15);
+        let m = error(
+            &arm(6, &map.replace("\"l6\"", "\"l3\"")),
+            &LoadOptions {
+                flange_link: Some("l6".into()),
+                ..o.clone()
+            },
+        );
+        assert!(
+            m.contains("link edbb_map (the EDBB MAP) must be fixed to the flange link l6"),
+            "{m}"
+        );
+
+        // Bad input never panics: every prefix of a real file is an error or a robot.
+        let text =
+            std::fs::read_to_string(format!("{SHARED}/abb_irb6700_200_260/robot.urdf")).unwrap();
+        let file = Path::new(SHARED).join("abb_irb6700_200_260/robot.urdf");
+        for cut in (0..text.len()).step_by(97) {
+            if text.is_char_boundary(cut) {
+                if let Err(e) = from_str(&text[..cut], &file, &o) {
+                    assert!(!e.to_string().contains('\n'));
+                }
+            }
+        }
+    }
+
+    /// CAD axes that are almost but not exactly parallel: exact (1e-9 m) outside the window
+    /// around `PARALLEL_SIN` where standard DH itself runs out of precision, within 5e-8 m in it.
+    #[test]
+    fn nearly_parallel_axes_stay_close() {
+        let path = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/inline.urdf"));
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        for tilt in [
+            0.0, 1e-13, 1e-11, 3e-10, 1e-9, 3e-9, 1e-8, 1.4e-8, 1.6e-8, 2e-8, 3e-8, 1e-7, 1e-6,
+            1e-4,
+        ] {
+            // Two parallel-axis pairs (2-3 and 3-4) as in an arm, joint 3's axis tilted.
+            let text = format!(
+                "<robot name=\"p\"><link name=\"l0\"/>{}</robot>",
+                [
+                    ("0 0 0.5", "0 0 0", "0 0 1"),
+                    ("0.3 0.02 0.2", "0 0 0", "0 1 0"),
+                    ("0.01 -0.03 1.1", &format!("{tilt} 0 0") as &str, "0 1 0"),
+                    ("0.2 0.01 0.2", "0 0 0", "0 1 0"),
+                    ("1.0 0 0", "0 0 0", "1 0 0"),
+                    ("0 0 0", "0 0 0", "0 1 0"),
+                    ("0.2 0 0", "0 0 0", "1 0 0"),
+                ]
+                .iter()
+                .enumerate()
+                .map(|(i, (xyz, rpy, axis))| {
+                    let (kind, n) = (if i < 6 { "revolute" } else { "fixed" }, i + 1);
+                    format!(
+                        "<link name=\"l{n}\"/><joint name=\"j{n}\" type=\"{kind}\"><parent link=\"l{i}\"/>\
+                         <child link=\"l{n}\"/><origin xyz=\"{xyz}\" rpy=\"{rpy}\"/><axis xyz=\"{axis}\"/>\
+                         <limit lower=\"-3\" upper=\"3\" velocity=\"1\"/></joint>"
+                    )
+                })
+                .collect::<String>()
+            );
+            let robot = from_str(&text, path, &LoadOptions::default()).unwrap();
+            let doc = urdf_rs::read_from_string(&text).unwrap();
+            let mut worst = 0.0f64;
+            for _ in 0..200 {
+                let q = random_q(&robot, &mut rng);
+                let by_name: HashMap<&str, f64> = robot
+                    .joints
+                    .iter()
+                    .zip(q)
+                    .map(|(j, v)| (j.name.as_str(), v))
+                    .collect();
+                let (p, r) = diff(&urdf_fk(&doc, "l7", &by_name).unwrap(), &robot.fk(&q));
+                worst = worst.max(p).max(r);
+            }
+            eprintln!("tilt {tilt:e}: max FK disagreement {worst:.3e}");
+            let bound = if (1e-9..=1e-7).contains(&tilt) {
+                5e-8
+            } else {
+                1e-9
+            };
+            assert!(worst < bound, "tilt {tilt:e}: {worst:e}");
+        }
     }
 
     /// Random arms, half of them with axis-aligned axes and offsets so that parallel,
