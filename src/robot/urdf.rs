@@ -1,7 +1,988 @@
-//! URDF loader (the only module that imports urdf-rs). Filled in by the URDF work.
-use super::{LoadError, LoadOptions, Robot};
-use std::path::Path;
+//! URDF loader: in = URDF text (this is the only module that imports urdf-rs); out = [`Robot`]:
+//! the root link → flange chain re-expressed as an equivalent standard DH table between two fixed
+//! transforms, the joint limits, the collision geometry of the chain's links (in DH frames) and
+//! the optional EDBB MAP.
+//!
+//! The conversion is exact, not fitted: the DH frames are built from the joint axes at q = 0
+//! (each axis taken as a line with its sign, so a positive q stays a positive rotation about the
+//! DH z axis), and for every q, `FK_urdf(q) = base · Π dh_transform(dh[i], q[i]) · flange`.
 
-pub fn from_str(_text: &str, path: &Path, _opts: &LoadOptions) -> Result<Robot, LoadError> {
-    Err(LoadError::invalid(path, "URDF loading not built yet"))
+use super::kinematics::dh_transform;
+use super::{Dh, Frame, Geometry, Joint, LinkShape, LoadError, LoadOptions, Robot};
+use nalgebra::{Matrix3, Vector3};
+use std::collections::HashMap;
+use std::f64::consts::TAU;
+use std::path::{Path, PathBuf};
+use urdf_rs::JointType;
+
+/// The link edbbgen reads the EDBB MAP from: a URDF cannot declare one natively, so a link of
+/// this name fixed to the flange's link marks the tool ball centre.
+const MAP_LINK: &str = "edbb_map";
+
+/// Two axes count as parallel when the sine of their angle is below this. Standard DH cannot
+/// hold nearly parallel axes exactly and cheaply: treating them as parallel costs about
+/// angle × reach, while their exact common normal lies ~spacing/angle away and the huge d
+/// values that puts in the table cost about eps × spacing/angle in rounding. The two meet near
+/// sqrt(eps); at this threshold neither exceeds ~3e-8 m on a 2 m arm (measured in
+/// `nearly_parallel_axes_stay_close`); exactly parallel or clearly skew axes stay at ~1e-15 m.
+const PARALLEL_SIN: f64 = 1.5e-8;
+
+/// Lengths below `LENGTH_TOL × robot size` are zero (intersecting or collinear axes).
+const LENGTH_TOL: f64 = 1e-9;
+
+type V3 = Vector3<f64>;
+
+pub fn from_str(text: &str, path: &Path, opts: &LoadOptions) -> Result<Robot, LoadError> {
+    convert(text, path, opts).map_err(|msg| LoadError::invalid(path, one_line(&msg)))
+}
+
+/// Every message leaves as one line, whatever the XML parser put in it.
+fn one_line(s: &str) -> String {
+    s.split_whitespace().collect::<Vec<_>>().join(" ")
+}
+
+fn convert(text: &str, path: &Path, opts: &LoadOptions) -> Result<Robot, String> {
+    let doc = urdf_rs::read_from_string(text).map_err(|e| format!("not a valid URDF: {e}"))?;
+    let tree = Tree::new(&doc)?;
+    let flange_link = pick_flange(&doc, &tree, opts)?;
+    let chain = tree.path_from_root(&doc, flange_link);
+    let chain_name = format!(
+        "{} -> {}",
+        doc.links[tree.root].name, doc.links[flange_link].name
+    );
+
+    // Which revolute joint (0-based) each chain joint is, if it is one.
+    let mut revolute: Vec<usize> = Vec::new();
+    let mut joint_number: HashMap<usize, usize> = HashMap::new();
+    for &j in &chain {
+        let joint = &doc.joints[j];
+        match joint.joint_type {
+            JointType::Fixed => {}
+            JointType::Revolute | JointType::Continuous => {
+                if joint.mimic.is_some() {
+                    return Err(format!(
+                        "joint {} on the chain {chain_name} is a mimic joint; edbbgen needs 6 independent revolute joints",
+                        joint.name
+                    ));
+                }
+                joint_number.insert(j, revolute.len());
+                revolute.push(j);
+            }
+            ref t => {
+                return Err(format!(
+                    "joint {} on the chain {chain_name} is {}; edbbgen supports only revolute and fixed joints on the chain",
+                    joint.name,
+                    type_name(t)
+                ))
+            }
+        }
+    }
+    if revolute.len() != 6 {
+        let names: Vec<&str> = revolute
+            .iter()
+            .map(|&j| doc.joints[j].name.as_str())
+            .collect();
+        return Err(format!(
+            "chain {chain_name} has {} revolute joints ({}); edbbgen needs exactly 6",
+            revolute.len(),
+            names.join(", ")
+        ));
+    }
+
+    // Link poses in the root frame at q = 0, and the DH frame each link is rigid with
+    // (None: it hangs off the chain through a moving joint, e.g. a passive mimic cylinder).
+    let n_links = doc.links.len();
+    let mut pose0 = vec![Frame::IDENTITY; n_links];
+    let mut group: Vec<Option<usize>> = vec![None; n_links];
+    group[tree.root] = Some(0);
+    for &j in &tree.order {
+        let joint = &doc.joints[j];
+        let (p, c) = (
+            tree.link_of[joint.parent.link.as_str()],
+            tree.link_of[joint.child.link.as_str()],
+        );
+        let origin = origin_frame(&joint.origin.xyz, &joint.origin.rpy)
+            .ok_or_else(|| format!("joint {}: origin is not finite", joint.name))?;
+        pose0[c] = pose0[p].mul(&origin);
+        group[c] = match (joint_number.get(&j), &joint.joint_type) {
+            (Some(&k), _) => Some(k + 1),
+            (None, JointType::Fixed) => group[p],
+            _ => None,
+        };
+    }
+
+    // The six joint axes as lines in the root frame at q = 0, signs kept.
+    let mut axes = [Line {
+        p: V3::zeros(),
+        z: V3::z(),
+    }; 6];
+    for (k, &j) in revolute.iter().enumerate() {
+        let joint = &doc.joints[j];
+        let a = V3::from(joint.axis.xyz.0);
+        let n = a.norm();
+        if !(n.is_finite() && n > 1e-12) {
+            return Err(format!("joint {}: axis is zero or not finite", joint.name));
+        }
+        let child = &pose0[tree.link_of[joint.child.link.as_str()]];
+        axes[k] = Line {
+            p: child.t,
+            z: child.r * (a / n),
+        };
+    }
+    let flange0 = pose0[flange_link];
+    let size = axes
+        .iter()
+        .map(|l| l.p.norm())
+        .fold(flange0.t.norm(), f64::max)
+        .max(1e-3);
+    let (dh, frames) = dh_from_axes(&axes, &flange0, size);
+    let base = frames[0];
+    let flange = frames[6].inverse().mul(&flange0);
+
+    let joints: [Joint; 6] = std::array::from_fn(|k| {
+        let joint = &doc.joints[revolute[k]];
+        let (lower, upper) = match joint.joint_type {
+            JointType::Continuous => (-TAU, TAU),
+            _ => (joint.limit.lower, joint.limit.upper),
+        };
+        let v = joint.limit.velocity;
+        Joint {
+            name: joint.name.clone(),
+            lower,
+            upper,
+            // Missing, zero or unbounded: left for `Robot::validate` to reject with its message.
+            max_speed: if v.is_finite() && v > 0.0 { v } else { 0.0 },
+        }
+    });
+
+    // Collision geometry of every link rigid with a DH frame, in document order, then by frame.
+    // Links behind a moving joint off the chain (passive mimic linkages) have no place in the
+    // 6-joint model and are skipped.
+    let urdf_dir = path.parent().unwrap_or(Path::new(""));
+    let mut shapes = Vec::new();
+    for (l, link) in doc.links.iter().enumerate() {
+        let Some(k) = group[l] else { continue };
+        let to_dh = frames[k].inverse().mul(&pose0[l]);
+        for c in &link.collision {
+            let origin = origin_frame(&c.origin.xyz, &c.origin.rpy)
+                .ok_or_else(|| format!("link {}: collision origin is not finite", link.name))?;
+            shapes.push(LinkShape {
+                frame: k,
+                origin: to_dh.mul(&origin),
+                geometry: geometry(&c.geometry, &link.name, urdf_dir, opts)?,
+            });
+        }
+    }
+    shapes.sort_by_key(|s| s.frame);
+
+    let tool = match tree.link_of.get(MAP_LINK) {
+        None => None,
+        Some(&m) if group[m] == Some(6) => Some(flange0.inverse().apply(&pose0[m].t)),
+        Some(_) => {
+            return Err(format!(
+                "link {MAP_LINK} (the EDBB MAP) must be fixed to the flange link {} through fixed joints",
+                doc.links[flange_link].name
+            ))
+        }
+    };
+
+    Ok(Robot {
+        name: doc.name.clone(),
+        source: path
+            .file_name()
+            .map(|f| f.to_string_lossy().into_owned())
+            .unwrap_or_default(),
+        base,
+        dh,
+        flange,
+        joints,
+        tool,
+        shapes,
+    })
+}
+
+fn type_name(t: &JointType) -> &'static str {
+    match t {
+        JointType::Revolute => "revolute",
+        JointType::Continuous => "continuous",
+        JointType::Prismatic => "prismatic",
+        JointType::Fixed => "fixed",
+        JointType::Floating => "floating",
+        JointType::Planar => "planar",
+        JointType::Spherical => "spherical",
+    }
+}
+
+fn origin_frame(xyz: &[f64; 3], rpy: &[f64; 3]) -> Option<Frame> {
+    xyz.iter()
+        .chain(rpy)
+        .all(|v| v.is_finite())
+        .then(|| Frame::from_xyz_rpy(*xyz, *rpy))
+}
+
+/// The link/joint graph, checked to be one tree.
+struct Tree<'a> {
+    link_of: HashMap<&'a str, usize>,
+    /// The joint whose child each link is.
+    parent_joint: Vec<Option<usize>>,
+    /// Joints whose parent each link is, in document order.
+    children: Vec<Vec<usize>>,
+    root: usize,
+    /// All joints, parents before children (breadth first, document order within a link).
+    order: Vec<usize>,
+}
+
+impl<'a> Tree<'a> {
+    fn new(doc: &'a urdf_rs::Robot) -> Result<Self, String> {
+        let mut link_of = HashMap::new();
+        for (i, l) in doc.links.iter().enumerate() {
+            if link_of.insert(l.name.as_str(), i).is_some() {
+                return Err(format!("link {} is defined twice", l.name));
+            }
+        }
+        let mut parent_joint = vec![None; doc.links.len()];
+        let mut children = vec![Vec::new(); doc.links.len()];
+        for (j, joint) in doc.joints.iter().enumerate() {
+            let find = |name: &str| {
+                link_of.get(name).copied().ok_or_else(|| {
+                    format!(
+                        "joint {} refers to link {name}, which is not defined",
+                        joint.name
+                    )
+                })
+            };
+            let (p, c) = (find(&joint.parent.link)?, find(&joint.child.link)?);
+            if let Some(other) = parent_joint[c].replace(j) {
+                let other: &urdf_rs::Joint = &doc.joints[other];
+                return Err(format!(
+                    "link {} is the child of two joints ({} and {})",
+                    joint.child.link, other.name, joint.name
+                ));
+            }
+            children[p].push(j);
+        }
+        let roots: Vec<usize> = (0..doc.links.len())
+            .filter(|&l| parent_joint[l].is_none())
+            .collect();
+        let root = match roots[..] {
+            [r] => r,
+            [] => return Err("no root link (every link is some joint's child)".into()),
+            _ => {
+                let names: Vec<&str> = roots.iter().map(|&l| doc.links[l].name.as_str()).collect();
+                return Err(format!(
+                    "{} root links ({}); a URDF robot must be one tree",
+                    roots.len(),
+                    names.join(", ")
+                ));
+            }
+        };
+        let mut order = Vec::with_capacity(doc.joints.len());
+        let mut queue = std::collections::VecDeque::from([root]);
+        while let Some(l) = queue.pop_front() {
+            for &j in &children[l] {
+                order.push(j);
+                queue.push_back(link_of[doc.joints[j].child.link.as_str()]);
+            }
+        }
+        if order.len() != doc.joints.len() {
+            return Err(
+                "the joints form a cycle (some links cannot be reached from the root)".into(),
+            );
+        }
+        Ok(Tree {
+            link_of,
+            parent_joint,
+            children,
+            root,
+            order,
+        })
+    }
+
+    /// Joints from the root to `link`, in that order (the tree is checked, so this ends).
+    fn path_from_root(&self, doc: &urdf_rs::Robot, link: usize) -> Vec<usize> {
+        let mut path = Vec::new();
+        let mut l = link;
+        while let Some(j) = self.parent_joint[l] {
+            path.push(j);
+            l = self.link_of[doc.joints[j].parent.link.as_str()];
+        }
+        path.reverse();
+        path
+    }
+}
+
+fn pick_flange(doc: &urdf_rs::Robot, tree: &Tree, opts: &LoadOptions) -> Result<usize, String> {
+    if let Some(name) = &opts.flange_link {
+        return tree
+            .link_of
+            .get(name.as_str())
+            .copied()
+            .ok_or_else(|| format!("--flange {name}: no link of that name in the URDF"));
+    }
+    for name in ["flange", "tool0"] {
+        if let Some(&l) = tree.link_of.get(name) {
+            return Ok(l);
+        }
+    }
+    let mut l = tree.root;
+    loop {
+        match tree.children[l][..] {
+            [] => return Ok(l),
+            [j] => l = tree.link_of[doc.joints[j].child.link.as_str()],
+            _ => {
+                return Err(format!(
+                    "no link named flange or tool0, and the tree branches at link {}; name the flange link with --flange LINK",
+                    doc.links[l].name
+                ))
+            }
+        }
+    }
+}
+
+#[derive(Clone, Copy)]
+struct Line {
+    p: V3,
+    /// Unit direction.
+    z: V3,
+}
+
+impl Line {
+    fn closest_to(&self, x: &V3) -> V3 {
+        self.p + self.z * (x - self.p).dot(&self.z)
+    }
+}
+
+fn frame_from(x: V3, z: V3, o: V3) -> Frame {
+    // Re-orthogonalise x against z: exact in theory, a few ulps off in practice.
+    let x = (x - z * x.dot(&z)).normalize();
+    Frame::new(Matrix3::from_columns(&[x, z.cross(&x), z]), o)
+}
+
+/// The DH table of the six axis lines (q = 0) and the DH frames 0..6 in the root frame,
+/// recomputed from the table so that the chain closes exactly at q = 0.
+fn dh_from_axes(axes: &[Line; 6], flange0: &Frame, size: f64) -> ([Dh; 6], [Frame; 7]) {
+    let tol = LENGTH_TOL * size;
+    let mut f = [Frame::IDENTITY; 7];
+
+    // Frame 0: on axis 1, nearest the root origin; x0 as close to the root x as possible.
+    let z0 = axes[0].z;
+    let mut x0 = V3::x() - z0 * z0.x;
+    if x0.norm() < 1e-6 {
+        x0 = V3::y() - z0 * z0.y;
+    }
+    f[0] = frame_from(x0, z0, axes[0].closest_to(&V3::zeros()));
+
+    for i in 1..6 {
+        let prev = f[i - 1];
+        let (op, xp, zp) = (prev.t, prev.r.column(0).into_owned(), axes[i - 1].z);
+        let next = axes[i];
+        let n = zp.cross(&next.z);
+        let s = n.norm();
+        let (o, x) = if s < PARALLEL_SIN {
+            // Parallel: the common normal through the previous origin (d_i = 0).
+            let o = next.closest_to(&op);
+            let w = o - op;
+            let w = w - zp * w.dot(&zp);
+            let x = if w.norm() < tol { xp } else { w / w.norm() };
+            (o, x)
+        } else {
+            // Skew or intersecting: the common normal; its foot on axis i+1 is the origin.
+            let n = n / s;
+            let r = next.p - op;
+            let t = r.cross(&zp).dot(&n) / s;
+            let o = next.p + next.z * t;
+            let dist = r.dot(&n);
+            let x = if dist.abs() >= tol {
+                n * dist.signum() // from axis i to axis i+1: a_i > 0
+            } else {
+                // Intersecting: either sign is a valid DH frame; prefer the one closest to
+                // x_{i-1} (small theta), then +y_{i-1}.
+                let c = n.dot(&xp);
+                let y = zp.cross(&xp);
+                if c > 1e-9 || (c.abs() <= 1e-9 && n.dot(&y) >= 0.0) {
+                    n
+                } else {
+                    -n
+                }
+            };
+            (o, x)
+        };
+        f[i] = frame_from(x, next.z, o);
+    }
+    // Frame 6: on axis 6 nearest the flange origin, x6 = x5 (a6 = alpha6 = theta6 = 0).
+    f[6] = frame_from(
+        f[5].r.column(0).into_owned(),
+        axes[5].z,
+        axes[5].closest_to(&flange0.t),
+    );
+
+    let dh: [Dh; 6] = std::array::from_fn(|i| {
+        let (a, b) = (&f[i], &f[i + 1]);
+        let (xa, za) = (a.r.column(0), a.r.column(2));
+        let (xb, zb) = (b.r.column(0), b.r.column(2));
+        let w = b.t - a.t;
+        let clean_len = |v: f64| if v.abs() < tol { 0.0 } else { v };
+        let clean_ang = |v: f64| if v.abs() < 1e-14 { 0.0 } else { v };
+        Dh {
+            theta: clean_ang(xa.cross(&xb).dot(&za).atan2(xa.dot(&xb))),
+            d: clean_len(w.dot(&za)),
+            a: clean_len(w.dot(&xb)),
+            alpha: clean_ang(za.cross(&zb).dot(&xb).atan2(za.dot(&zb))),
+        }
+    });
+    let mut frames = [f[0]; 7];
+    for i in 0..6 {
+        frames[i + 1] = frames[i].mul(&dh_transform(&dh[i], 0.0));
+    }
+    (dh, frames)
+}
+
+fn geometry(
+    g: &urdf_rs::Geometry,
+    link: &str,
+    urdf_dir: &Path,
+    opts: &LoadOptions,
+) -> Result<Geometry, String> {
+    Ok(match g {
+        urdf_rs::Geometry::Box { size } => Geometry::Box { size: size.0 },
+        urdf_rs::Geometry::Cylinder { radius, length } => Geometry::Cylinder {
+            radius: *radius,
+            length: *length,
+        },
+        // No capsule primitive downstream: the enclosing cylinder keeps collision checks safe.
+        urdf_rs::Geometry::Capsule { radius, length } => Geometry::Cylinder {
+            radius: *radius,
+            length: length + 2.0 * radius,
+        },
+        urdf_rs::Geometry::Sphere { radius } => Geometry::Sphere { radius: *radius },
+        urdf_rs::Geometry::Mesh { filename, scale } => Geometry::Mesh {
+            path: resolve_mesh(filename, urdf_dir, opts)
+                .map_err(|e| format!("link {link}: mesh {filename}: {e}"))?,
+            scale: scale.map_or([1.0; 3], |s| s.0),
+        },
+    })
+}
+
+/// `package://NAME/rest` → `D/NAME/rest` or (when D is the package itself) `D/rest`, for each
+/// package path D in order; `file://` and plain paths → relative to the URDF's folder.
+fn resolve_mesh(filename: &str, urdf_dir: &Path, opts: &LoadOptions) -> Result<PathBuf, String> {
+    if let Some(rest) = filename.strip_prefix("package://") {
+        let (package, rel) = rest.split_once('/').unwrap_or((rest, ""));
+        let mut tried = Vec::new();
+        for d in &opts.package_paths {
+            let mut candidates = vec![d.join(package).join(rel)];
+            if d.file_name().is_some_and(|n| n == package) {
+                candidates.push(d.join(rel));
+            }
+            for c in candidates {
+                if c.is_file() {
+                    return Ok(c);
+                }
+                tried.push(c.display().to_string());
+            }
+        }
+        return Err(if tried.is_empty() {
+            format!("no package path given to find package {package}")
+        } else {
+            format!("file not found (tried {})", tried.join(", "))
+        });
+    }
+    let plain = filename.strip_prefix("file://").unwrap_or(filename);
+    if plain.contains("://") {
+        return Err("unsupported URI scheme (use package://, file:// or a path)".into());
+    }
+    let p = Path::new(plain);
+    let p = if p.is_absolute() {
+        p.to_path_buf()
+    } else {
+        urdf_dir.join(p)
+    };
+    if p.is_file() {
+        Ok(p)
+    } else {
+        Err(format!("file not found ({})", p.display()))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::robot::{axis_angle, load};
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    const SHARED: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../shared/robots");
+    const NJ130_URDF: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/robots/comau_nj130/robot.urdf");
+    const NJ130_DH: &str = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/robots/comau_nj130/robot.dh.toml"
+    );
+
+    /// Independent URDF forward kinematics: walk the urdf-rs joints from `link` up to the root,
+    /// then compose origin · rotation(axis, q) down again. Joint values are taken by joint name.
+    fn urdf_fk(doc: &urdf_rs::Robot, link: &str, q: &HashMap<&str, f64>) -> Option<Frame> {
+        let mut path = Vec::new();
+        let mut l = link;
+        while let Some(j) = doc.joints.iter().find(|j| j.child.link == l) {
+            path.push(j);
+            l = &j.parent.link;
+        }
+        let mut t = Frame::IDENTITY;
+        for j in path.iter().rev() {
+            t = t.mul(&Frame::from_xyz_rpy(j.origin.xyz.0, j.origin.rpy.0));
+            match j.joint_type {
+                JointType::Fixed => {}
+                JointType::Revolute | JointType::Continuous => {
+                    let axis = V3::from(j.axis.xyz.0).normalize();
+                    let qj = *q.get(j.name.as_str())?; // None: off the chain
+                    t = t.mul(&Frame::new(axis_angle(&axis, qj), V3::zeros()));
+                }
+                _ => return None,
+            }
+        }
+        Some(t)
+    }
+
+    fn random_q(robot: &Robot, rng: &mut ChaCha8Rng) -> [f64; 6] {
+        std::array::from_fn(|i| rng.random_range(robot.joints[i].lower..=robot.joints[i].upper))
+    }
+
+    /// Position and rotation disagreement of two frames.
+    fn diff(a: &Frame, b: &Frame) -> (f64, f64) {
+        ((a.t - b.t).norm(), (a.r - b.r).abs().max())
+    }
+
+    /// Loads `file`, then checks the DH chain against the independent URDF FK over 1000 random
+    /// poses, and every collision shape's world pose at a few of them. Returns the worst errors.
+    fn check_against_urdf_fk(file: &str, flange: &str) -> (f64, f64) {
+        let robot = load(Path::new(file), &LoadOptions::default()).expect(file);
+        let doc = urdf_rs::read_file(file).unwrap();
+        let mut rng = ChaCha8Rng::seed_from_u64(7);
+        let (mut dp, mut dr) = (0.0f64, 0.0f64);
+        for n in 0..1000 {
+            let q = random_q(&robot, &mut rng);
+            let by_name: HashMap<&str, f64> = robot
+                .joints
+                .iter()
+                .zip(q)
+                .map(|(j, v)| (j.name.as_str(), v))
+                .collect();
+            let want = urdf_fk(&doc, flange, &by_name).unwrap();
+            let (p, r) = diff(&want, &robot.fk(&q));
+            (dp, dr) = (dp.max(p), dr.max(r));
+            if n % 100 == 0 {
+                check_shapes(file, &doc, &robot, &q, &by_name);
+            }
+        }
+        eprintln!("{file}: max FK disagreement {dp:.3e} m, {dr:.3e} (rotation)");
+        assert!(dp < 1e-9 && dr < 1e-9, "{file}: {dp:e} m, {dr:e}");
+        (dp, dr)
+    }
+
+    /// Every collision element of a link rigid with the chain appears once among the shapes,
+    /// at the same world pose.
+    fn check_shapes(
+        file: &str,
+        doc: &urdf_rs::Robot,
+        robot: &Robot,
+        q: &[f64; 6],
+        by_name: &HashMap<&str, f64>,
+    ) {
+        let frames =
+            crate::robot::kinematics::chain_frames(&robot.base, &robot.dh, &robot.flange, q);
+        let mut used = vec![false; robot.shapes.len()];
+        let dir = Path::new(file).parent().unwrap();
+        for link in &doc.links {
+            let Some(at) = urdf_fk(doc, &link.name, by_name) else {
+                continue;
+            };
+            for c in &link.collision {
+                let want = at.mul(&Frame::from_xyz_rpy(c.origin.xyz.0, c.origin.rpy.0));
+                let found = robot.shapes.iter().enumerate().position(|(i, s)| {
+                    let (p, r) = diff(&want, &frames[s.frame].mul(&s.origin));
+                    let same = match (&s.geometry, &c.geometry) {
+                        (Geometry::Mesh { path, .. }, urdf_rs::Geometry::Mesh { filename, .. }) => {
+                            *path == dir.join(filename)
+                        }
+                        (Geometry::Box { size }, urdf_rs::Geometry::Box { size: s2 }) => {
+                            *size == s2.0
+                        }
+                        (Geometry::Sphere { .. }, urdf_rs::Geometry::Sphere { .. })
+                        | (Geometry::Cylinder { .. }, urdf_rs::Geometry::Cylinder { .. }) => true,
+                        _ => false,
+                    };
+                    !used[i] && same && p < 1e-9 && r < 1e-9
+                });
+                let i = found.unwrap_or_else(|| panic!("{file}: no shape for link {}", link.name));
+                used[i] = true;
+            }
+        }
+        assert!(
+            used.iter().all(|&u| u),
+            "{file}: shapes without a URDF collision"
+        );
+    }
+
+    #[test]
+    fn shared_robots_match_independent_urdf_fk() {
+        // The ABB has passive mimic joints off the chain, the KR120 and the FANUC negative
+        // axes, the KR210 CAD-derived origins: none needs special handling.
+        for dir in [
+            "abb_irb6700_200_260",
+            "kuka_kr210_l150",
+            "kuka_kr120_r2500pro",
+            "fanuc_r2000ic_165f",
+        ] {
+            check_against_urdf_fk(&format!("{SHARED}/{dir}/robot.urdf"), "flange");
+        }
+    }
+
+    #[test]
+    fn shared_robots_keep_names_limits_and_skip_off_chain_links() {
+        let abb = load(
+            Path::new(&format!("{SHARED}/abb_irb6700_200_260/robot.urdf")),
+            &LoadOptions::default(),
+        )
+        .unwrap();
+        assert_eq!(abb.name, "abb_irb6700_200_260");
+        assert_eq!(abb.source, "robot.urdf");
+        let names: Vec<&str> = abb.joints.iter().map(|j| j.name.as_str()).collect();
+        assert_eq!(
+            names,
+            ["joint_1", "joint_2", "joint_3", "joint_4", "joint_5", "joint_6"]
+        );
+        assert!((abb.joints[1].lower - -1.13446).abs() < 1e-5);
+        assert!((abb.joints[3].max_speed - 3.31613).abs() < 1e-5);
+        // 9 collision meshes, two of them on the passive cylinder and piston.
+        assert_eq!(abb.shapes.len(), 7);
+        assert!(abb.tool.is_none());
+        let p = abb.fk(&[0.0; 6]).t;
+        assert!((p - V3::new(1.6625, 0.0, 2.105)).norm() < 1e-9);
+    }
+
+    #[test]
+    fn nj130_urdf_matches_independent_fk_and_the_dh_file() {
+        check_against_urdf_fk(NJ130_URDF, "flange");
+        let u = load(Path::new(NJ130_URDF), &LoadOptions::default()).unwrap();
+        let d = load(Path::new(NJ130_DH), &LoadOptions::default()).unwrap();
+        let mut rng = ChaCha8Rng::seed_from_u64(11);
+        let (mut dp, mut dr) = (0.0f64, 0.0f64);
+        for _ in 0..1000 {
+            let q = random_q(&d, &mut rng);
+            let (p, r) = diff(&u.fk(&q), &d.fk(&q));
+            (dp, dr) = (dp.max(p), dr.max(r));
+        }
+        eprintln!("NJ-130 URDF vs DH file: max {dp:.3e} m, {dr:.3e} (rotation)");
+        assert!(dp < 1e-9 && dr < 1e-9);
+        let (ut, dt) = (u.tool.unwrap(), d.tool.unwrap());
+        assert!((ut - dt).norm() < 1e-12, "{ut:?} vs {dt:?}");
+        for (a, b) in u.joints.iter().zip(&d.joints) {
+            assert_eq!(a.name, b.name);
+            assert!((a.lower - b.lower).abs() < 1e-12 && (a.upper - b.upper).abs() < 1e-12);
+            assert!((a.max_speed - b.max_speed).abs() < 1e-12);
+        }
+        assert!(!u.shapes.is_empty());
+    }
+
+    /// A URDF of `n` revolute joints along a stretched arm, with an optional extra joint.
+    fn arm(n: usize, extra: &str) -> String {
+        let mut s = String::from("<robot name=\"arm\"><link name=\"l0\"/>");
+        for i in 1..=n {
+            s += &format!(
+                "<link name=\"l{i}\"/><joint name=\"j{i}\" type=\"revolute\"><parent link=\"l{}\"/>\
+                 <child link=\"l{i}\"/><origin xyz=\"0.1 0 0.2\"/><axis xyz=\"0 {} 1\"/>\
+                 <limit lower=\"-1\" upper=\"1\" velocity=\"1\" effort=\"0\"/></joint>",
+                i - 1,
+                i % 2
+            );
+        }
+        s + extra + "</robot>"
+    }
+
+    fn error(text: &str, opts: &LoadOptions) -> String {
+        let path = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/inline.urdf"));
+        let msg = match from_str(text, path, opts) {
+            Ok(_) => panic!("accepted: {text}"),
+            Err(e) => e.to_string(),
+        };
+        assert!(!msg.contains('\n'), "{msg}");
+        msg
+    }
+
+    #[test]
+    fn errors_are_one_line_and_name_the_problem() {
+        let o = LoadOptions::default();
+        let m = error("<robot name=\"x\"><link name=\"a\">", &o);
+        assert!(m.contains("inline.urdf: not a valid URDF"), "{m}");
+
+        let m = error(&arm(5, ""), &o);
+        assert!(
+            m.ends_with("chain l0 -> l5 has 5 revolute joints (j1, j2, j3, j4, j5); edbbgen needs exactly 6"),
+            "{m}"
+        );
+
+        let prismatic = "<link name=\"l7\"/><joint name=\"slide\" type=\"prismatic\"><parent link=\"l6\"/>\
+            <child link=\"l7\"/><axis xyz=\"1 0 0\"/><limit lower=\"0\" upper=\"1\" velocity=\"1\" effort=\"0\"/></joint>";
+        let m = error(&arm(6, prismatic), &o);
+        assert!(
+            m.contains("joint slide on the chain l0 -> l7 is prismatic"),
+            "{m}"
+        );
+
+        let mimic = arm(6, "").replace(
+            "<parent link=\"l2\"/>",
+            "<parent link=\"l2\"/><mimic joint=\"j2\"/>",
+        );
+        let m = error(&mimic, &o);
+        assert!(
+            m.contains("joint j3 on the chain l0 -> l6 is a mimic joint"),
+            "{m}"
+        );
+
+        let flange = LoadOptions {
+            flange_link: Some("gripper".into()),
+            ..LoadOptions::default()
+        };
+        let m = error(&arm(6, ""), &flange);
+        assert!(m.contains("--flange gripper: no link of that name"), "{m}");
+
+        let mesh = arm(6, "").replace(
+            "<link name=\"l3\"/>",
+            "<link name=\"l3\"><collision><geometry><mesh filename=\"meshes/nope.stl\"/></geometry></collision></link>",
+        );
+        let m = error(&mesh, &o);
+        assert!(
+            m.contains("link l3: mesh meshes/nope.stl: file not found"),
+            "{m}"
+        );
+
+        let branch = arm(6, "<link name=\"side\"/><joint name=\"s\" type=\"fixed\"><parent link=\"l2\"/><child link=\"side\"/></joint>");
+        let m = error(&branch, &o);
+        assert!(
+            m.contains("branches at link l2") && m.contains("--flange LINK"),
+            "{m}"
+        );
+
+        let m = error(&arm(6, "").replace("velocity=\"1\"", ""), &o);
+        assert!(m.contains("not a valid URDF"), "{m}");
+    }
+
+    #[test]
+    fn generated_arms_load_and_agree_with_urdf_fk() {
+        let path = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/inline.urdf"));
+        // Without a flange/tool0 link, the chain's end is the flange; --flange picks another.
+        let r = from_str(&arm(6, ""), path, &LoadOptions::default()).unwrap();
+        assert_eq!(r.joints[5].name, "j6");
+        let r = from_str(
+            &arm(7, ""),
+            path,
+            &LoadOptions {
+                flange_link: Some("l6".into()),
+                ..LoadOptions::default()
+            },
+        )
+        .unwrap();
+        assert_eq!(r.joints[0].name, "j1");
+    }
+
+    #[test]
+    fn continuous_joints_misplaced_map_and_truncated_files() {
+        let path = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/inline.urdf"));
+        let o = LoadOptions::default();
+        let cont = arm(6, "").replacen("type=\"revolute\"", "type=\"continuous\"", 1);
+        let r = from_str(&cont, path, &o).unwrap();
+        assert_eq!((r.joints[0].lower, r.joints[0].upper), (-TAU, TAU));
+
+        let map = "<link name=\"edbb_map\"/><joint name=\"m\" type=\"fixed\"><parent link=\"l6\"/>\
+            <child link=\"edbb_map\"/><origin xyz=\"0.01 0.02 0.03\"/></joint>";
+        let r = from_str(
+            &arm(6, map),
+            path,
+            &LoadOptions {
+                flange_link: Some("l6".into()),
+                ..o.clone()
+            },
+        );
+        assert!((r.unwrap().tool.unwrap() - V3::new(0.01, 0.02, 0.03)).norm() < 1e-15);
+        let m = error(
+            &arm(6, &map.replace("\"l6\"", "\"l3\"")),
+            &LoadOptions {
+                flange_link: Some("l6".into()),
+                ..o.clone()
+            },
+        );
+        assert!(
+            m.contains("link edbb_map (the EDBB MAP) must be fixed to the flange link l6"),
+            "{m}"
+        );
+
+        // Bad input never panics: every prefix of a real file is an error or a robot.
+        let text =
+            std::fs::read_to_string(format!("{SHARED}/abb_irb6700_200_260/robot.urdf")).unwrap();
+        let file = Path::new(SHARED).join("abb_irb6700_200_260/robot.urdf");
+        for cut in (0..text.len()).step_by(97) {
+            if text.is_char_boundary(cut) {
+                if let Err(e) = from_str(&text[..cut], &file, &o) {
+                    assert!(!e.to_string().contains('\n'));
+                }
+            }
+        }
+    }
+
+    /// CAD axes that are almost but not exactly parallel: exact (1e-9 m) outside the window
+    /// around `PARALLEL_SIN` where standard DH itself runs out of precision, within 5e-8 m in it.
+    #[test]
+    fn nearly_parallel_axes_stay_close() {
+        let path = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/inline.urdf"));
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        for tilt in [
+            0.0, 1e-13, 1e-11, 3e-10, 1e-9, 3e-9, 1e-8, 1.4e-8, 1.6e-8, 2e-8, 3e-8, 1e-7, 1e-6,
+            1e-4,
+        ] {
+            // Two parallel-axis pairs (2-3 and 3-4) as in an arm, joint 3's axis tilted.
+            let text = format!(
+                "<robot name=\"p\"><link name=\"l0\"/>{}</robot>",
+                [
+                    ("0 0 0.5", "0 0 0", "0 0 1"),
+                    ("0.3 0.02 0.2", "0 0 0", "0 1 0"),
+                    ("0.01 -0.03 1.1", &format!("{tilt} 0 0") as &str, "0 1 0"),
+                    ("0.2 0.01 0.2", "0 0 0", "0 1 0"),
+                    ("1.0 0 0", "0 0 0", "1 0 0"),
+                    ("0 0 0", "0 0 0", "0 1 0"),
+                    ("0.2 0 0", "0 0 0", "1 0 0"),
+                ]
+                .iter()
+                .enumerate()
+                .map(|(i, (xyz, rpy, axis))| {
+                    let (kind, n) = (if i < 6 { "revolute" } else { "fixed" }, i + 1);
+                    format!(
+                        "<link name=\"l{n}\"/><joint name=\"j{n}\" type=\"{kind}\"><parent link=\"l{i}\"/>\
+                         <child link=\"l{n}\"/><origin xyz=\"{xyz}\" rpy=\"{rpy}\"/><axis xyz=\"{axis}\"/>\
+                         <limit lower=\"-3\" upper=\"3\" velocity=\"1\"/></joint>"
+                    )
+                })
+                .collect::<String>()
+            );
+            let robot = from_str(&text, path, &LoadOptions::default()).unwrap();
+            let doc = urdf_rs::read_from_string(&text).unwrap();
+            let mut worst = 0.0f64;
+            for _ in 0..200 {
+                let q = random_q(&robot, &mut rng);
+                let by_name: HashMap<&str, f64> = robot
+                    .joints
+                    .iter()
+                    .zip(q)
+                    .map(|(j, v)| (j.name.as_str(), v))
+                    .collect();
+                let (p, r) = diff(&urdf_fk(&doc, "l7", &by_name).unwrap(), &robot.fk(&q));
+                worst = worst.max(p).max(r);
+            }
+            eprintln!("tilt {tilt:e}: max FK disagreement {worst:.3e}");
+            let bound = if (1e-9..=1e-7).contains(&tilt) {
+                5e-8
+            } else {
+                1e-9
+            };
+            assert!(worst < bound, "tilt {tilt:e}: {worst:e}");
+        }
+    }
+
+    /// Random arms, half of them with axis-aligned axes and offsets so that parallel,
+    /// collinear and intersecting consecutive axes all occur, the rest fully skew.
+    #[test]
+    fn random_arms_agree_with_urdf_fk() {
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let path = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/inline.urdf"));
+        let (mut dp, mut dr) = (0.0f64, 0.0f64);
+        for case in 0..200 {
+            let aligned = case % 2 == 0;
+            let mut s = String::from("<robot name=\"r\"><link name=\"l0\"/>");
+            for i in 1..=7 {
+                let mut xyz = [0.0; 3];
+                let mut rpy = [0.0; 3];
+                let mut axis = [0.0; 3];
+                if aligned {
+                    for v in &mut xyz {
+                        *v = [0.0, 0.0, 0.3, -0.2][rng.random_range(0..4)];
+                    }
+                    for v in &mut rpy {
+                        *v = std::f64::consts::FRAC_PI_2 * rng.random_range(-2..=2) as f64;
+                    }
+                    axis[rng.random_range(0..3)] = if rng.random_bool(0.5) { 1.0 } else { -1.0 };
+                } else {
+                    for v in xyz.iter_mut().chain(&mut axis) {
+                        *v = rng.random_range(-0.5..0.5);
+                    }
+                    for v in &mut rpy {
+                        *v = rng.random_range(-3.0..3.0);
+                    }
+                }
+                let kind = if i == 7 { "fixed" } else { "revolute" };
+                s += &format!(
+                    "<link name=\"l{i}\"/><joint name=\"j{i}\" type=\"{kind}\"><parent link=\"l{}\"/>\
+                     <child link=\"l{i}\"/><origin xyz=\"{} {} {}\" rpy=\"{} {} {}\"/>\
+                     <axis xyz=\"{} {} {}\"/><limit lower=\"-3\" upper=\"3\" velocity=\"1\"/></joint>",
+                    i - 1,
+                    xyz[0],
+                    xyz[1],
+                    xyz[2],
+                    rpy[0],
+                    rpy[1],
+                    rpy[2],
+                    axis[0],
+                    axis[1],
+                    axis[2]
+                );
+            }
+            s += "</robot>";
+            let robot = from_str(&s, path, &LoadOptions::default()).expect(&s);
+            let doc = urdf_rs::read_from_string(&s).unwrap();
+            for _ in 0..50 {
+                let q = random_q(&robot, &mut rng);
+                let by_name: HashMap<&str, f64> = robot
+                    .joints
+                    .iter()
+                    .zip(q)
+                    .map(|(j, v)| (j.name.as_str(), v))
+                    .collect();
+                let (p, r) = diff(&urdf_fk(&doc, "l7", &by_name).unwrap(), &robot.fk(&q));
+                assert!(p < 1e-9 && r < 1e-9, "case {case}: {p:e} m, {r:e}\n{s}");
+                (dp, dr) = (dp.max(p), dr.max(r));
+            }
+        }
+        eprintln!("random arms: max FK disagreement {dp:.3e} m, {dr:.3e} (rotation)");
+    }
+
+    #[test]
+    fn package_paths_resolve_both_ways() {
+        let tmp = tempfile::tempdir().unwrap();
+        let pkg = tmp.path().join("pkg");
+        std::fs::create_dir_all(pkg.join("meshes")).unwrap();
+        std::fs::write(pkg.join("meshes/a.stl"), b"solid").unwrap();
+        let want = pkg.join("meshes/a.stl");
+        for dir in [tmp.path().to_path_buf(), pkg.clone()] {
+            let opts = LoadOptions {
+                flange_link: None,
+                package_paths: vec![dir],
+            };
+            assert_eq!(
+                resolve_mesh("package://pkg/meshes/a.stl", Path::new("/x"), &opts),
+                Ok(want.clone())
+            );
+        }
+        let none = resolve_mesh(
+            "package://pkg/meshes/a.stl",
+            Path::new("/x"),
+            &LoadOptions::default(),
+        );
+        assert!(none.is_err());
+        let rel = resolve_mesh("meshes/a.stl", &pkg, &LoadOptions::default());
+        assert_eq!(rel, Ok(want.clone()));
+        let file = resolve_mesh(
+            &format!("file://{}", want.display()),
+            Path::new("/x"),
+            &LoadOptions::default(),
+        );
+        assert_eq!(file, Ok(want));
+    }
 }
