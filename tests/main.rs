@@ -1,1 +1,8 @@
-//! The one integration-test binary.
+//! The one integration-test binary: the CLI as users and CI call it.
+
+mod common;
+
+mod cli_errors;
+mod compile;
+mod model_cmd;
+mod snapshots;

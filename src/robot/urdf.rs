@@ -198,6 +198,7 @@ fn convert(text: &str, path: &Path, opts: &LoadOptions) -> Result<Robot, String>
         joints,
         tool,
         shapes,
+        digest: String::new(),
     })
 }
 

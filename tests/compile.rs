@@ -1,0 +1,112 @@
+//! The compiler form, end to end: valid programs for the bundled and the shared robots,
+//! golden-file mode, determinism.
+
+use crate::common::*;
+
+const FIXTURE: [f64; 3] = [258.0, 1468.0, 708.0];
+
+fn compile(robot: &std::path::Path, extra: &[&str], out: &std::path::Path) -> Run {
+    let mut args: Vec<String> = vec![robot.display().to_string(), "--fixture".into(), "258,1468,708".into(), "-o".into(), out.display().to_string(), "-q".into()];
+    args.extend(extra.iter().map(|s| s.to_string()));
+    edbbgen(&args)
+}
+
+#[test]
+fn nj130_urdf_compiles_to_a_program_inside_the_shell() {
+    let dir = tempdir();
+    let out = dir.path().join("nj130.nc");
+    let r = compile(&nj130_urdf(), &[], &out);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    let text = std::fs::read_to_string(&out).unwrap();
+    let robot = load(&nj130_urdf());
+    // The URDF declares the tool through its edbb_map link.
+    let n = assert_in_shell(&robot, &text, FIXTURE, [60.0, 30.0, 120.0], (300.0, 520.0));
+    assert!(n >= 33, "at least 1.5 m poses: {n}");
+    assert!(text.contains("(MAP: 60.000, 30.000, 120.000 mm in the flange frame)"));
+}
+
+#[test]
+fn every_shared_robot_compiles_with_a_fixture_in_reach() {
+    for name in SHARED_ROBOTS {
+        let dir = tempdir();
+        let out = dir.path().join("p.nc");
+        let robot_path = shared_robot(name);
+        let fixture = [1400.0, 400.0, 700.0];
+        let args = [
+            robot_path.display().to_string(),
+            "--fixture".into(),
+            "1400,400,700".into(),
+            "--tool".into(),
+            "60,30,120".into(),
+            "--step".into(),
+            "15".into(),
+            "--max-candidates".into(),
+            "1500".into(),
+            "-o".into(),
+            out.display().to_string(),
+        ];
+        let r = edbbgen(&args);
+        assert_eq!(r.code, 0, "{name}: {}", r.stderr);
+        let text = std::fs::read_to_string(&out).unwrap();
+        let robot = load(&robot_path);
+        let n = assert_in_shell(&robot, &text, fixture, [60.0, 30.0, 120.0], (300.0, 520.0));
+        assert!(text.contains("identifiable parameters: 22"), "{name}: {}", text.lines().nth(6).unwrap_or(""));
+        assert!(n >= 33, "{name}: {n} poses");
+    }
+}
+
+#[test]
+fn a_robot_without_a_tool_warns_about_the_flange_axis() {
+    let dir = tempdir();
+    let out = dir.path().join("p.nc");
+    let r = edbbgen([
+        shared_robot("kuka_kr120_r2500pro").display().to_string(),
+        "--fixture".into(),
+        "1400,400,700".into(),
+        "--step".into(),
+        "20".into(),
+        "-o".into(),
+        out.display().to_string(),
+    ]);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    assert!(r.stderr.contains("flange origin"), "{}", r.stderr);
+    assert!(r.stderr.contains("lies on the flange axis"), "{}", r.stderr);
+}
+
+#[test]
+fn check_mode_compares_and_writes_nothing() {
+    let dir = tempdir();
+    let out = dir.path().join("golden.nc");
+    let fast = ["--step", "20", "--max-candidates", "600"];
+    assert_eq!(compile(&nj130_dh(), &fast, &out).code, 0);
+    let golden = std::fs::read_to_string(&out).unwrap();
+
+    let mut args = fast.to_vec();
+    args.push("--check");
+    let same = compile(&nj130_dh(), &args, &out);
+    assert_eq!(same.code, 0, "{}", same.stderr);
+    assert!(same.stdout.is_empty());
+
+    let edited = golden.replacen("G1 X", "G1 X1", 1);
+    std::fs::write(&out, &edited).unwrap();
+    let differ = compile(&nj130_dh(), &args, &out);
+    assert_eq!(differ.code, 1);
+    assert!(differ.stdout.contains("(on disk)") && differ.stdout.contains("(compiled)"), "{}", differ.stdout);
+    assert!(differ.stdout.lines().any(|l| l.starts_with("-G1 X1")), "{}", differ.stdout);
+    assert_eq!(std::fs::read_to_string(&out).unwrap(), edited, "--check writes nothing");
+
+    let missing = dir.path().join("missing.nc");
+    let r = compile(&nj130_dh(), &args, &missing);
+    assert_eq!(r.code, 1);
+    assert!(!missing.exists());
+}
+
+#[test]
+fn options_change_the_input_hash() {
+    let dir = tempdir();
+    let (a, b) = (dir.path().join("a.nc"), dir.path().join("b.nc"));
+    assert_eq!(compile(&nj130_dh(), &["--step", "20", "--max-candidates", "600"], &a).code, 0);
+    assert_eq!(compile(&nj130_dh(), &["--step", "20", "--max-candidates", "600", "--blend", "5"], &b).code, 0);
+    let hash = |p: &std::path::Path| std::fs::read_to_string(p).unwrap().lines().find(|l| l.starts_with("(inputs sha256")).unwrap().to_string();
+    assert_ne!(hash(&a), hash(&b));
+}
