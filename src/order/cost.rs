@@ -29,11 +29,18 @@ pub(crate) struct Costs {
 impl Costs {
     pub(crate) fn new(poses: &[[f64; 6]], max_speed: &[f64; 6]) -> Self {
         let n = poses.len();
-        let mut c = vec![0.0; n * n];
-        // Each entry depends only on its own pair, so the parallel fill is deterministic.
+        // Joint-major copies so each row is six straight vectorisable sweeps. The arithmetic is
+        // exactly move_time's (same subtraction order, division, and max), so entries are equal
+        // bit for bit to move_time(poses[i], poses[j]).
+        let cols: [Vec<f64>; 6] = std::array::from_fn(|k| poses.iter().map(|p| p[k]).collect());
+        let mut c = vec![0.0_f64; n * n];
+        // Each row depends only on its own pose, so the parallel fill is deterministic.
         c.par_chunks_mut(n.max(1)).enumerate().for_each(|(i, row)| {
-            for (j, cell) in row.iter_mut().enumerate() {
-                *cell = move_time(&poses[i], &poses[j], max_speed);
+            for k in 0..6 {
+                let (a, w) = (poses[i][k], max_speed[k]);
+                for (cell, &b) in row.iter_mut().zip(&cols[k]) {
+                    *cell = cell.max((a - b).abs() / w);
+                }
             }
         });
         Costs { n, c }
@@ -60,16 +67,21 @@ impl Costs {
         let mut list = vec![0usize; n * k];
         if k > 0 {
             list.par_chunks_mut(k).enumerate().for_each(|(i, out)| {
-                let key = |j: usize| (self.get(i, j), j);
-                let mut others: Vec<usize> = (0..n).filter(|&j| j != i).collect();
-                // Total order on (cost, index): costs are finite (checked by the caller).
-                let cmp = |a: &usize, b: &usize| key(*a).partial_cmp(&key(*b)).unwrap();
-                if others.len() > k {
-                    others.select_nth_unstable_by(k - 1, cmp);
-                    others.truncate(k);
+                // One sweep keeping the k best seen so far, sorted by (cost, index). Scanning j
+                // upwards, a newcomer goes after every kept entry of equal cost: lower index wins.
+                let row = &self.c[i * n..(i + 1) * n];
+                let mut best: Vec<(f64, usize)> = Vec::with_capacity(k + 1);
+                for (j, &cost) in row.iter().enumerate() {
+                    if j == i || (best.len() == k && cost >= best[k - 1].0) {
+                        continue;
+                    }
+                    let at = best.partition_point(|&(kept, _)| kept <= cost);
+                    best.insert(at, (cost, j));
+                    best.truncate(k);
                 }
-                others.sort_unstable_by(cmp);
-                out.copy_from_slice(&others);
+                for (slot, &(_, j)) in out.iter_mut().zip(&best) {
+                    *slot = j;
+                }
             });
         }
         Neighbours { k, list }

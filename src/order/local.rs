@@ -11,7 +11,7 @@ use std::collections::VecDeque;
 use super::cost::{Costs, Neighbours};
 
 /// Greedy open path from `start`: always go to the cheapest unvisited pose (lowest index on ties).
-pub(crate) fn nearest_neighbour(costs: &Costs, start: usize) -> Vec<usize> {
+pub(crate) fn nearest_neighbour(costs: &Costs, nbrs: &Neighbours, start: usize) -> Vec<usize> {
     let n = costs.len();
     let mut visited = vec![false; n];
     let mut order = Vec::with_capacity(n);
@@ -19,18 +19,26 @@ pub(crate) fn nearest_neighbour(costs: &Costs, start: usize) -> Vec<usize> {
     visited[cur] = true;
     order.push(cur);
     for _ in 1..n {
-        let mut best = usize::MAX;
-        let mut best_cost = f64::INFINITY;
-        for (j, &seen) in visited.iter().enumerate() {
-            // Strict `<` over ascending j keeps the lowest index among equal costs.
-            if !seen && (best == usize::MAX || costs.get(cur, j) < best_cost) {
-                best = j;
-                best_cost = costs.get(cur, j);
+        // The candidate list holds the k smallest (cost, index) pairs in that order, so its first
+        // unvisited entry is the global choice; only when all k are visited scan the whole row.
+        let next = match nbrs.of(cur).iter().find(|&&j| !visited[j]) {
+            Some(&j) => j,
+            None => {
+                let mut best = usize::MAX;
+                let mut best_cost = f64::INFINITY;
+                for (j, &seen) in visited.iter().enumerate() {
+                    // Strict `<` over ascending j keeps the lowest index among equal costs.
+                    if !seen && (best == usize::MAX || costs.get(cur, j) < best_cost) {
+                        best = j;
+                        best_cost = costs.get(cur, j);
+                    }
+                }
+                best
             }
-        }
-        visited[best] = true;
-        order.push(best);
-        cur = best;
+        };
+        visited[next] = true;
+        order.push(next);
+        cur = next;
     }
     order
 }

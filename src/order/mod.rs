@@ -74,8 +74,8 @@ pub fn solve(poses: &[[f64; 6]], start: usize, max_speed: &[f64; 6]) -> Result<T
     let time_unsorted = path_time(poses, &unsorted, max_speed);
 
     let costs = cost::Costs::new(poses, max_speed);
-    let mut order = local::nearest_neighbour(&costs, start);
     let nbrs = costs.neighbours(cost::NEIGHBOURS);
+    let mut order = local::nearest_neighbour(&costs, &nbrs, start);
     local::improve(&costs, &nbrs, &mut order, EPS * costs.max().max(1.0));
 
     let time_sorted = path_time(poses, &order, max_speed);

@@ -135,7 +135,8 @@ fn local_search_never_lengthens_a_tour() {
         let tour = solve_checked(&poses, start);
 
         let costs = Costs::new(&poses, &SPEED);
-        let nn = nearest_neighbour(&costs, start);
+        let nbrs = costs.neighbours(NEIGHBOURS);
+        let nn = nearest_neighbour(&costs, &nbrs, start);
         let time_nn = path_time(&poses, &nn, &SPEED);
         assert!(
             tour.time_sorted <= time_nn,
@@ -148,7 +149,6 @@ fn local_search_never_lengthens_a_tour() {
         );
 
         // From a random order too, where the search has much more to do.
-        let nbrs = costs.neighbours(NEIGHBOURS);
         let mut order: Vec<usize> = (0..n).filter(|&i| i != start).collect();
         order.shuffle(&mut rng);
         order.insert(0, start);
@@ -308,4 +308,48 @@ fn bad_input_is_an_error_not_a_panic() {
             ..
         })
     ));
+}
+
+/// Poses on a coarse integer grid, so many costs tie and tie-breaking is exercised.
+fn grid_poses(rng: &mut ChaCha8Rng, n: usize) -> Vec<[f64; 6]> {
+    (0..n)
+        .map(|_| std::array::from_fn(|_| rng.random_range(0..4) as f64 * 0.5))
+        .collect()
+}
+
+#[test]
+fn cost_matrix_and_candidate_lists_match_naive_definitions() {
+    let mut rng = ChaCha8Rng::seed_from_u64(17);
+    for poses in [random_poses(&mut rng, 90), grid_poses(&mut rng, 90)] {
+        let n = poses.len();
+        let costs = Costs::new(&poses, &SPEED);
+        let nbrs = costs.neighbours(NEIGHBOURS);
+        for i in 0..n {
+            for j in 0..n {
+                let want = move_time(&poses[i], &poses[j], &SPEED);
+                assert_eq!(costs.get(i, j).to_bits(), want.to_bits());
+            }
+            let mut naive: Vec<usize> = (0..n).filter(|&j| j != i).collect();
+            naive.sort_by(|&a, &b| costs.get(i, a).total_cmp(&costs.get(i, b)).then(a.cmp(&b)));
+            assert_eq!(nbrs.of(i), &naive[..NEIGHBOURS], "pose {i}");
+        }
+        // Nearest neighbour through the candidate lists equals the plain full-scan definition.
+        for start in [0, n / 2, n - 1] {
+            let mut naive = vec![start];
+            while naive.len() < n {
+                let cur = *naive.last().unwrap();
+                let next = (0..n)
+                    .filter(|j| !naive.contains(j))
+                    .min_by(|&a, &b| {
+                        costs
+                            .get(cur, a)
+                            .total_cmp(&costs.get(cur, b))
+                            .then(a.cmp(&b))
+                    })
+                    .unwrap();
+                naive.push(next);
+            }
+            assert_eq!(nearest_neighbour(&costs, &nbrs, start), naive);
+        }
+    }
 }
