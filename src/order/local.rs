@@ -46,41 +46,77 @@ pub(crate) fn nearest_neighbour(costs: &Costs, nbrs: &Neighbours, start: usize) 
 /// Improve `order` in place by 2-opt and Or-opt moves until none strictly shortens it by more than
 /// `eps`. `order[0]` never moves. Returns the number of moves applied.
 pub(crate) fn improve(costs: &Costs, nbrs: &Neighbours, order: &mut [usize], eps: f64) -> usize {
-    let n = order.len();
-    if n < 3 {
+    if order.len() < 3 {
         return 0; // With the first pose fixed, 0..=2 poses have exactly one open path.
     }
-    let mut pos = vec![0usize; n];
-    for (p, &c) in order.iter().enumerate() {
-        pos[c] = p;
+    let mut path = Path::new(costs, nbrs, order, eps);
+    let all = path.t.to_vec();
+    path.search(&all)
+}
+
+/// Iterated local search from a local optimum `order`: `kicks` times, swap two adjacent short
+/// segments (a segment-local double bridge, which 2-opt and Or-opt cannot undo in one move),
+/// re-optimise around the four changed edges, and keep the result only if the whole path got
+/// strictly shorter (by more than `eps`); otherwise restore it. The kicks come from a ChaCha8
+/// generator seeded with `seed`, so the outcome is the same on every machine. Returns the number
+/// of kicks kept.
+pub(crate) fn perturb(
+    costs: &Costs,
+    nbrs: &Neighbours,
+    order: &mut [usize],
+    eps: f64,
+    kicks: usize,
+    seed: u64,
+) -> usize {
+    use rand::{Rng, SeedableRng};
+    /// Longest segment a kick moves; longer swaps rarely pay off and cost more to repair.
+    const MAX_SEGMENT: usize = 30;
+    let n = order.len();
+    if n < 3 {
+        return 0; // Needs the fixed start plus two non-empty segments.
     }
-    let mut path = Path {
-        c: costs,
-        nb: nbrs,
-        t: order,
-        pos,
-        eps,
-    };
-    let mut queue: VecDeque<usize> = path.t.iter().copied().collect();
-    let mut queued = vec![true; n];
-    let mut moves = 0;
-    let mut touched = Vec::with_capacity(8);
-    while let Some(a) = queue.pop_front() {
-        queued[a] = false;
-        touched.clear();
-        let changed = path.two_opt(a, &mut touched) || path.or_opt(a, &mut touched);
-        if changed {
-            moves += 1;
-            // usize::MAX stands for "no city" (a missing edge at the open end).
-            for &x in touched.iter().filter(|&&x| x != usize::MAX) {
-                if !queued[x] {
-                    queued[x] = true;
-                    queue.push_back(x);
-                }
+    // Two segments fit behind the fixed start: lb + lc <= n - 1.
+    let longest = MAX_SEGMENT.min((n - 1) / 2);
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+    let mut path = Path::new(costs, nbrs, order, eps);
+    let mut saved = path.t.to_vec();
+    let mut kept = 0;
+    for _ in 0..kicks {
+        // Path = A B C D with B = t[p1..p2], C = t[p2..p3]; the kick makes it A C B D.
+        let lb = rng.random_range(1..=longest);
+        let lc = rng.random_range(1..=longest);
+        let p1 = rng.random_range(1..=n - lb - lc);
+        let (p2, p3) = (p1 + lb, p1 + lb + lc);
+        let t = &path.t;
+        let (a, b0, b1, c0, c1) = (t[p1 - 1], t[p1], t[p2 - 1], t[p2], t[p3 - 1]);
+        let d = (p3 < n).then(|| t[p3]);
+        let (old_d, new_d) = match d {
+            Some(d) => (path.d(c1, d), path.d(b1, d)),
+            None => (0.0, 0.0),
+        };
+        let kick =
+            path.d(a, c0) + path.d(c1, b0) + new_d - (path.d(a, b0) + path.d(b1, c0) + old_d);
+        path.dirty = (n, 0);
+        path.t[p1..p3].rotate_left(lb);
+        path.mark(p1, p3 - 1);
+        for p in p1..p3 {
+            path.pos[path.t[p]] = p;
+        }
+        path.gain = 0.0;
+        let seeds = [a, b0, b1, c0, c1, d.unwrap_or(usize::MAX)];
+        path.search(&seeds);
+        let (lo, hi) = path.dirty;
+        if kick - path.gain < -eps {
+            saved[lo..hi].copy_from_slice(&path.t[lo..hi]);
+            kept += 1;
+        } else {
+            path.t[lo..hi].copy_from_slice(&saved[lo..hi]);
+            for (p, &city) in saved.iter().enumerate().take(hi).skip(lo) {
+                path.pos[city] = p;
             }
         }
     }
-    moves
+    kept
 }
 
 struct Path<'a> {
@@ -89,9 +125,66 @@ struct Path<'a> {
     t: &'a mut [usize],
     pos: Vec<usize>,
     eps: f64,
+    /// Work-queue membership; all false between searches.
+    queued: Vec<bool>,
+    /// Sum of the gains of the moves applied since last reset.
+    gain: f64,
+    /// Positions `dirty.0..dirty.1` hold every change to `t` since last reset.
+    dirty: (usize, usize),
 }
 
-impl Path<'_> {
+impl<'a> Path<'a> {
+    fn new(c: &'a Costs, nb: &'a Neighbours, t: &'a mut [usize], eps: f64) -> Self {
+        let n = t.len();
+        let mut pos = vec![0usize; n];
+        for (p, &city) in t.iter().enumerate() {
+            pos[city] = p;
+        }
+        Path {
+            c,
+            nb,
+            t,
+            pos,
+            eps,
+            queued: vec![false; n],
+            gain: 0.0,
+            dirty: (n, 0),
+        }
+    }
+
+    /// Apply improving moves around the `seeds` (usize::MAX = none) and every city whose edges
+    /// change, until the queue runs dry. Returns the number of moves applied.
+    fn search(&mut self, seeds: &[usize]) -> usize {
+        let mut queue = VecDeque::new();
+        let push = |queue: &mut VecDeque<usize>, queued: &mut [bool], x: usize| {
+            // usize::MAX stands for "no city" (a missing edge at the open end).
+            if x != usize::MAX && !queued[x] {
+                queued[x] = true;
+                queue.push_back(x);
+            }
+        };
+        for &x in seeds {
+            push(&mut queue, &mut self.queued, x);
+        }
+        let mut moves = 0;
+        let mut touched = Vec::with_capacity(8);
+        while let Some(a) = queue.pop_front() {
+            self.queued[a] = false;
+            touched.clear();
+            if self.two_opt(a, &mut touched) || self.or_opt(a, &mut touched) {
+                moves += 1;
+                for &x in &touched {
+                    push(&mut queue, &mut self.queued, x);
+                }
+            }
+        }
+        moves
+    }
+
+    fn mark(&mut self, lo: usize, hi: usize) {
+        self.dirty = (self.dirty.0.min(lo), self.dirty.1.max(hi + 1));
+    }
+
     #[inline]
     fn d(&self, a: usize, b: usize) -> f64 {
         self.c.get(a, b)
@@ -101,6 +194,7 @@ impl Path<'_> {
     fn reverse(&mut self, i: usize, j: usize) {
         debug_assert!(i >= 1 && i <= j);
         self.t[i..=j].reverse();
+        self.mark(i, j);
         for p in i..=j {
             self.pos[self.t[p]] = p;
         }
@@ -133,6 +227,7 @@ impl Path<'_> {
                         (d_ab - d_ax, usize::MAX)
                     };
                     if gain > eps {
+                        self.gain += gain;
                         self.reverse(i + 1, j);
                         touched.extend([a, b, x, y]);
                         return true;
@@ -142,6 +237,7 @@ impl Path<'_> {
                     let xs = self.t[j + 1];
                     let gain = self.d(x, xs) + d_ab - d_ax - self.d(xs, b);
                     if gain > eps {
+                        self.gain += gain;
                         self.reverse(j + 1, i);
                         touched.extend([a, b, x, xs]);
                         return true;
@@ -156,6 +252,7 @@ impl Path<'_> {
                     let xs = self.t[j + 1];
                     let gain = self.d(x, xs) - self.d(x, a);
                     if gain > eps {
+                        self.gain += gain;
                         self.reverse(j + 1, n - 1);
                         touched.extend([a, x, xs]);
                         return true;
@@ -179,6 +276,7 @@ impl Path<'_> {
                     let w = self.t[j - 1];
                     let gain = self.d(w, x) + d_pa - self.d(w, p) - d_ax;
                     if gain > eps {
+                        self.gain += gain;
                         self.reverse(j, i - 1);
                         touched.extend([a, p, x, w]);
                         return true;
@@ -188,6 +286,7 @@ impl Path<'_> {
                     let v = self.t[j - 1];
                     let gain = d_pa + self.d(v, x) - self.d(p, v) - d_ax;
                     if gain > eps {
+                        self.gain += gain;
                         self.reverse(i, j - 1);
                         touched.extend([a, p, x, v]);
                         return true;
@@ -255,6 +354,7 @@ impl Path<'_> {
                     let w = self.t[j - 1];
                     let gain = removal - (self.d(w, other) + d_ex - self.d(w, x));
                     if gain > eps {
+                        self.gain += gain;
                         let reversed = end == first;
                         self.move_segment(s, e, j - 1, reversed);
                         touched.extend([first, last, p, nx.unwrap_or(usize::MAX), w, x]);
@@ -271,6 +371,7 @@ impl Path<'_> {
                     };
                     let gain = removal - delta;
                     if gain > eps {
+                        self.gain += gain;
                         let reversed = end == last;
                         self.move_segment(s, e, j, reversed);
                         touched.extend([first, last, p, nx.unwrap_or(usize::MAX), x, y]);
@@ -297,6 +398,7 @@ impl Path<'_> {
         if reversed {
             self.t[seg..seg + len].reverse();
         }
+        self.mark(lo, hi);
         for p in lo..=hi {
             self.pos[self.t[p]] = p;
         }

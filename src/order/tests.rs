@@ -3,7 +3,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use super::cost::{Costs, NEIGHBOURS};
-use super::local::{improve, nearest_neighbour};
+use super::local::{improve, nearest_neighbour, perturb};
 use super::*;
 
 /// Joint speed limits of a mid-size robot (rad/s): unequal, so the slowest axis varies.
@@ -155,7 +155,11 @@ fn local_search_never_lengthens_a_tour() {
         let before = path_time(&poses, &order, &SPEED);
         improve(&costs, &nbrs, &mut order, EPS);
         assert_eq!(order[0], start);
-        assert!(path_time(&poses, &order, &SPEED) <= before, "case {case}");
+        let improved = path_time(&poses, &order, &SPEED);
+        assert!(improved <= before, "case {case}");
+        perturb(&costs, &nbrs, &mut order, EPS, 3 * n, case);
+        assert_eq!(order[0], start);
+        assert!(path_time(&poses, &order, &SPEED) <= improved, "case {case}");
     }
 }
 
