@@ -1,40 +1,132 @@
-//! Temporary ordering stage (replaced by the helper's implementation at merge).
+//! Visiting order: in = measurement poses (joint vectors, rad), a start pose and the joint speed
+//! limits (rad/s); out = [`Tour`], a time-short open path over all poses that starts at the start
+//! pose (Eq. 7 cost, a travelling-salesman path with a free end).
+//!
+//! The cost of a move is the time of its slowest axis (Eq. 7), a weighted Chebyshev distance, so
+//! it is symmetric and obeys the triangle inequality. The tour is built by nearest neighbour and
+//! then improved by 2-opt and Or-opt over candidate lists (`cost.rs`, `local.rs`); everything is
+//! deterministic (ties go to the lowest index, work queues are FIFO, no hashing, no randomness).
+//!
+//! **Architecture Invariant:** no I/O, no printing, no threads whose scheduling can change the
+//! result (rayon only fills the cost matrix and candidate lists, entry by entry).
+
+mod cost;
+mod local;
+
+#[cfg(test)]
+mod tests;
+
 use serde::{Deserialize, Serialize};
 
-pub fn move_time(a: &[f64; 6], b: &[f64; 6], w: &[f64; 6]) -> f64 {
-    (0..6).map(|n| (a[n] - b[n]).abs() / w[n]).fold(0.0, f64::max)
+pub use cost::move_time;
+
+/// Moves must shorten the path by more than this (seconds, scaled by the largest cost when that
+/// exceeds 1 s) to be accepted, so rounding noise can never make the search cycle.
+const EPS: f64 = 1e-12;
+
+/// Perturbations tried per 100 poses after the first local optimum (see `local::perturb`). On
+/// random 6-joint instances of 3,400 poses, 50 take ~0.15 s and shorten the tour by ~1.6 %.
+const KICKS_PER_100_POSES: usize = 50;
+/// Fixed seed of the perturbation generator: the tour is a function of the input alone.
+const KICK_SEED: u64 = 0x6564_6262;
+
+/// Estimated time of visiting `poses` in the given order (sum of Eq. 7 over consecutive pairs).
+/// Sums left to right, so equal inputs give bit-identical results.
+pub fn path_time(poses: &[[f64; 6]], order: &[usize], max_speed: &[f64; 6]) -> f64 {
+    order
+        .windows(2)
+        .map(|w| move_time(&poses[w[0]], &poses[w[1]], max_speed))
+        .sum()
 }
 
-pub fn path_time(poses: &[[f64; 6]], order: &[usize], w: &[f64; 6]) -> f64 {
-    order.windows(2).map(|p| move_time(&poses[p[0]], &poses[p[1]], w)).sum()
-}
-
+/// An ordered visit of all poses.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct Tour {
+    /// Indices into the input poses; a permutation of `0..n` whose first element is the start.
     pub order: Vec<usize>,
+    /// [`path_time`] of the input order with the start pose moved to the front (s).
     pub time_unsorted: f64,
+    /// [`path_time`] of [`Tour::order`] (s).
     pub time_sorted: f64,
 }
 
-#[derive(Debug, thiserror::Error)]
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum OrderError {
-    #[error("start index {start} out of range for {n} poses")]
-    Start { start: usize, n: usize },
+    #[error("start pose {start} is out of range: there are {len} poses")]
+    StartOutOfRange { start: usize, len: usize },
+    /// `joint` is 1-based, as users see it.
+    #[error("joint {joint}: max speed {value} rad/s must be finite and positive")]
+    InvalidSpeed { joint: usize, value: f64 },
+    /// `pose` is the 0-based input index, `joint` is 1-based.
+    #[error("pose {pose}, joint {joint}: value {value} is not finite")]
+    NonFinitePose {
+        pose: usize,
+        joint: usize,
+        value: f64,
+    },
 }
 
-pub fn solve(poses: &[[f64; 6]], start: usize, w: &[f64; 6]) -> Result<Tour, OrderError> {
+/// Open tour starting at `start` (an index into `poses`): nearest neighbour, then 2-opt and
+/// Or-opt (segment moves of length 1..=3, both orientations) until no improving move remains,
+/// then a fixed number of seeded perturbations (segment swaps) each followed by the same local
+/// search and kept only if the tour got strictly shorter. The result is a local optimum for
+/// 2-opt and Or-opt over the candidate lists, and never longer than the nearest-neighbour tour.
+///
+/// With no poses every `start` is out of range, so `poses` must be non-empty. One or two poses
+/// have a single open path from `start`, returned as is.
+pub fn solve(poses: &[[f64; 6]], start: usize, max_speed: &[f64; 6]) -> Result<Tour, OrderError> {
+    check(poses, start, max_speed)?;
     let n = poses.len();
-    if start >= n {
-        return Err(OrderError::Start { start, n });
+    let unsorted: Vec<usize> = std::iter::once(start)
+        .chain((0..n).filter(|&i| i != start))
+        .collect();
+    let time_unsorted = path_time(poses, &unsorted, max_speed);
+
+    let costs = cost::Costs::new(poses, max_speed);
+    let nbrs = costs.neighbours(cost::NEIGHBOURS);
+    let mut order = local::nearest_neighbour(&costs, &nbrs, start);
+    let eps = EPS * costs.max().max(1.0);
+    local::improve(&costs, &nbrs, &mut order, eps);
+    local::perturb(
+        &costs,
+        &nbrs,
+        &mut order,
+        eps,
+        n * KICKS_PER_100_POSES / 100,
+        KICK_SEED,
+    );
+
+    let time_sorted = path_time(poses, &order, max_speed);
+    Ok(Tour {
+        order,
+        time_unsorted,
+        time_sorted,
+    })
+}
+
+fn check(poses: &[[f64; 6]], start: usize, max_speed: &[f64; 6]) -> Result<(), OrderError> {
+    if start >= poses.len() {
+        return Err(OrderError::StartOutOfRange {
+            start,
+            len: poses.len(),
+        });
     }
-    let mut order = vec![start];
-    let mut left: Vec<usize> = (0..n).filter(|&i| i != start).collect();
-    while !left.is_empty() {
-        let cur = *order.last().unwrap_or(&start);
-        let (k, _) = left.iter().enumerate().map(|(k, &i)| (k, move_time(&poses[cur], &poses[i], w))).fold((0, f64::INFINITY), |b, c| if c.1 < b.1 { c } else { b });
-        order.push(left.remove(k));
+    for (n, &w) in max_speed.iter().enumerate() {
+        if !(w.is_finite() && w > 0.0) {
+            return Err(OrderError::InvalidSpeed {
+                joint: n + 1,
+                value: w,
+            });
+        }
     }
-    let mut unsorted: Vec<usize> = vec![start];
-    unsorted.extend((0..n).filter(|&i| i != start));
-    Ok(Tour { time_unsorted: path_time(poses, &unsorted, w), time_sorted: path_time(poses, &order, w), order })
+    for (i, q) in poses.iter().enumerate() {
+        if let Some(n) = q.iter().position(|v| !v.is_finite()) {
+            return Err(OrderError::NonFinitePose {
+                pose: i,
+                joint: n + 1,
+                value: q[n],
+            });
+        }
+    }
+    Ok(())
 }
