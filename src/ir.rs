@@ -26,7 +26,9 @@ impl Cell {
     #[inline]
     pub fn admits(&self, map: &Vector3<f64>) -> bool {
         let d2 = (map - self.fixture).norm_squared();
-        d2 >= self.bar_min * self.bar_min && d2 <= self.bar_max * self.bar_max && map.z > self.floor_z
+        d2 >= self.bar_min * self.bar_min
+            && d2 <= self.bar_max * self.bar_max
+            && map.z > self.floor_z
     }
 }
 

@@ -17,6 +17,9 @@
 //!
 //! Internally everything is SI (m, rad, s); millimetres and degrees exist only at the edges.
 
+// Joint loops index several arrays by joint number; `for i in 0..6` says that best.
+#![allow(clippy::needless_range_loop)]
+
 pub mod cli;
 pub mod emit;
 pub mod ir;

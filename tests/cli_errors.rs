@@ -13,7 +13,11 @@ fn check_rejected(args: &[&str], needle: &str) {
     let lines: Vec<&str> = r.stderr.lines().collect();
     assert_eq!(lines.len(), 1, "one line expected, got: {}", r.stderr);
     assert!(lines[0].starts_with("edbbgen: error: "), "{}", lines[0]);
-    assert!(lines[0].contains(needle), "'{}' should name '{needle}'", lines[0]);
+    assert!(
+        lines[0].contains(needle),
+        "'{}' should name '{needle}'",
+        lines[0]
+    );
     assert!(!out.exists(), "no output on error");
     let leftovers: Vec<_> = std::fs::read_dir(dir.path()).unwrap().collect();
     assert!(leftovers.is_empty(), "no temp files left behind");
@@ -21,7 +25,10 @@ fn check_rejected(args: &[&str], needle: &str) {
 
 #[test]
 fn missing_robot_file() {
-    check_rejected(&["/nonexistent/robot.urdf", "--fixture", "258,1468,708"], "/nonexistent/robot.urdf");
+    check_rejected(
+        &["/nonexistent/robot.urdf", "--fixture", "258,1468,708"],
+        "/nonexistent/robot.urdf",
+    );
 }
 
 #[test]
@@ -29,7 +36,10 @@ fn malformed_urdf() {
     let dir = tempdir();
     let p = dir.path().join("broken.urdf");
     std::fs::write(&p, "<robot name=\"x\"><link name=\"a\"></robot").unwrap();
-    check_rejected(&[p.to_str().unwrap(), "--fixture", "258,1468,708"], "broken.urdf");
+    check_rejected(
+        &[p.to_str().unwrap(), "--fixture", "258,1468,708"],
+        "broken.urdf",
+    );
 }
 
 #[test]
@@ -46,39 +56,72 @@ fn urdf_with_five_revolute_joints() {
     }
     s += "</robot>";
     std::fs::write(&p, s).unwrap();
-    check_rejected(&[p.to_str().unwrap(), "--fixture", "258,1468,708"], "5 revolute joints");
+    check_rejected(
+        &[p.to_str().unwrap(), "--fixture", "258,1468,708"],
+        "5 revolute joints",
+    );
 }
 
 #[test]
 fn fixture_out_of_reach() {
-    check_rejected(&[nj130_dh().to_str().unwrap(), "--fixture", "9000,0,500"], "out of reach");
+    check_rejected(
+        &[nj130_dh().to_str().unwrap(), "--fixture", "9000,0,500"],
+        "out of reach",
+    );
 }
 
 #[test]
 fn non_numeric_fixture() {
-    check_rejected(&[nj130_dh().to_str().unwrap(), "--fixture", "258,abc,708"], "--fixture");
+    check_rejected(
+        &[nj130_dh().to_str().unwrap(), "--fixture", "258,abc,708"],
+        "--fixture",
+    );
 }
 
 #[test]
 fn nan_fixture() {
-    check_rejected(&[nj130_dh().to_str().unwrap(), "--fixture", "258,NaN,708"], "--fixture");
+    check_rejected(
+        &[nj130_dh().to_str().unwrap(), "--fixture", "258,NaN,708"],
+        "--fixture",
+    );
 }
 
 #[test]
 fn empty_shell() {
-    check_rejected(&[nj130_dh().to_str().unwrap(), "--fixture", "258,1468,708", "--bar", "10..20"], "empty shell");
+    check_rejected(
+        &[
+            nj130_dh().to_str().unwrap(),
+            "--fixture",
+            "258,1468,708",
+            "--bar",
+            "10..20",
+        ],
+        "empty shell",
+    );
 }
 
 #[test]
 fn malformed_bar_range() {
-    check_rejected(&[nj130_dh().to_str().unwrap(), "--fixture", "258,1468,708", "--bar", "520..300"], "--bar");
+    check_rejected(
+        &[
+            nj130_dh().to_str().unwrap(),
+            "--fixture",
+            "258,1468,708",
+            "--bar",
+            "520..300",
+        ],
+        "--bar",
+    );
 }
 
 #[test]
 fn malformed_dh_toml_names_the_line() {
     let dir = tempdir();
     let p = dir.path().join("bad.dh.toml");
-    let text = std::fs::read_to_string(nj130_dh()).unwrap().replacen("a = 860.0", "a = \"long\"", 1);
+    let text =
+        std::fs::read_to_string(nj130_dh())
+            .unwrap()
+            .replacen("a = 860.0", "a = \"long\"", 1);
     std::fs::write(&p, text).unwrap();
     check_rejected(&[p.to_str().unwrap(), "--fixture", "258,1468,708"], "line");
 }
@@ -90,15 +133,37 @@ fn dh_with_wrong_joint_count() {
     let text = std::fs::read_to_string(nj130_dh()).unwrap();
     let cut = text.rfind("[[joints]]").unwrap();
     std::fs::write(&p, &text[..cut]).unwrap();
-    check_rejected(&[p.to_str().unwrap(), "--fixture", "258,1468,708"], "5 joints");
+    check_rejected(
+        &[p.to_str().unwrap(), "--fixture", "258,1468,708"],
+        "5 joints",
+    );
 }
 
 #[test]
 fn unknown_flag_is_one_line() {
-    check_rejected(&[nj130_dh().to_str().unwrap(), "--fixture", "258,1468,708", "--frobnicate"], "--frobnicate");
+    check_rejected(
+        &[
+            nj130_dh().to_str().unwrap(),
+            "--fixture",
+            "258,1468,708",
+            "--frobnicate",
+        ],
+        "--frobnicate",
+    );
 }
 
 #[test]
 fn poses_below_parameter_count() {
-    check_rejected(&[nj130_dh().to_str().unwrap(), "--fixture", "258,1468,708", "--poses", "5", "--step", "20"], "--poses");
+    check_rejected(
+        &[
+            nj130_dh().to_str().unwrap(),
+            "--fixture",
+            "258,1468,708",
+            "--poses",
+            "5",
+            "--step",
+            "20",
+        ],
+        "--poses",
+    );
 }

@@ -6,7 +6,14 @@ use crate::common::*;
 const FIXTURE: [f64; 3] = [258.0, 1468.0, 708.0];
 
 fn compile(robot: &std::path::Path, extra: &[&str], out: &std::path::Path) -> Run {
-    let mut args: Vec<String> = vec![robot.display().to_string(), "--fixture".into(), "258,1468,708".into(), "-o".into(), out.display().to_string(), "-q".into()];
+    let mut args: Vec<String> = vec![
+        robot.display().to_string(),
+        "--fixture".into(),
+        "258,1468,708".into(),
+        "-o".into(),
+        out.display().to_string(),
+        "-q".into(),
+    ];
     args.extend(extra.iter().map(|s| s.to_string()));
     edbbgen(&args)
 }
@@ -50,7 +57,11 @@ fn every_shared_robot_compiles_with_a_fixture_in_reach() {
         let text = std::fs::read_to_string(&out).unwrap();
         let robot = load(&robot_path);
         let n = assert_in_shell(&robot, &text, fixture, [60.0, 30.0, 120.0], (300.0, 520.0));
-        assert!(text.contains("identifiable parameters: 22"), "{name}: {}", text.lines().nth(6).unwrap_or(""));
+        assert!(
+            text.contains("identifiable parameters: 22"),
+            "{name}: {}",
+            text.lines().nth(6).unwrap_or("")
+        );
         assert!(n >= 33, "{name}: {n} poses");
     }
 }
@@ -91,9 +102,21 @@ fn check_mode_compares_and_writes_nothing() {
     std::fs::write(&out, &edited).unwrap();
     let differ = compile(&nj130_dh(), &args, &out);
     assert_eq!(differ.code, 1);
-    assert!(differ.stdout.contains("(on disk)") && differ.stdout.contains("(compiled)"), "{}", differ.stdout);
-    assert!(differ.stdout.lines().any(|l| l.starts_with("-G1 X1")), "{}", differ.stdout);
-    assert_eq!(std::fs::read_to_string(&out).unwrap(), edited, "--check writes nothing");
+    assert!(
+        differ.stdout.contains("(on disk)") && differ.stdout.contains("(compiled)"),
+        "{}",
+        differ.stdout
+    );
+    assert!(
+        differ.stdout.lines().any(|l| l.starts_with("-G1 X1")),
+        "{}",
+        differ.stdout
+    );
+    assert_eq!(
+        std::fs::read_to_string(&out).unwrap(),
+        edited,
+        "--check writes nothing"
+    );
 
     let missing = dir.path().join("missing.nc");
     let r = compile(&nj130_dh(), &args, &missing);
@@ -105,8 +128,31 @@ fn check_mode_compares_and_writes_nothing() {
 fn options_change_the_input_hash() {
     let dir = tempdir();
     let (a, b) = (dir.path().join("a.nc"), dir.path().join("b.nc"));
-    assert_eq!(compile(&nj130_dh(), &["--step", "20", "--max-candidates", "600"], &a).code, 0);
-    assert_eq!(compile(&nj130_dh(), &["--step", "20", "--max-candidates", "600", "--blend", "5"], &b).code, 0);
-    let hash = |p: &std::path::Path| std::fs::read_to_string(p).unwrap().lines().find(|l| l.starts_with("(inputs sha256")).unwrap().to_string();
+    assert_eq!(
+        compile(
+            &nj130_dh(),
+            &["--step", "20", "--max-candidates", "600"],
+            &a
+        )
+        .code,
+        0
+    );
+    assert_eq!(
+        compile(
+            &nj130_dh(),
+            &["--step", "20", "--max-candidates", "600", "--blend", "5"],
+            &b
+        )
+        .code,
+        0
+    );
+    let hash = |p: &std::path::Path| {
+        std::fs::read_to_string(p)
+            .unwrap()
+            .lines()
+            .find(|l| l.starts_with("(inputs sha256"))
+            .unwrap()
+            .to_string()
+    };
     assert_ne!(hash(&a), hash(&b));
 }

@@ -18,7 +18,13 @@ fn nj130_default_program_is_deterministic_and_golden() {
     let (one, two) = (dir.path().join("t1.nc"), dir.path().join("t2.nc"));
     let run = |out: &std::path::Path, threads: &str| {
         let r = edbbgen_env(
-            [nj130_dh().to_str().unwrap(), "--fixture", "258,1468,708", "-o", out.to_str().unwrap()],
+            [
+                nj130_dh().to_str().unwrap(),
+                "--fixture",
+                "258,1468,708",
+                "-o",
+                out.to_str().unwrap(),
+            ],
             &[("RAYON_NUM_THREADS", threads)],
         );
         assert_eq!(r.code, 0, "{}", r.stderr);
@@ -28,8 +34,17 @@ fn nj130_default_program_is_deterministic_and_golden() {
     let b = run(&two, "2");
     assert_eq!(a, b, "byte-identical on 1 and 2 threads");
     let robot = load(&nj130_dh());
-    assert_in_shell(&robot, &a, [258.0, 1468.0, 708.0], [60.0, 30.0, 120.0], (300.0, 520.0));
-    assert!(!a.contains("/work") && !a.contains(env!("CARGO_MANIFEST_DIR")), "no absolute paths in the program");
+    assert_in_shell(
+        &robot,
+        &a,
+        [258.0, 1468.0, 708.0],
+        [60.0, 30.0, 120.0],
+        (300.0, 520.0),
+    );
+    assert!(
+        !a.contains("/work") && !a.contains(env!("CARGO_MANIFEST_DIR")),
+        "no absolute paths in the program"
+    );
     assert_golden("gcode@nj130_default", &a);
 }
 
@@ -39,7 +54,9 @@ fn no_orphaned_snapshots() {
     for entry in std::fs::read_dir(&dir).expect("snapshots/") {
         let name = entry.unwrap().file_name().to_string_lossy().into_owned();
         let Some(case) = name.strip_suffix(".snap") else {
-            panic!("unexpected file in snapshots/: {name} (pending .snap.new? run cargo insta review)");
+            panic!(
+                "unexpected file in snapshots/: {name} (pending .snap.new? run cargo insta review)"
+            );
         };
         assert!(CASES.contains(&case), "orphaned snapshot {name}");
     }

@@ -35,8 +35,16 @@ pub struct CellArgs {
     /// Usable bar length range (ball-centre distance), mm.
     #[arg(long, value_name = "MIN..MAX", default_value = "300..520")]
     pub bar: String,
+    /// Diameter of the EDBB's balls, mm: their centres can come no closer than this.
+    #[arg(long, value_name = "MM", default_value = "25")]
+    pub ball: String,
     /// Floor height in the robot base frame, mm: the MAP stays above it.
-    #[arg(long, value_name = "MM", default_value = "0", allow_hyphen_values = true)]
+    #[arg(
+        long,
+        value_name = "MM",
+        default_value = "0",
+        allow_hyphen_values = true
+    )]
     pub floor: String,
     /// URDF: the link that ends the chain [default: flange, tool0, or the chain's last link].
     #[arg(long, value_name = "LINK")]
@@ -58,7 +66,12 @@ pub struct CompileArgs {
     #[arg(value_name = "ROBOT", required = true)]
     pub robot: Option<PathBuf>,
     /// Fixture ball centre in the robot base frame, mm.
-    #[arg(long, value_name = "X,Y,Z", required = true, allow_hyphen_values = true)]
+    #[arg(
+        long,
+        value_name = "X,Y,Z",
+        required = true,
+        allow_hyphen_values = true
+    )]
     pub fixture: Option<String>,
     /// Output program.
     #[arg(short, long, value_name = "PATH.nc", required = true)]

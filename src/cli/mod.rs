@@ -42,7 +42,10 @@ pub fn run(argv: Vec<std::ffi::OsString>) -> Result<i32, Error> {
             }
             // clap's message spans several lines; the first names the problem.
             let text = e.render().to_string();
-            let line = text.lines().find(|l| !l.trim().is_empty()).unwrap_or("invalid arguments");
+            let line = text
+                .lines()
+                .find(|l| !l.trim().is_empty())
+                .unwrap_or("invalid arguments");
             return Err(usage(line.trim_start_matches("error: ").to_string()));
         }
     };
@@ -56,13 +59,22 @@ pub fn run(argv: Vec<std::ffi::OsString>) -> Result<i32, Error> {
 
 fn numbers(flag: &str, s: &str, n: Option<usize>) -> Result<Vec<f64>, Error> {
     let vals: Result<Vec<f64>, _> = s.split(',').map(|t| t.trim().parse::<f64>()).collect();
-    let vals = vals.map_err(|_| usage(format!("{flag}: '{s}' is not a comma-separated list of numbers")))?;
+    let vals = vals.map_err(|_| {
+        usage(format!(
+            "{flag}: '{s}' is not a comma-separated list of numbers"
+        ))
+    })?;
     if vals.iter().any(|v| !v.is_finite()) {
-        return Err(usage(format!("{flag}: '{s}' contains a value that is not finite")));
+        return Err(usage(format!(
+            "{flag}: '{s}' contains a value that is not finite"
+        )));
     }
     if let Some(n) = n {
         if vals.len() != n {
-            return Err(usage(format!("{flag}: '{s}' has {} values, expected {n}", vals.len())));
+            return Err(usage(format!(
+                "{flag}: '{s}' has {} values, expected {n}",
+                vals.len()
+            )));
         }
     }
     Ok(vals)
@@ -78,7 +90,9 @@ fn scalar(flag: &str, s: &str) -> Result<f64, Error> {
 }
 
 fn bar_range(s: &str) -> Result<(f64, f64), Error> {
-    let (a, b) = s.split_once("..").ok_or_else(|| usage(format!("--bar: '{s}' is not MIN..MAX (mm)")))?;
+    let (a, b) = s
+        .split_once("..")
+        .ok_or_else(|| usage(format!("--bar: '{s}' is not MIN..MAX (mm)")))?;
     let (a, b) = (scalar("--bar", a)?, scalar("--bar", b)?);
     if !(a > 0.0 && b > a) {
         return Err(usage(format!("--bar: '{s}' needs 0 < MIN < MAX")));
@@ -91,16 +105,25 @@ fn steps(s: &str) -> Result<[f64; 6], Error> {
     let v: Vec<f64> = match v.len() {
         1 => vec![v[0]; 6],
         6 => v,
-        n => return Err(usage(format!("--step: '{s}' has {n} values, expected 1 or 6"))),
+        n => {
+            return Err(usage(format!(
+                "--step: '{s}' has {n} values, expected 1 or 6"
+            )))
+        }
     };
-    if v.iter().any(|&x| !(x >= 0.1 && x <= 180.0)) {
-        return Err(usage(format!("--step: '{s}': each step must be between 0.1 and 180 degrees")));
+    if v.iter().any(|&x| !(0.1..=180.0).contains(&x)) {
+        return Err(usage(format!(
+            "--step: '{s}': each step must be between 0.1 and 180 degrees"
+        )));
     }
     Ok(std::array::from_fn(|i| v[i] * DEG))
 }
 
 fn load_robot(path: &Path, cell: &CellArgs) -> Result<Robot, Error> {
-    let opts = LoadOptions { flange_link: cell.flange.clone(), package_paths: cell.package_path.clone() };
+    let opts = LoadOptions {
+        flange_link: cell.flange.clone(),
+        package_paths: cell.package_path.clone(),
+    };
     Ok(robot::load(path, &opts)?)
 }
 
@@ -108,13 +131,27 @@ struct Resolved {
     tool: Option<Vector3<f64>>,
     bar: (f64, f64),
     floor: f64,
+    ball: f64,
 }
 
 fn resolve_cell(cell: &CellArgs) -> Result<Resolved, Error> {
     Ok(Resolved {
-        tool: cell.tool.as_deref().map(|s| xyz_mm("--tool", s)).transpose()?,
+        tool: cell
+            .tool
+            .as_deref()
+            .map(|s| xyz_mm("--tool", s))
+            .transpose()?,
         bar: bar_range(&cell.bar)?,
         floor: scalar("--floor", &cell.floor)? * MM,
+        ball: {
+            let b = scalar("--ball", &cell.ball)?;
+            if !(b > 0.0 && b < 200.0) {
+                return Err(usage(format!(
+                    "--ball: {b} mm must be between 0 and 200 mm"
+                )));
+            }
+            b * MM
+        },
     })
 }
 
@@ -127,8 +164,13 @@ impl Bar {
         if quiet || !std::io::stderr().is_terminal() {
             return Bar(None);
         }
-        let pb = indicatif::ProgressBar::with_draw_target(Some(0), indicatif::ProgressDrawTarget::stderr());
-        if let Ok(style) = indicatif::ProgressStyle::with_template("{msg:>10} [{bar:40}] {percent:>3}% {elapsed}/{eta}") {
+        let pb = indicatif::ProgressBar::with_draw_target(
+            Some(0),
+            indicatif::ProgressDrawTarget::stderr(),
+        );
+        if let Ok(style) = indicatif::ProgressStyle::with_template(
+            "{msg:>10} [{bar:40}] {percent:>3}% {elapsed}/{eta}",
+        ) {
             pb.set_style(style.progress_chars("=> "));
         }
         pb.set_message(label);
@@ -178,17 +220,27 @@ fn run_compile(a: &CompileArgs) -> Result<i32, Error> {
         return Err(usage("--max-candidates: must be at least 30"));
     }
     let template = match &a.template {
-        Some(p) => std::fs::read_to_string(p).map_err(|e| Error::File { path: p.display().to_string(), msg: format!("cannot read template: {e}") })?,
+        Some(p) => std::fs::read_to_string(p).map_err(|e| Error::File {
+            path: p.display().to_string(),
+            msg: format!("cannot read template: {e}"),
+        })?,
         None => crate::emit::dialect(&a.dialect)
             .ok_or_else(|| {
                 let names: Vec<&str> = crate::emit::DIALECTS.iter().map(|d| d.0).collect();
-                usage(format!("--dialect: unknown dialect '{}' (available: {})", a.dialect, names.join(", ")))
+                usage(format!(
+                    "--dialect: unknown dialect '{}' (available: {})",
+                    a.dialect,
+                    names.join(", ")
+                ))
             })?
             .to_string(),
     };
     if let Some(stage) = &a.emit {
         if !EMIT_STAGES.contains(&stage.as_str()) {
-            return Err(usage(format!("--emit: unknown stage '{stage}' (one of: {})", EMIT_STAGES.join(", "))));
+            return Err(usage(format!(
+                "--emit: unknown stage '{stage}' (one of: {})",
+                EMIT_STAGES.join(", ")
+            )));
         }
     }
     let robot = load_robot(robot_path, &a.cell)?;
@@ -205,6 +257,7 @@ fn run_compile(a: &CompileArgs) -> Result<i32, Error> {
         seed: a.cell.seed,
         poses: a.poses,
         blend: blend * MM,
+        ball: cell.ball,
         start,
     };
     let bar = Bar::new(a.cell.quiet, "sampling");
@@ -227,7 +280,12 @@ fn run_compile(a: &CompileArgs) -> Result<i32, Error> {
         }
         let name = output.display().to_string();
         let diff = similar::TextDiff::from_lines(&old, &out.text);
-        print!("{}", diff.unified_diff().context_radius(3).header(&format!("{name} (on disk)"), &format!("{name} (compiled)")));
+        print!(
+            "{}",
+            diff.unified_diff()
+                .context_radius(3)
+                .header(&format!("{name} (on disk)"), &format!("{name} (compiled)"))
+        );
         return Ok(1);
     }
     write_atomic(output, &out.text)?;
@@ -248,7 +306,15 @@ fn run_compile(a: &CompileArgs) -> Result<i32, Error> {
     Ok(0)
 }
 
-const EMIT_STAGES: &[&str] = &["model", "identifiability", "sample", "pool", "selection", "path", "program"];
+const EMIT_STAGES: &[&str] = &[
+    "model",
+    "identifiability",
+    "sample",
+    "pool",
+    "selection",
+    "path",
+    "program",
+];
 
 fn emit_stage(c: &pipeline::Compiled, stage: &str) -> String {
     let v = match stage {
@@ -260,12 +326,16 @@ fn emit_stage(c: &pipeline::Compiled, stage: &str) -> String {
         "path" => serde_json::to_value(&c.path),
         _ => serde_json::to_value(&c.program),
     };
-    v.and_then(|v| serde_json::to_string_pretty(&v)).unwrap_or_default()
+    v.and_then(|v| serde_json::to_string_pretty(&v))
+        .unwrap_or_default()
 }
 
 /// Writes the whole file or nothing: a temp file beside the target, then rename.
 fn write_atomic(path: &Path, text: &str) -> Result<(), Error> {
-    let err = |msg: String| Error::File { path: path.display().to_string(), msg };
+    let err = |msg: String| Error::File {
+        path: path.display().to_string(),
+        msg,
+    };
     let dir = match path.parent() {
         Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
         _ => PathBuf::from("."),
@@ -275,9 +345,13 @@ fn write_atomic(path: &Path, text: &str) -> Result<(), Error> {
         .suffix(".tmp")
         .tempfile_in(&dir)
         .map_err(|e| err(format!("cannot write (directory {}): {e}", dir.display())))?;
-    tmp.write_all(text.as_bytes()).map_err(|e| err(format!("cannot write: {e}")))?;
-    tmp.as_file().sync_all().map_err(|e| err(format!("cannot write: {e}")))?;
-    tmp.persist(path).map_err(|e| err(format!("cannot write: {}", e.error)))?;
+    tmp.write_all(text.as_bytes())
+        .map_err(|e| err(format!("cannot write: {e}")))?;
+    tmp.as_file()
+        .sync_all()
+        .map_err(|e| err(format!("cannot write: {e}")))?;
+    tmp.persist(path)
+        .map_err(|e| err(format!("cannot write: {}", e.error)))?;
     Ok(())
 }
 
@@ -291,27 +365,24 @@ fn run_model(a: &ModelArgs) -> Result<i32, Error> {
     }
     let robot = load_robot(&a.robot, &a.cell)?;
     let (map, mut warnings) = pipeline::resolve_map(&robot, cell_opts.tool);
-    let cell = crate::ir::Cell { fixture, map, bar_min: cell_opts.bar.0, bar_max: cell_opts.bar.1, floor_z: cell_opts.floor };
+    let cell = pipeline::make_cell(fixture, map, cell_opts.bar, cell_opts.floor, cell_opts.ball)?;
     let model = MeasurementModel::new(&robot, fixture, map);
-    let rows = pipeline::rich_rows(&robot, &model, &cell, a.samples, a.cell.seed).map_err(|closest| {
-        if closest > cell.bar_max {
-            pipeline::PipelineError::OutOfReach {
-                x: fmt_fixed(to_mm(fixture.x), 1),
-                y: fmt_fixed(to_mm(fixture.y), 1),
-                z: fmt_fixed(to_mm(fixture.z), 1),
-                closest: fmt_fixed(to_mm(closest), 1),
-                min: fmt_fixed(to_mm(cell.bar_min), 1),
-                max: fmt_fixed(to_mm(cell.bar_max), 1),
-            }
-        } else {
-            pipeline::PipelineError::EmptyShell { min: fmt_fixed(to_mm(cell.bar_min), 1), max: fmt_fixed(to_mm(cell.bar_max), 1) }
-        }
-    })?;
+    let rows = pipeline::rich_rows(&robot, &model, &cell, a.samples, a.cell.seed)
+        .map_err(|closest| pipeline::PipelineError::no_pose(&cell, closest))?;
     let known = model::analyse(&rows, &IdentifyOptions::default());
-    let free = model::analyse(&rows, &IdentifyOptions { fixture_known: false, map_known: true });
+    let free = model::analyse(
+        &rows,
+        &IdentifyOptions {
+            fixture_known: false,
+            map_known: true,
+        },
+    );
     warnings.extend(pipeline::map_warnings(&model, &known));
     let ids = &known.identifiable;
-    let norms: Vec<f64> = ids.iter().map(|&j| (rows.iter().map(|r| r[j] * r[j]).sum::<f64>() / rows.len() as f64).sqrt()).collect();
+    let norms: Vec<f64> = ids
+        .iter()
+        .map(|&j| (rows.iter().map(|r| r[j] * r[j]).sum::<f64>() / rows.len() as f64).sqrt())
+        .collect();
     let jm = DMatrix::from_fn(rows.len(), ids.len(), |i, k| rows[i][ids[k]] / norms[k]);
     let obs = model::observability(&jm);
 
@@ -354,9 +425,15 @@ fn run_model(a: &ModelArgs) -> Result<i32, Error> {
             "map_on_flange_axis": model::map_offset_from_joint6_axis(&model) < model::AXIS_TOLERANCE,
             "warnings": warnings,
         });
-        println!("{}", serde_json::to_string_pretty(&report).unwrap_or_default());
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&report).unwrap_or_default()
+        );
     } else {
-        print!("{}", model_text(&robot, &cell, &known, &free, &obs, rows.len()));
+        print!(
+            "{}",
+            model_text(&robot, &cell, &known, &free, &obs, rows.len())
+        );
         for w in &warnings {
             eprintln!("edbbgen: warning: {w}");
         }
@@ -378,17 +455,58 @@ fn describe(p: &model::ParamInfo) -> String {
     }
 }
 
-fn model_text(robot: &Robot, cell: &crate::ir::Cell, known: &model::Identifiability, free: &model::Identifiability, obs: &model::Observability, n: usize) -> String {
-    let v3 = |v: &Vector3<f64>| format!("{}, {}, {}", fmt_fixed(to_mm(v.x), 1), fmt_fixed(to_mm(v.y), 1), fmt_fixed(to_mm(v.z), 1));
+fn model_text(
+    robot: &Robot,
+    cell: &crate::ir::Cell,
+    known: &model::Identifiability,
+    free: &model::Identifiability,
+    obs: &model::Observability,
+    n: usize,
+) -> String {
+    let v3 = |v: &Vector3<f64>| {
+        format!(
+            "{}, {}, {}",
+            fmt_fixed(to_mm(v.x), 1),
+            fmt_fixed(to_mm(v.y), 1),
+            fmt_fixed(to_mm(v.z), 1)
+        )
+    };
     let mut s = String::new();
     s += &format!("{} [{}]\n", robot.name, robot.source);
-    s += &format!("fixture {} mm (base), MAP {} mm (flange), bar {}..{} mm\n", v3(&cell.fixture), v3(&cell.map), fmt_fixed(to_mm(cell.bar_min), 1), fmt_fixed(to_mm(cell.bar_max), 1));
+    s += &format!(
+        "fixture {} mm (base), MAP {} mm (flange), bar {}..{} mm\n",
+        v3(&cell.fixture),
+        v3(&cell.map),
+        fmt_fixed(to_mm(cell.bar_min), 1),
+        fmt_fixed(to_mm(cell.bar_max), 1)
+    );
     s += &format!("pose set: {n} random poses with the MAP in the bar shell\n\n");
-    s += &format!("fixture and MAP known: {} identifiable parameters\n", known.count());
-    let names = |id: &model::Identifiability| id.identifiable.iter().map(|&j| model::PARAM_NAMES[j]).collect::<Vec<_>>().join(" ");
+    s += &format!(
+        "fixture and MAP known: {} identifiable parameters\n",
+        known.count()
+    );
+    let names = |id: &model::Identifiability| {
+        id.identifiable
+            .iter()
+            .map(|&j| model::PARAM_NAMES[j])
+            .collect::<Vec<_>>()
+            .join(" ")
+    };
     s += &format!("  identifiable: {}\n", names(known));
-    let fixed: Vec<String> = known.params.iter().filter(|p| matches!(p.status, Status::Dependent { .. } | Status::Negligible)).map(describe).collect();
-    s += &format!("  fixed:        {}\n", if fixed.is_empty() { "-".into() } else { fixed.join("; ") });
+    let fixed: Vec<String> = known
+        .params
+        .iter()
+        .filter(|p| matches!(p.status, Status::Dependent { .. } | Status::Negligible))
+        .map(describe)
+        .collect();
+    s += &format!(
+        "  fixed:        {}\n",
+        if fixed.is_empty() {
+            "-".into()
+        } else {
+            fixed.join("; ")
+        }
+    );
     s += "  known:        x_fix y_fix z_fix x_map y_map z_map\n\n";
     s += &format!("fixture free: {} identifiable parameters\n", free.count());
     for (f, k) in free.params.iter().zip(&known.params) {

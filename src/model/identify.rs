@@ -23,7 +23,9 @@ pub const DEPENDENT: f64 = 1e-6;
 pub enum Status {
     Identifiable,
     /// Linearly dependent on the named identifiable parameters.
-    Dependent { on: Vec<String> },
+    Dependent {
+        on: Vec<String>,
+    },
     Negligible,
     /// Held at its nominal value by assumption (fixture or MAP known).
     Known,
@@ -47,7 +49,10 @@ pub struct IdentifyOptions {
 impl Default for IdentifyOptions {
     fn default() -> Self {
         // As in the paper: the fixture is not part of the robot, the MAP depends on α6, a6, d6.
-        IdentifyOptions { fixture_known: true, map_known: true }
+        IdentifyOptions {
+            fixture_known: true,
+            map_known: true,
+        }
     }
 }
 
@@ -65,27 +70,42 @@ impl Identifiability {
     }
 
     pub fn names_with(&self, pred: impl Fn(&Status) -> bool) -> Vec<&str> {
-        self.params.iter().filter(|p| pred(&p.status)).map(|p| p.name.as_str()).collect()
+        self.params
+            .iter()
+            .filter(|p| pred(&p.status))
+            .map(|p| p.name.as_str())
+            .collect()
     }
 }
 
 /// Preference order for taking parameters into the identifiable set (see module docs).
 fn preference_order() -> impl Iterator<Item = usize> {
-    (super::ALPHA..super::MAP).chain(super::MAP..N_PARAMS).chain(super::FIX..super::ALPHA)
+    (super::ALPHA..super::MAP)
+        .chain(super::MAP..N_PARAMS)
+        .chain(super::FIX..super::ALPHA)
 }
 
 /// Classifies the 30 parameters from Jacobian rows (one row per pose).
 pub fn analyse(rows: &[[f64; N_PARAMS]], opts: &IdentifyOptions) -> Identifiability {
     let n = rows.len();
     let col = |j: usize| -> Vec<f64> { rows.iter().map(|r| r[j]).collect() };
-    let norms: Vec<f64> = (0..N_PARAMS).map(|j| col(j).iter().map(|v| v * v).sum::<f64>().sqrt()).collect();
-    let rms = |j: usize| if n > 0 { norms[j] / (n as f64).sqrt() } else { 0.0 };
+    let norms: Vec<f64> = (0..N_PARAMS)
+        .map(|j| col(j).iter().map(|v| v * v).sum::<f64>().sqrt())
+        .collect();
+    let rms = |j: usize| {
+        if n > 0 {
+            norms[j] / (n as f64).sqrt()
+        } else {
+            0.0
+        }
+    };
 
     let mut status: Vec<Option<Status>> = vec![None; N_PARAMS];
     let mut accepted: Vec<usize> = Vec::new();
     let mut basis: Vec<Vec<f64>> = Vec::new();
     for j in preference_order() {
-        let known = (super::is_fixture(j) && opts.fixture_known) || (super::is_map(j) && opts.map_known);
+        let known =
+            (super::is_fixture(j) && opts.fixture_known) || (super::is_map(j) && opts.map_known);
         if known {
             status[j] = Some(Status::Known);
             continue;
@@ -109,7 +129,9 @@ pub fn analyse(rows: &[[f64; N_PARAMS]], opts: &IdentifyOptions) -> Identifiabil
             accepted.push(j);
             status[j] = Some(Status::Identifiable);
         } else {
-            status[j] = Some(Status::Dependent { on: dependence(rows, &norms, &accepted, j) });
+            status[j] = Some(Status::Dependent {
+                on: dependence(rows, &norms, &accepted, j),
+            });
         }
     }
     let mut identifiable = accepted;
@@ -121,21 +143,37 @@ pub fn analyse(rows: &[[f64; N_PARAMS]], opts: &IdentifyOptions) -> Identifiabil
             sensitivity: rms(j),
         })
         .collect();
-    Identifiability { params, identifiable, poses: n }
+    Identifiability {
+        params,
+        identifiable,
+        poses: n,
+    }
 }
 
 /// The accepted parameters that a dependent column is made of (least squares on unit columns).
-fn dependence(rows: &[[f64; N_PARAMS]], norms: &[f64], accepted: &[usize], j: usize) -> Vec<String> {
+fn dependence(
+    rows: &[[f64; N_PARAMS]],
+    norms: &[f64],
+    accepted: &[usize],
+    j: usize,
+) -> Vec<String> {
     if accepted.is_empty() {
         return Vec::new();
     }
-    let a = DMatrix::from_fn(rows.len(), accepted.len(), |i, k| rows[i][accepted[k]] / norms[accepted[k]]);
+    let a = DMatrix::from_fn(rows.len(), accepted.len(), |i, k| {
+        rows[i][accepted[k]] / norms[accepted[k]]
+    });
     let b = DVector::from_fn(rows.len(), |i, _| rows[i][j] / norms[j]);
     let Ok(beta) = a.svd(true, true).solve(&b, 1e-12) else {
         return Vec::new();
     };
     let big = beta.amax();
-    let mut on: Vec<usize> = accepted.iter().zip(beta.iter()).filter(|(_, c)| c.abs() > 1e-6 * big).map(|(&k, _)| k).collect();
+    let mut on: Vec<usize> = accepted
+        .iter()
+        .zip(beta.iter())
+        .filter(|(_, c)| c.abs() > 1e-6 * big)
+        .map(|(&k, _)| k)
+        .collect();
     on.sort_unstable();
     on.into_iter().map(|k| PARAM_NAMES[k].to_string()).collect()
 }
@@ -158,7 +196,12 @@ pub fn observability(j: &DMatrix<f64>) -> Observability {
     let sv = j.singular_values();
     let r = sv.len();
     if r == 0 || j.nrows() == 0 {
-        return Observability { o1: 0.0, o2: f64::INFINITY, o3: 0.0, o4: 0.0 };
+        return Observability {
+            o1: 0.0,
+            o2: f64::INFINITY,
+            o3: 0.0,
+            o4: 0.0,
+        };
     }
     let max = sv.max();
     let min = sv.min();

@@ -14,7 +14,9 @@ use crate::robot::{Dh, Frame, Robot};
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 
-pub use identify::{analyse, observability, Identifiability, IdentifyOptions, Observability, ParamInfo, Status};
+pub use identify::{
+    analyse, observability, Identifiability, IdentifyOptions, Observability, ParamInfo, Status,
+};
 
 pub const N_PARAMS: usize = 30;
 
@@ -28,8 +30,8 @@ pub const MAP: usize = 27;
 
 /// Parameter names exactly as reports print them (DESIGN.md).
 pub const PARAM_NAMES: [&str; N_PARAMS] = [
-    "x_fix", "y_fix", "z_fix", "alpha1", "alpha2", "alpha3", "alpha4", "alpha5", "alpha6", "a1", "a2",
-    "a3", "a4", "a5", "a6", "d1", "d2", "d3", "d4", "d5", "d6", "theta1", "theta2", "theta3",
+    "x_fix", "y_fix", "z_fix", "alpha1", "alpha2", "alpha3", "alpha4", "alpha5", "alpha6", "a1",
+    "a2", "a3", "a4", "a5", "a6", "d1", "d2", "d3", "d4", "d5", "d6", "theta1", "theta2", "theta3",
     "theta4", "theta5", "theta6", "x_map", "y_map", "z_map",
 ];
 
@@ -67,7 +69,12 @@ impl Params {
     pub fn from_array(p: &[f64; N_PARAMS]) -> Self {
         Params {
             fix: Vector3::new(p[FIX], p[FIX + 1], p[FIX + 2]),
-            dh: std::array::from_fn(|i| Dh { alpha: p[ALPHA + i], a: p[A + i], d: p[D + i], theta: p[THETA + i] }),
+            dh: std::array::from_fn(|i| Dh {
+                alpha: p[ALPHA + i],
+                a: p[A + i],
+                d: p[D + i],
+                theta: p[THETA + i],
+            }),
             map: Vector3::new(p[MAP], p[MAP + 1], p[MAP + 2]),
         }
     }
@@ -87,7 +94,11 @@ impl MeasurementModel {
         MeasurementModel {
             base: robot.base,
             flange: robot.flange,
-            nominal: Params { fix: fixture, dh: robot.dh, map },
+            nominal: Params {
+                fix: fixture,
+                dh: robot.dh,
+                map,
+            },
         }
     }
 
@@ -118,7 +129,11 @@ impl MeasurementModel {
         let pos = frames[7].apply(&p.map);
         let diff = pos - p.fix;
         let len = diff.norm();
-        let u = if len > 0.0 { diff / len } else { Vector3::zeros() };
+        let u = if len > 0.0 {
+            diff / len
+        } else {
+            Vector3::zeros()
+        };
         for k in 0..3 {
             row[FIX + k] = -u[k];
             row[MAP + k] = u.dot(&frames[7].r.column(k));
@@ -172,6 +187,14 @@ pub fn map_offset_from_joint6_axis(model: &MeasurementModel) -> f64 {
     (p.x * p.x + p.y * p.y).sqrt()
 }
 
+pub fn is_fixture(index: usize) -> bool {
+    (FIX..ALPHA).contains(&index)
+}
+
+pub fn is_map(index: usize) -> bool {
+    (MAP..N_PARAMS).contains(&index)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -179,7 +202,10 @@ mod tests {
 
     fn nj130() -> Robot {
         crate::robot::load(
-            std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/robots/comau_nj130/robot.dh.toml")),
+            std::path::Path::new(concat!(
+                env!("CARGO_MANIFEST_DIR"),
+                "/robots/comau_nj130/robot.dh.toml"
+            )),
             &Default::default(),
         )
         .expect("bundled NJ-130")
@@ -188,7 +214,11 @@ mod tests {
     #[test]
     fn analytic_jacobian_matches_central_differences() {
         let robot = nj130();
-        let model = MeasurementModel::new(&robot, Vector3::new(0.258, 1.468, 0.708), Vector3::new(0.06, 0.03, 0.12));
+        let model = MeasurementModel::new(
+            &robot,
+            Vector3::new(0.258, 1.468, 0.708),
+            Vector3::new(0.06, 0.03, 0.12),
+        );
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
         let h = f64::EPSILON.cbrt();
         let p0 = model.nominal.to_array();
@@ -201,7 +231,8 @@ mod tests {
                 let (mut pp, mut pm) = (p0, p0);
                 pp[k] += h;
                 pm[k] -= h;
-                let fd = (model.length(&Params::from_array(&pp), &q) - model.length(&Params::from_array(&pm), &q))
+                let fd = (model.length(&Params::from_array(&pp), &q)
+                    - model.length(&Params::from_array(&pm), &q))
                     / (2.0 * h);
                 // Relative to the row's scale: entries are O(1) (m/m) or O(reach) (m/rad).
                 let scale = row.iter().fold(0.0f64, |m, v| m.max(v.abs()));
@@ -227,18 +258,13 @@ mod tests {
         let robot = nj130();
         let fix = Vector3::new(0.258, 1.468, 0.708);
         let on_axis = MeasurementModel::new(&robot, fix, Vector3::new(0.0, 0.0, 0.12));
-        assert_eq!(movable_joints(&on_axis, &robot), [true, true, true, true, true, false]);
+        assert_eq!(
+            movable_joints(&on_axis, &robot),
+            [true, true, true, true, true, false]
+        );
         assert!(map_offset_from_joint6_axis(&on_axis) < 1e-12);
         let off_axis = MeasurementModel::new(&robot, fix, Vector3::new(0.06, 0.03, 0.12));
         assert_eq!(movable_joints(&off_axis, &robot), [true; 6]);
         assert!((map_offset_from_joint6_axis(&off_axis) - (0.06f64.hypot(0.03))).abs() < 1e-12);
     }
-}
-
-pub fn is_fixture(index: usize) -> bool {
-    (FIX..ALPHA).contains(&index)
-}
-
-pub fn is_map(index: usize) -> bool {
-    (MAP..N_PARAMS).contains(&index)
 }

@@ -124,7 +124,10 @@ pub fn load(path: &Path, opts: &LoadOptions) -> Result<Robot, LoadError> {
         }
     };
     robot.validate(path)?;
-    Ok(Robot { digest: sha256_hex(text.as_bytes()), ..robot })
+    Ok(Robot {
+        digest: sha256_hex(text.as_bytes()),
+        ..robot
+    })
 }
 
 impl Robot {
@@ -192,5 +195,8 @@ pub fn axis_angle(axis: &Vector3<f64>, angle: f64) -> Matrix3<f64> {
 /// Lower-case hex SHA-256.
 pub fn sha256_hex(bytes: &[u8]) -> String {
     use sha2::{Digest, Sha256};
-    Sha256::digest(bytes).iter().map(|b| format!("{b:02x}")).collect()
+    Sha256::digest(bytes)
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect()
 }

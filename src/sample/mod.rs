@@ -111,7 +111,13 @@ impl Progress for NoProgress {}
 pub fn joint_grid(lo: f64, hi: f64, step: f64, movable: bool) -> JointGrid {
     if !movable {
         let v = 0.0f64.clamp(lo, hi);
-        return JointGrid { step, k_lo: 0, k_hi: 0, held: Some(v), note: "held: cannot move the MAP".into() };
+        return JointGrid {
+            step,
+            k_lo: 0,
+            k_hi: 0,
+            held: Some(v),
+            note: "held: cannot move the MAP".into(),
+        };
     }
     let tol = 1e-9;
     if hi - lo >= TAU - tol {
@@ -122,27 +128,51 @@ pub fn joint_grid(lo: f64, hi: f64, step: f64, movable: bool) -> JointGrid {
         while (k_hi as f64) * step > hi + tol {
             k_hi -= 1;
         }
-        JointGrid { step, k_lo, k_hi, held: None, note: "one turn of a range >= 360 deg (poses repeat)".into() }
+        JointGrid {
+            step,
+            k_lo,
+            k_hi,
+            held: None,
+            note: "one turn of a range >= 360 deg (poses repeat)".into(),
+        }
     } else {
         let k_lo = (lo / step - tol).ceil() as i64;
         let k_hi = (hi / step + tol).floor() as i64;
-        JointGrid { step, k_lo, k_hi, held: None, note: "full joint range".into() }
+        JointGrid {
+            step,
+            k_lo,
+            k_hi,
+            held: None,
+            note: "full joint range".into(),
+        }
     }
 }
 
 /// Enumerates the grid and keeps the valid poses. See the module docs.
-pub fn run(robot: &Robot, model: &MeasurementModel, cell: &Cell, cfg: &SampleConfig, progress: &dyn Progress) -> (Pool, SampleReport) {
+pub fn run(
+    robot: &Robot,
+    model: &MeasurementModel,
+    cell: &Cell,
+    cfg: &SampleConfig,
+    progress: &dyn Progress,
+) -> (Pool, SampleReport) {
     let (lo, hi) = robot.limits();
-    let mut grids: Vec<JointGrid> = (0..6).map(|i| joint_grid(lo[i], hi[i], cfg.step[i], cfg.movable[i])).collect();
+    let mut grids: Vec<JointGrid> = (0..6)
+        .map(|i| joint_grid(lo[i], hi[i], cfg.step[i], cfg.movable[i]))
+        .collect();
     if cfg.movable[0] {
-        grids[0].note = "solved per wrist configuration: only values whose MAP is in the shell".into();
+        grids[0].note =
+            "solved per wrist configuration: only values whose MAP is in the shell".into();
     }
     for g in grids.iter_mut().take(5).skip(1) {
         if g.held.is_none() {
             g.note.push_str("; branches pruned by reach");
         }
     }
-    let grid_size = grids.iter().map(|g| g.len()).fold(1u64, |a, b| a.saturating_mul(b));
+    let grid_size = grids
+        .iter()
+        .map(|g| g.len())
+        .fold(1u64, |a, b| a.saturating_mul(b));
     let ctx = Ctx::new(model, cell, &grids);
 
     let n2 = grids[1].len();
@@ -202,11 +232,21 @@ impl<'a> Ctx<'a> {
         let dh = &model.nominal.dh;
         let mut a1 = dh_transform(&dh[0], 0.0);
         // Remove RotZ(θ1): a1 = RotZ(−θ1)·T1(0).
-        let rz = dh_transform(&crate::robot::Dh { alpha: 0.0, a: 0.0, d: 0.0, theta: -dh[0].theta }, 0.0);
+        let rz = dh_transform(
+            &crate::robot::Dh {
+                alpha: 0.0,
+                a: 0.0,
+                d: 0.0,
+                theta: -dh[0].theta,
+            },
+            0.0,
+        );
         a1 = rz.mul(&a1);
         let t: [Vec<Frame>; 5] = std::array::from_fn(|k| {
             let g = &grids[k + 1];
-            (0..g.len()).map(|j| dh_transform(&dh[k + 1], g.value(j))).collect()
+            (0..g.len())
+                .map(|j| dh_transform(&dh[k + 1], g.value(j)))
+                .collect()
         });
         let tool = model.flange.apply(&model.nominal.map);
         let map5 = t[4].iter().map(|t6| t6.apply(&tool)).collect();
@@ -348,7 +388,15 @@ impl<'a> Ctx<'a> {
 
     /// The exact test of one pose.
     #[inline]
-    fn check(&self, x: &Vector3<f64>, q1: f64, j1: u64, idx: &[u64; 6], cfg: &SampleConfig, acc: &mut Acc) {
+    fn check(
+        &self,
+        x: &Vector3<f64>,
+        q1: f64,
+        j1: u64,
+        idx: &[u64; 6],
+        cfg: &SampleConfig,
+        acc: &mut Acc,
+    ) {
         acc.evaluated += 1;
         let (s, c) = (self.theta1 + q1).sin_cos();
         let p0 = Vector3::new(c * x.x - s * x.y, s * x.x + c * x.y, x.z);
@@ -371,7 +419,12 @@ impl<'a> Ctx<'a> {
         let key = splitmix64(cfg.seed ^ grid.wrapping_mul(0x9e37_79b9_7f4a_7c15));
         acc.offer(Entry {
             key,
-            cand: Candidate { q, map: [p.x, p.y, p.z], length: (p - self.cell.fixture).norm(), grid },
+            cand: Candidate {
+                q,
+                map: [p.x, p.y, p.z],
+                length: (p - self.cell.fixture).norm(),
+                grid,
+            },
         });
     }
 }
@@ -417,7 +470,13 @@ struct Acc {
 
 impl Acc {
     fn new(cap: usize) -> Self {
-        Acc { cap, heap: BinaryHeap::new(), evaluated: 0, valid: 0, range: [[f64::INFINITY, f64::NEG_INFINITY]; 6] }
+        Acc {
+            cap,
+            heap: BinaryHeap::new(),
+            evaluated: 0,
+            valid: 0,
+            range: [[f64::INFINITY, f64::NEG_INFINITY]; 6],
+        }
     }
 
     #[inline]
@@ -450,7 +509,8 @@ impl Acc {
 impl SampleReport {
     /// `valid_range` with NaN for joints without valid poses (for reports).
     pub fn valid_range_or_nan(&self) -> [[f64; 2]; 6] {
-        self.valid_range.map(|r| if r[0] > r[1] { [f64::NAN; 2] } else { r })
+        self.valid_range
+            .map(|r| if r[0] > r[1] { [f64::NAN; 2] } else { r })
     }
 }
 
@@ -459,14 +519,27 @@ mod tests {
     use super::*;
     use crate::units::{DEG, MM};
 
-    fn setup(map: Vector3<f64>, fixture: Vector3<f64>, bar: (f64, f64)) -> (Robot, MeasurementModel, Cell) {
+    fn setup(
+        map: Vector3<f64>,
+        fixture: Vector3<f64>,
+        bar: (f64, f64),
+    ) -> (Robot, MeasurementModel, Cell) {
         let robot = crate::robot::load(
-            std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/robots/comau_nj130/robot.dh.toml")),
+            std::path::Path::new(concat!(
+                env!("CARGO_MANIFEST_DIR"),
+                "/robots/comau_nj130/robot.dh.toml"
+            )),
             &Default::default(),
         )
         .expect("bundled NJ-130");
         let model = MeasurementModel::new(&robot, fixture, map);
-        let cell = Cell { fixture, map, bar_min: bar.0, bar_max: bar.1, floor_z: 0.0 };
+        let cell = Cell {
+            fixture,
+            map,
+            bar_min: bar.0,
+            bar_max: bar.1,
+            floor_z: 0.0,
+        };
         (robot, model, cell)
     }
 
@@ -499,16 +572,33 @@ mod tests {
         }
         let p = model.map_position(&model.nominal, &q);
         let d = (p - cell.fixture).norm();
-        (d - cell.bar_min).abs() < 1e-9 || (d - cell.bar_max).abs() < 1e-9 || (p.z - cell.floor_z).abs() < 1e-9
+        (d - cell.bar_min).abs() < 1e-9
+            || (d - cell.bar_max).abs() < 1e-9
+            || (p.z - cell.floor_z).abs() < 1e-9
     }
 
     #[test]
     fn streaming_sampler_keeps_exactly_the_brute_force_poses() {
         let cases = [
-            (Vector3::new(0.06, 0.03, 0.12), Vector3::new(0.258, 1.468, 0.708), (0.30, 0.52), [30.0; 6]),
-            (Vector3::new(0.0, 0.0, 0.12), Vector3::new(1.2, -0.4, 0.3), (0.25, 0.60), [25.0, 20.0, 20.0, 40.0, 30.0, 45.0]),
+            (
+                Vector3::new(0.06, 0.03, 0.12),
+                Vector3::new(0.258, 1.468, 0.708),
+                (0.30, 0.52),
+                [30.0; 6],
+            ),
+            (
+                Vector3::new(0.0, 0.0, 0.12),
+                Vector3::new(1.2, -0.4, 0.3),
+                (0.25, 0.60),
+                [25.0, 20.0, 20.0, 40.0, 30.0, 45.0],
+            ),
             // Fixture on the joint-1 axis: q1 does not change L.
-            (Vector3::new(0.05, 0.0, 0.1), Vector3::new(0.0, 0.0, 2.3), (0.5, 0.9), [30.0; 6]),
+            (
+                Vector3::new(0.05, 0.0, 0.1),
+                Vector3::new(0.0, 0.0, 2.3),
+                (0.5, 0.9),
+                [30.0; 6],
+            ),
         ];
         for (map, fixture, bar, step_deg) in cases {
             let (robot, model, cell) = setup(map, fixture, bar);
@@ -522,11 +612,27 @@ mod tests {
             let want = brute_force(&model, &cell, &report.grids);
             let got: Vec<u64> = pool.candidates.iter().map(|c| c.grid).collect();
             assert!(!want.is_empty(), "test case must have valid poses");
-            let missing: Vec<_> = want.iter().filter(|i| !got.contains(i)).filter(|&&i| !near_boundary(&model, &cell, &report.grids, i)).collect();
-            let extra: Vec<_> = got.iter().filter(|i| !want.contains(i)).filter(|&&i| !near_boundary(&model, &cell, &report.grids, i)).collect();
-            assert!(missing.is_empty() && extra.is_empty(), "missing {missing:?} extra {extra:?}");
+            let missing: Vec<_> = want
+                .iter()
+                .filter(|i| !got.contains(i))
+                .filter(|&&i| !near_boundary(&model, &cell, &report.grids, i))
+                .collect();
+            let extra: Vec<_> = got
+                .iter()
+                .filter(|i| !want.contains(i))
+                .filter(|&&i| !near_boundary(&model, &cell, &report.grids, i))
+                .collect();
+            assert!(
+                missing.is_empty() && extra.is_empty(),
+                "missing {missing:?} extra {extra:?}"
+            );
             assert_eq!(report.valid as usize, got.len());
-            assert!(report.evaluated < report.grid_size / 3, "pruning should cut the grid: {} of {}", report.evaluated, report.grid_size);
+            assert!(
+                report.evaluated < report.grid_size / 3,
+                "pruning should cut the grid: {} of {}",
+                report.evaluated,
+                report.grid_size
+            );
             for c in &pool.candidates {
                 let p = model.map_position(&model.nominal, &c.q);
                 assert!((p - Vector3::from(c.map)).norm() < 1e-12);
@@ -537,17 +643,40 @@ mod tests {
 
     #[test]
     fn pool_cap_keeps_a_thread_count_independent_subset() {
-        let (robot, model, cell) = setup(Vector3::new(0.06, 0.03, 0.12), Vector3::new(0.258, 1.468, 0.708), (0.30, 0.52));
-        let cfg = SampleConfig { step: [20.0 * DEG; 6], max_candidates: 500, seed: 3, movable: [true; 6] };
+        let (robot, model, cell) = setup(
+            Vector3::new(0.06, 0.03, 0.12),
+            Vector3::new(0.258, 1.468, 0.708),
+            (0.30, 0.52),
+        );
+        let cfg = SampleConfig {
+            step: [20.0 * DEG; 6],
+            max_candidates: 500,
+            seed: 3,
+            movable: [true; 6],
+        };
         let run_on = |threads| {
-            rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap().install(|| run(&robot, &model, &cell, &cfg, &NoProgress))
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap()
+                .install(|| run(&robot, &model, &cell, &cfg, &NoProgress))
         };
         let (a, ra) = run_on(1);
         let (b, _) = run_on(2);
         assert_eq!(a, b);
         assert_eq!(a.candidates.len(), 500);
         assert!(ra.valid > 500);
-        let full = run(&robot, &model, &cell, &SampleConfig { max_candidates: usize::MAX, ..cfg.clone() }, &NoProgress).0;
+        let full = run(
+            &robot,
+            &model,
+            &cell,
+            &SampleConfig {
+                max_candidates: usize::MAX,
+                ..cfg.clone()
+            },
+            &NoProgress,
+        )
+        .0;
         assert!(a.candidates.iter().all(|c| full.candidates.contains(c)));
         let _ = MM;
     }

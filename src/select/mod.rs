@@ -29,7 +29,11 @@ pub enum SelectError {
     #[error("only {valid} valid poses for {m} identifiable parameters: refine --step, widen --bar or move the fixture")]
     TooFewPoses { valid: usize, m: usize },
     #[error("--poses {asked}: must be between m = {m} (identifiable parameters) and the {valid} valid poses")]
-    PoseCount { asked: usize, m: usize, valid: usize },
+    PoseCount {
+        asked: usize,
+        m: usize,
+        valid: usize,
+    },
 }
 
 /// The knee rule's margin: at least ⌈1.5·m⌉ poses (the paper's NJ-130 optimum, 35 for m = 22,
@@ -38,7 +42,11 @@ pub const MARGIN: f64 = 1.5;
 pub const KNEE_TOLERANCE: f64 = 1.10;
 
 /// Column-scaled identification Jacobian of the pool on the given columns, row-major n × m.
-pub fn scaled_jacobian(model: &MeasurementModel, pool: &Pool, columns: &[usize]) -> (Vec<f64>, Vec<f64>) {
+pub fn scaled_jacobian(
+    model: &MeasurementModel,
+    pool: &Pool,
+    columns: &[usize],
+) -> (Vec<f64>, Vec<f64>) {
     let m = columns.len();
     let rows: Vec<[f64; N_PARAMS]> = pool
         .candidates
@@ -52,7 +60,11 @@ pub fn scaled_jacobian(model: &MeasurementModel, pool: &Pool, columns: &[usize])
     let n = rows.len().max(1) as f64;
     let scale: Vec<f64> = columns
         .iter()
-        .map(|&j| (rows.iter().map(|r| r[j] * r[j]).sum::<f64>() / n).sqrt().max(f64::MIN_POSITIVE))
+        .map(|&j| {
+            (rows.iter().map(|r| r[j] * r[j]).sum::<f64>() / n)
+                .sqrt()
+                .max(f64::MIN_POSITIVE)
+        })
         .collect();
     let mut out = Vec::with_capacity(rows.len() * m);
     for r in &rows {
@@ -61,7 +73,12 @@ pub fn scaled_jacobian(model: &MeasurementModel, pool: &Pool, columns: &[usize])
     (out, scale)
 }
 
-pub fn run(model: &MeasurementModel, pool: &Pool, columns: &[usize], cfg: &SelectConfig) -> Result<Selection, SelectError> {
+pub fn run(
+    model: &MeasurementModel,
+    pool: &Pool,
+    columns: &[usize],
+    cfg: &SelectConfig,
+) -> Result<Selection, SelectError> {
     let m = columns.len();
     let n0 = pool.candidates.len();
     if n0 < m || m == 0 {
@@ -69,7 +86,11 @@ pub fn run(model: &MeasurementModel, pool: &Pool, columns: &[usize], cfg: &Selec
     }
     if let Some(k) = cfg.poses {
         if k < m || k > n0 {
-            return Err(SelectError::PoseCount { asked: k, m, valid: n0 });
+            return Err(SelectError::PoseCount {
+                asked: k,
+                m,
+                valid: n0,
+            });
         }
     }
     let (j, _) = scaled_jacobian(model, pool, columns);
@@ -84,7 +105,12 @@ pub fn run(model: &MeasurementModel, pool: &Pool, columns: &[usize], cfg: &Selec
         keep[r] = false;
     }
     let indices = (0..n0).filter(|&i| keep[i]).collect();
-    Ok(Selection { indices, curve, m, rule })
+    Ok(Selection {
+        indices,
+        curve,
+        m,
+        rule,
+    })
 }
 
 /// The default pose count: see [`MARGIN`] and [`KNEE_TOLERANCE`].
@@ -93,13 +119,24 @@ pub fn knee(curve: &[(usize, f64)], m: usize) -> (usize, String) {
     let above: Vec<&(usize, f64)> = curve.iter().filter(|(n, _)| *n >= floor).collect();
     if above.is_empty() {
         let n = curve.first().map_or(m, |c| c.0);
-        return (n, format!("all {n} valid poses (fewer than {floor} = 1.5 m)"));
+        return (
+            n,
+            format!("all {n} valid poses (fewer than {floor} = 1.5 m)"),
+        );
     }
     let best = above.iter().map(|c| c.1).fold(f64::INFINITY, f64::min);
-    let n = above.iter().filter(|c| c.1 <= KNEE_TOLERANCE * best).map(|c| c.0).min().unwrap_or(floor);
+    let n = above
+        .iter()
+        .filter(|c| c.1 <= KNEE_TOLERANCE * best)
+        .map(|c| c.0)
+        .min()
+        .unwrap_or(floor);
     (
         n,
-        format!("knee: smallest n >= 1.5 m = {floor} with cond(n) <= 1.1 x min cond ({})", crate::units::fmt_fixed(best, 2)),
+        format!(
+            "knee: smallest n >= 1.5 m = {floor} with cond(n) <= 1.1 x min cond ({})",
+            crate::units::fmt_fixed(best, 2)
+        ),
     )
 }
 
@@ -134,7 +171,16 @@ pub fn eliminate(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
         let mut order: Vec<usize> = (0..m).collect();
         order.sort_by(|&a, &b| eig.eigenvalues[a].total_cmp(&eig.eigenvalues[b]));
         let lam: Vec<f64> = order.iter().map(|&k| eig.eigenvalues[k]).collect();
-        let vt: Vec<f64> = order.iter().flat_map(|&k| eig.eigenvectors.column(k).iter().copied().collect::<Vec<_>>()).collect();
+        let vt: Vec<f64> = order
+            .iter()
+            .flat_map(|&k| {
+                eig.eigenvectors
+                    .column(k)
+                    .iter()
+                    .copied()
+                    .collect::<Vec<_>>()
+            })
+            .collect();
         curve.push((active.len(), cond_of(lam[0], lam[m - 1])));
         if active.len() == m {
             break;
@@ -147,15 +193,26 @@ pub fn eliminate(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
                 |z, (pos, &i)| {
                     let r = row(i);
                     for k in 0..m {
-                        z[k] = vt[k * m..(k + 1) * m].iter().zip(r).map(|(v, x)| v * x).sum();
+                        z[k] = vt[k * m..(k + 1) * m]
+                            .iter()
+                            .zip(r)
+                            .map(|(v, x)| v * x)
+                            .sum();
                     }
                     let (lo, hi) = downdated_extremes(&lam, z);
                     let score = if lo > 0.0 { hi / lo } else { f64::INFINITY };
                     (score, i, pos)
                 },
             )
-            .reduce(|| (f64::INFINITY, usize::MAX, usize::MAX), |a, b| if (b.0, b.1) < (a.0, a.1) { b } else { a });
-        let (_, i, pos) = if best.2 == usize::MAX { (0.0, active[active.len() - 1], active.len() - 1) } else { best };
+            .reduce(
+                || (f64::INFINITY, usize::MAX, usize::MAX),
+                |a, b| if (b.0, b.1) < (a.0, a.1) { b } else { a },
+            );
+        let (_, i, pos) = if best.2 == usize::MAX {
+            (0.0, active[active.len() - 1], active.len() - 1)
+        } else {
+            best
+        };
         active.remove(pos);
         removed.push(i);
         // Downdate; rebuild from scratch now and then (and always when few rows remain, where
@@ -189,7 +246,11 @@ pub fn downdated_extremes(lam: &[f64], z: &[f64]) -> (f64, f64) {
     let m = lam.len();
     let zz: f64 = z.iter().map(|v| v * v).sum();
     let lo = secular_root(lam, z, lam[0] - zz, lam[0], 0);
-    let hi = if m == 1 { lo } else { secular_root(lam, z, (lam[m - 2]).max(lam[m - 1] - zz), lam[m - 1], m - 1) };
+    let hi = if m == 1 {
+        lo
+    } else {
+        secular_root(lam, z, (lam[m - 2]).max(lam[m - 1] - zz), lam[m - 1], m - 1)
+    };
     (lo, hi)
 }
 
@@ -224,7 +285,11 @@ fn secular_root(lam: &[f64], z: &[f64], mut a: f64, mut b: f64, pole: usize) -> 
         let lp = lam[pole];
         let c = d * (lp - x) * (lp - x);
         let e = v - c / (lp - x);
-        let mut next = if e < 1.0 { lp - c / (1.0 - e) } else { f64::NAN };
+        let mut next = if e < 1.0 {
+            lp - c / (1.0 - e)
+        } else {
+            f64::NAN
+        };
         if !(next > a && next < b) {
             next = 0.5 * (a + b);
         }
@@ -244,7 +309,9 @@ mod tests {
     fn random_matrix(n: usize, m: usize, seed: u64) -> Vec<f64> {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
         // Uneven column scales and some correlation, like a real Jacobian.
-        (0..n * m).map(|k| rng.random_range(-1.0..1.0) * (1.0 + (k % m) as f64 * 0.3)).collect()
+        (0..n * m)
+            .map(|k| rng.random_range(-1.0..1.0) * (1.0 + (k % m) as f64 * 0.3))
+            .collect()
     }
 
     fn cond_svd(j: &[f64], rows: &[usize], m: usize) -> f64 {
@@ -260,18 +327,38 @@ mod tests {
             let m = rng.random_range(2..12);
             let n = m + rng.random_range(1..20);
             let j = random_matrix(n, m, rng.random());
-            let g = DMatrix::from_fn(m, m, |a, b| (0..n).map(|i| j[i * m + a] * j[i * m + b]).sum::<f64>());
+            let g = DMatrix::from_fn(m, m, |a, b| {
+                (0..n).map(|i| j[i * m + a] * j[i * m + b]).sum::<f64>()
+            });
             let eig = SymmetricEigen::new(g.clone());
             let mut idx: Vec<usize> = (0..m).collect();
             idx.sort_by(|&a, &b| eig.eigenvalues[a].total_cmp(&eig.eigenvalues[b]));
             let lam: Vec<f64> = idx.iter().map(|&k| eig.eigenvalues[k]).collect();
             let r = &j[0..m];
-            let z: Vec<f64> = idx.iter().map(|&k| eig.eigenvectors.column(k).iter().zip(r).map(|(v, x)| v * x).sum()).collect();
+            let z: Vec<f64> = idx
+                .iter()
+                .map(|&k| {
+                    eig.eigenvectors
+                        .column(k)
+                        .iter()
+                        .zip(r)
+                        .map(|(v, x)| v * x)
+                        .sum()
+                })
+                .collect();
             let (lo, hi) = downdated_extremes(&lam, &z);
             let rr = DMatrix::from_fn(m, m, |a, b| r[a] * r[b]);
             let want = SymmetricEigen::new(g - rr).eigenvalues;
-            assert!((lo - want.min()).abs() <= 1e-9 * want.max(), "{lo} vs {}", want.min());
-            assert!((hi - want.max()).abs() <= 1e-9 * want.max(), "{hi} vs {}", want.max());
+            assert!(
+                (lo - want.min()).abs() <= 1e-9 * want.max(),
+                "{lo} vs {}",
+                want.min()
+            );
+            assert!(
+                (hi - want.max()).abs() <= 1e-9 * want.max(),
+                "{hi} vs {}",
+                want.max()
+            );
         }
     }
 
@@ -316,7 +403,10 @@ mod tests {
     fn knee_rule_respects_the_margin_and_tolerance() {
         let m = 10;
         // cond falls from 40 rows to a minimum of 2.0 at n = 20, then rises towards n = m.
-        let curve: Vec<(usize, f64)> = (m..=40).rev().map(|n| (n, 2.0 + ((n as f64) - 20.0).powi(2) * 0.01)).collect();
+        let curve: Vec<(usize, f64)> = (m..=40)
+            .rev()
+            .map(|n| (n, 2.0 + ((n as f64) - 20.0).powi(2) * 0.01))
+            .collect();
         let (n, _) = knee(&curve, m);
         // Within 10 % of 2.0: (n − 20)² ≤ 20 → n ≥ 15.53 → 16.
         assert_eq!(n, 16);

@@ -11,10 +11,18 @@ pub fn root() -> PathBuf {
 
 /// The shared public robots (../shared/robots, never copied into the project).
 pub fn shared_robot(name: &str) -> PathBuf {
-    root().join("../shared/robots").join(name).join("robot.urdf")
+    root()
+        .join("../shared/robots")
+        .join(name)
+        .join("robot.urdf")
 }
 
-pub const SHARED_ROBOTS: &[&str] = &["abb_irb6700_200_260", "kuka_kr210_l150", "kuka_kr120_r2500pro", "fanuc_r2000ic_165f"];
+pub const SHARED_ROBOTS: &[&str] = &[
+    "abb_irb6700_200_260",
+    "kuka_kr210_l150",
+    "kuka_kr120_r2500pro",
+    "fanuc_r2000ic_165f",
+];
 
 pub fn nj130_dh() -> PathBuf {
     root().join("robots/comau_nj130/robot.dh.toml")
@@ -48,7 +56,11 @@ where
     for (k, v) in env {
         cmd.env(k, v);
     }
-    let Output { status, stdout, stderr } = cmd.output().expect("run edbbgen");
+    let Output {
+        status,
+        stdout,
+        stderr,
+    } = cmd.output().expect("run edbbgen");
     Run {
         code: status.code().unwrap_or(-1),
         stdout: String::from_utf8_lossy(&stdout).into_owned(),
@@ -76,7 +88,10 @@ pub fn program_poses(text: &str) -> Vec<[f64; 6]> {
                 q[i] = value.parse().expect("number");
             }
         }
-        assert!(q.iter().all(|v| v.is_finite()), "incomplete motion line: {line}");
+        assert!(
+            q.iter().all(|v| v.is_finite()),
+            "incomplete motion line: {line}"
+        );
         out.push(q);
     }
     out
@@ -88,7 +103,13 @@ pub fn load(path: &Path) -> edbbgen::robot::Robot {
 
 /// Asserts that every pose of `text` lies in the bar shell [min, max] mm around `fixture_mm`
 /// (the MAP computed by FK of `robot` with `tool_mm` in the flange frame) and within the limits.
-pub fn assert_in_shell(robot: &edbbgen::robot::Robot, text: &str, fixture_mm: [f64; 3], tool_mm: [f64; 3], bar_mm: (f64, f64)) -> usize {
+pub fn assert_in_shell(
+    robot: &edbbgen::robot::Robot,
+    text: &str,
+    fixture_mm: [f64; 3],
+    tool_mm: [f64; 3],
+    bar_mm: (f64, f64),
+) -> usize {
     use nalgebra::Vector3;
     let poses = program_poses(text);
     assert!(!poses.is_empty(), "program has no poses");
@@ -99,12 +120,19 @@ pub fn assert_in_shell(robot: &edbbgen::robot::Robot, text: &str, fixture_mm: [f
         let q: [f64; 6] = q.map(|d| d.to_radians());
         for i in 0..6 {
             // Emitted values are rounded to 1e-4 deg.
-            assert!(q[i] >= lo[i] - 1e-6 && q[i] <= hi[i] + 1e-6, "joint {} outside its limits: {q:?}", i + 1);
+            assert!(
+                q[i] >= lo[i] - 1e-6 && q[i] <= hi[i] + 1e-6,
+                "joint {} outside its limits: {q:?}",
+                i + 1
+            );
         }
         let p = robot.point(&q, &tool);
         let l = (p - fix).norm() * 1e3;
         // 1e-4 deg of rounding moves the MAP by < 0.01 mm on these robots.
-        assert!(l >= bar_mm.0 - 0.01 && l <= bar_mm.1 + 0.01, "bar length {l} mm outside {bar_mm:?} at {q:?}");
+        assert!(
+            l >= bar_mm.0 - 0.01 && l <= bar_mm.1 + 0.01,
+            "bar length {l} mm outside {bar_mm:?} at {q:?}"
+        );
         assert!(p.z > 0.0, "MAP below the floor");
     }
     poses.len()
