@@ -30,3 +30,4 @@ pub mod robot;
 pub mod sample;
 pub mod select;
 pub mod units;
+pub mod verify;
