@@ -17,13 +17,7 @@ fn main() {
     let fixture = Vector3::new(258.0, 1468.0, 708.0) * MM;
     let map = Vector3::new(60.0, 30.0, 120.0) * MM;
     let model = MeasurementModel::new(&robot, fixture, map);
-    let cell = Cell {
-        fixture,
-        map,
-        bar_min: 0.30,
-        bar_max: 0.52,
-        floor_z: 0.0,
-    };
+    let cell = Cell::shell_only(fixture, map, 0.30, 0.52, 0.0);
     let mut rows: Vec<(String, f64, String)> = Vec::new();
 
     // FK (map position) on a stream of configurations.

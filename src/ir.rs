@@ -7,7 +7,8 @@
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 
-/// The measurement cell: where the EDBB fixture is and what the bar can reach.
+/// The measurement cell as the stages see it: where the fixture is, what the bar can reach, and
+/// the instrument's and the harness's own limits (SI).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Cell {
     /// Fixture ball centre in the robot base frame (m).
@@ -17,11 +18,82 @@ pub struct Cell {
     /// Usable bar length range: ball-centre distance [min, max] (m).
     pub bar_min: f64,
     pub bar_max: f64,
-    /// Height of the floor in the robot base frame (m); the MAP must stay above it.
+    /// Height of the floor in the robot base frame (m); the MAP stays above it.
     pub floor_z: f64,
+    /// Unit socket axis (base frame) and the cosine of the socket cone's half-angle.
+    pub fixture_axis: Vector3<f64>,
+    pub fixture_cone_cos: f64,
+    /// Unit tool-cup axis (flange frame) and the cosine of the cup cone's half-angle.
+    pub tool_axis: Vector3<f64>,
+    pub tool_cone_cos: f64,
+    /// Wiring-harness limits (rad) on q4, q6 and q4 + q6.
+    pub cables: [Option<[f64; 2]>; 3],
+}
+
+/// Why a pose is not admitted (report keys).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Reason {
+    JointLimit,
+    JointSpeed,
+    CableLimit,
+    BarLength,
+    Floor,
+    SocketCone,
+    CupCone,
+    Collision,
+}
+
+impl Reason {
+    pub const ALL: [Reason; 8] = [
+        Reason::JointLimit,
+        Reason::JointSpeed,
+        Reason::CableLimit,
+        Reason::BarLength,
+        Reason::Floor,
+        Reason::SocketCone,
+        Reason::CupCone,
+        Reason::Collision,
+    ];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Reason::JointLimit => "joint_limit",
+            Reason::JointSpeed => "joint_speed",
+            Reason::CableLimit => "cable_limit",
+            Reason::BarLength => "bar_length",
+            Reason::Floor => "floor",
+            Reason::SocketCone => "socket_cone",
+            Reason::CupCone => "cup_cone",
+            Reason::Collision => "collision",
+        }
+    }
 }
 
 impl Cell {
+    /// A cell with only the shell and the floor (no cones, no harness limits): for tests and
+    /// benchmarks of the geometry alone.
+    pub fn shell_only(
+        fixture: Vector3<f64>,
+        map: Vector3<f64>,
+        bar_min: f64,
+        bar_max: f64,
+        floor_z: f64,
+    ) -> Self {
+        Cell {
+            fixture,
+            map,
+            bar_min,
+            bar_max,
+            floor_z,
+            fixture_axis: Vector3::z(),
+            fixture_cone_cos: -1.0,
+            tool_axis: Vector3::z(),
+            tool_cone_cos: -1.0,
+            cables: [None; 3],
+        }
+    }
+
     /// True when a MAP position (base frame) lies in the EDBB shell and above the floor.
     #[inline]
     pub fn admits(&self, map: &Vector3<f64>) -> bool {
@@ -29,6 +101,55 @@ impl Cell {
         d2 >= self.bar_min * self.bar_min
             && d2 <= self.bar_max * self.bar_max
             && map.z > self.floor_z
+    }
+
+    /// The instrument and harness checks of one pose, cheapest first: cables, shell, floor,
+    /// socket cone, cup cone. `cup_axis` is the tool-cup axis in the base frame.
+    #[inline]
+    pub fn verdict(
+        &self,
+        q: &[f64; 6],
+        map: &Vector3<f64>,
+        cup_axis: &Vector3<f64>,
+    ) -> Result<(), Reason> {
+        if !self.cables_admit(q) {
+            return Err(Reason::CableLimit);
+        }
+        let d = map - self.fixture;
+        let l2 = d.norm_squared();
+        if l2 < self.bar_min * self.bar_min || l2 > self.bar_max * self.bar_max {
+            return Err(Reason::BarLength);
+        }
+        if map.z <= self.floor_z {
+            return Err(Reason::Floor);
+        }
+        let l = l2.sqrt();
+        // Socket: the bar leaves the fixture ball along d; cup: it arrives at the MAP along −d.
+        if d.dot(&self.fixture_axis) < self.fixture_cone_cos * l {
+            return Err(Reason::SocketCone);
+        }
+        if -d.dot(cup_axis) < self.tool_cone_cos * l {
+            return Err(Reason::CupCone);
+        }
+        Ok(())
+    }
+
+    #[inline]
+    pub fn cables_admit(&self, q: &[f64; 6]) -> bool {
+        let v = [q[3], q[5], q[3] + q[5]];
+        self.cables
+            .iter()
+            .zip(v)
+            .all(|(r, x)| r.is_none_or(|r| x >= r[0] && x <= r[1]))
+    }
+
+    /// Angle between the bar and the socket axis, and between the bar and the cup axis (rad).
+    pub fn cone_angles(&self, map: &Vector3<f64>, cup_axis: &Vector3<f64>) -> (f64, f64) {
+        let d = (map - self.fixture).normalize();
+        (
+            d.dot(&self.fixture_axis).clamp(-1.0, 1.0).acos(),
+            (-d).dot(cup_axis).clamp(-1.0, 1.0).acos(),
+        )
     }
 }
 
@@ -43,6 +164,9 @@ pub struct Candidate {
     pub length: f64,
     /// Position in the joint grid (mixed-radix index): the stable identity of the pose.
     pub grid: u64,
+    /// Seeded hash of `grid`: the pool is the valid poses with the smallest keys, and later
+    /// filters visit candidates in key order, so every subset stays uniform.
+    pub key: u64,
 }
 
 /// The candidate pool: valid poses in grid order.
@@ -93,7 +217,9 @@ pub struct Header {
     pub map_mm: [f64; 3],
     pub bar_mm: [f64; 2],
     pub blend_mm: f64,
+    pub margin_mm: f64,
     pub poses: usize,
+    pub supports: usize,
     pub identifiable: usize,
     pub cond: f64,
     pub time_unsorted_s: f64,
@@ -106,6 +232,12 @@ pub struct Header {
 pub struct Move {
     /// Target joint vector in degrees.
     pub q_deg: [f64; 6],
+    /// A support pose (inserted for safety), not a measurement pose.
+    pub support: bool,
+    /// Measurement pose number (1-based) for measurement poses.
+    pub pose: usize,
+    /// Blend distance at the corner this move ends in (mm); 0 = exact stop.
+    pub blend_mm: f64,
     /// Planned duration (s): the slowest axis at its maximum speed (Eq. 7).
     pub time_s: f64,
     /// Predicted bar length at the target (mm).

@@ -22,12 +22,14 @@
 
 pub mod cell;
 pub mod cli;
+pub mod collision;
 pub mod emit;
 pub mod ir;
 pub mod model;
 pub mod order;
 pub mod pipeline;
 pub mod robot;
+pub mod safety;
 pub mod sample;
 pub mod select;
 pub mod units;

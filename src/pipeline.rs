@@ -1,35 +1,40 @@
 //! The one place where stages are chained: in = a loaded robot and resolved options; out =
 //! every intermediate result (the IR) plus the program text. No file I/O, no printing.
+//!
+//! load → model → sample (shell, cones, harness) → collision filter → select → order →
+//! safety plan (support poses, blends) → emit → verify the emitted text.
 
+use crate::cell::CellSpec;
+use crate::collision::{self, Scene, SceneReport};
 use crate::emit;
-use crate::ir::{Cell, Header, Move, Path, Pool, Program, Selection};
+use crate::ir::{Cell, Header, Move, Path, Pool, Program, Reason, Selection};
 use crate::model::{self, Identifiability, IdentifyOptions, MeasurementModel, N_PARAMS};
 use crate::order;
 use crate::robot::Robot;
+use crate::safety::path::{self as safepath, Plan};
+use crate::safety::Checker;
 use crate::sample::{self, Progress, SampleConfig, SampleReport};
 use crate::select::{self, SelectConfig};
 use crate::units::{fmt_fixed, to_deg, to_mm};
+use crate::verify;
 use nalgebra::Vector3;
 use rand::{Rng, SeedableRng};
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
+use std::collections::BTreeMap;
 
 /// Everything the compiler needs besides the robot, resolved and checked (SI units).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct CompileOptions {
     pub fixture: Vector3<f64>,
-    /// MAP in the flange frame; None = the robot file's tool, else the flange origin.
-    pub tool: Option<Vector3<f64>>,
-    pub bar_min: f64,
-    pub bar_max: f64,
-    pub floor_z: f64,
+    /// The cell with every CLI override applied (MAP: None = the robot file's tool).
+    pub cell: CellSpec,
     pub step: [f64; 6],
     pub max_candidates: usize,
     pub seed: u64,
     pub poses: Option<usize>,
     pub blend: f64,
-    /// Diameter of the EDBB's balls: their centres can come no closer than this.
-    pub ball: f64,
     /// Start configuration; the tour starts at the selected pose nearest to it (Eq. 7).
     pub start: [f64; 6],
 }
@@ -41,6 +46,17 @@ pub const DEFAULT_SEED: u64 = 1;
 pub const DEFAULT_BLEND_MM: f64 = 10.0;
 /// Ball diameter assumed when none is given (precision ball-bar balls are 12.7–25.4 mm).
 pub const DEFAULT_BALL_MM: f64 = 25.0;
+/// Measurement poses keep this far from the bar's ends and the cone edges, so that the joint
+/// moves between them (which bow) have room; moves are checked against the full limits.
+pub const POSE_INSET_BAR_MM: f64 = 5.0;
+pub const POSE_INSET_CONE_DEG: f64 = 3.0;
+/// The sampler keeps this many times `max_candidates` cheap-valid poses; the collision filter
+/// then takes them in hash order until `max_candidates` pass.
+pub const RESERVOIR_FACTOR: usize = 4;
+/// Neighbours per pose in the connectivity graph of the pool.
+pub const COMPONENT_NEIGHBOURS: usize = 8;
+/// Rounds of "take unreachable poses out and select again".
+pub const REPAIR_ROUNDS: usize = 4;
 
 /// Millimetres with one decimal, for messages.
 fn mm1(v_mm: f64) -> String {
@@ -68,12 +84,18 @@ pub enum PipelineError {
         mm1(bar_mm[0]), mm1(bar_mm[1]), mm1(*ball_mm), mm1(*ball_mm)
     )]
     BallsOverlap { bar_mm: [f64; 2], ball_mm: f64 },
+    #[error("no valid pose: every pose in the bar shell was rejected ({0}); check the cell, the cones and the harness limits")]
+    AllRejected(String),
+    #[error("collision model: {0}")]
+    Collision(String),
     #[error(transparent)]
     Select(#[from] select::SelectError),
     #[error(transparent)]
     Order(#[from] order::OrderError),
     #[error("template: {0}")]
     Template(String),
+    #[error("refusing to write an unsafe program: {0}")]
+    Unsafe(String),
 }
 
 impl PipelineError {
@@ -88,6 +110,14 @@ impl PipelineError {
             }
         } else {
             PipelineError::EmptyShell { bar_mm }
+        }
+    }
+
+    /// Exit code: 1 when the compiler's own safety check failed, 2 for bad input.
+    pub fn exit_code(&self) -> i32 {
+        match self {
+            PipelineError::Unsafe(_) => 1,
+            _ => 2,
         }
     }
 }
@@ -120,7 +150,7 @@ pub fn map_warnings(model: &MeasurementModel, id: &Identifiability) -> Vec<Strin
             )
         });
         w.push(format!(
-            "the MAP lies on the flange axis (axis of joint 6): q6 cannot move it, so theta6 is unobservable and fewer parameters are identifiable ({} instead of 22 for a spherical wrist; fixed: {}); use a tool cup off the flange axis",
+            "the MAP lies on the flange axis (axis of joint 6): q6 cannot move it and is held, so theta6 is unobservable and only {} parameters are identifiable (fixed: {}); use a tool cup off the flange axis",
             id.count(),
             lost.join(", ")
         ));
@@ -131,6 +161,53 @@ pub fn map_warnings(model: &MeasurementModel, id: &Identifiability) -> Vec<Strin
         ));
     }
     w
+}
+
+/// The cell the stages use: the spec's limits, with the shell cut at the ball diameter.
+pub fn make_cell(
+    fixture: Vector3<f64>,
+    map: Vector3<f64>,
+    spec: &CellSpec,
+) -> Result<Cell, PipelineError> {
+    if spec.bar_max <= spec.ball {
+        return Err(PipelineError::BallsOverlap {
+            bar_mm: [to_mm(spec.bar_min), to_mm(spec.bar_max)],
+            ball_mm: to_mm(spec.ball),
+        });
+    }
+    Ok(Cell {
+        fixture,
+        map,
+        bar_min: spec.bar_min.max(spec.ball),
+        bar_max: spec.bar_max,
+        floor_z: spec.floor_z,
+        fixture_axis: spec.fixture_axis,
+        fixture_cone_cos: spec.fixture_cone.cos(),
+        tool_axis: spec.tool_axis,
+        tool_cone_cos: spec.tool_cone.cos(),
+        cables: [spec.cable_q4, spec.cable_q6, spec.cable_q4_q6],
+    })
+}
+
+/// The cell for choosing measurement poses: the limits pulled in by the pose inset.
+pub fn inset_cell(cell: &Cell) -> Cell {
+    let d = POSE_INSET_BAR_MM * 1e-3;
+    let a = POSE_INSET_CONE_DEG.to_radians();
+    let shrink = |c: f64| {
+        if c <= -1.0 {
+            c
+        } else {
+            (c.clamp(-1.0, 1.0).acos() - a).max(0.0).cos()
+        }
+    };
+    let mid = 0.5 * (cell.bar_min + cell.bar_max);
+    Cell {
+        bar_min: (cell.bar_min + d).min(mid),
+        bar_max: (cell.bar_max - d).max(mid),
+        fixture_cone_cos: shrink(cell.fixture_cone_cos),
+        tool_cone_cos: shrink(cell.tool_cone_cos),
+        ..cell.clone()
+    }
 }
 
 /// A rich pose set for identifiability: random configurations (movable joints only) whose MAP
@@ -173,6 +250,37 @@ pub fn rich_rows(
     }
 }
 
+/// Counts at every stage (`--report`).
+#[derive(Clone, Debug, Serialize)]
+pub struct Report {
+    pub schema: &'static str,
+    pub grid_size: u64,
+    pub evaluated: u64,
+    pub valid_before_collisions: u64,
+    pub rejected: BTreeMap<String, u64>,
+    pub collision_checked: usize,
+    pub pool: usize,
+    /// Admitted poses outside the largest safely connected group (left out of the pool).
+    pub disconnected: usize,
+    /// Selected poses that no safe move reached, replaced by selecting again without them.
+    pub replaced_unreachable: usize,
+    pub identifiable: usize,
+    pub selected: usize,
+    pub support_poses: usize,
+    pub dropped: Vec<safepath::Dropped>,
+    pub exact_stops: usize,
+    pub min_clearance_mm: f64,
+    pub min_clearance_between: [String; 2],
+    pub bar_length_mm: [f64; 2],
+    pub max_socket_angle_deg: f64,
+    pub max_cup_angle_deg: f64,
+    pub estimated_time_s: f64,
+    pub time_unsorted_s: f64,
+    pub collision_pairs_checked: usize,
+    pub excluded_pairs: Vec<collision::ExcludedPair>,
+    pub warnings: Vec<String>,
+}
+
 /// Every stage's result, for reports and `--emit STAGE`.
 #[derive(Clone, Debug, Serialize)]
 pub struct Compiled {
@@ -183,61 +291,116 @@ pub struct Compiled {
     pub pool: Pool,
     pub selection: Selection,
     pub path: Path,
+    pub plan: Plan,
     pub program: Program,
     pub text: String,
+    pub verified: verify::Summary,
+    pub report: Report,
     pub warnings: Vec<String>,
 }
 
-/// load → model → sample → select → order → emit.
-/// The cell, with the shell cut to what two balls of the given diameter allow.
-pub fn make_cell(
-    fixture: Vector3<f64>,
-    map: Vector3<f64>,
-    bar: (f64, f64),
-    floor_z: f64,
-    ball: f64,
-) -> Result<Cell, PipelineError> {
-    if bar.1 <= ball {
-        return Err(PipelineError::BallsOverlap {
-            bar_mm: [to_mm(bar.0), to_mm(bar.1)],
-            ball_mm: to_mm(ball),
-        });
+/// The collision filter: candidates in key order, checked in parallel batches, until `want`
+/// pass. Deterministic: the accepted set is the first `want` passing poses in key order.
+fn collision_filter(
+    ck: &Checker,
+    mut candidates: Vec<crate::ir::Candidate>,
+    want: usize,
+) -> (Vec<crate::ir::Candidate>, usize, u64) {
+    candidates.sort_by_key(|c| c.key);
+    let mut kept = Vec::with_capacity(want);
+    let mut checked = 0;
+    let mut rejected = 0u64;
+    for batch in candidates.chunks(256) {
+        let ok: Vec<bool> = batch.par_iter().map(|c| ck.pose(&c.q).is_ok()).collect();
+        for (c, ok) in batch.iter().zip(ok) {
+            checked += 1;
+            if ok {
+                kept.push(*c);
+                if kept.len() == want {
+                    break;
+                }
+            } else {
+                rejected += 1;
+            }
+        }
+        if kept.len() == want {
+            break;
+        }
     }
-    Ok(Cell {
-        fixture,
-        map,
-        bar_min: bar.0.max(ball),
-        bar_max: bar.1,
-        floor_z,
-    })
+    kept.sort_by_key(|c| c.grid);
+    (kept, checked, rejected)
 }
 
+pub fn build_scene(
+    robot: &Robot,
+    spec: &CellSpec,
+    fixture: &Vector3<f64>,
+    map: &Vector3<f64>,
+) -> Result<(Scene, SceneReport), PipelineError> {
+    collision::build(robot, spec, fixture, map).map_err(|e| PipelineError::Collision(e.to_string()))
+}
+
+/// load → model → sample → filter → select → order → plan → emit → verify.
 pub fn compile(
     robot: &Robot,
     opts: &CompileOptions,
     template: &str,
     progress: &dyn Progress,
 ) -> Result<Compiled, PipelineError> {
-    let (map, mut warnings) = resolve_map(robot, opts.tool);
-    let cell = make_cell(
-        opts.fixture,
-        map,
-        (opts.bar_min, opts.bar_max),
-        opts.floor_z,
-        opts.ball,
-    )?;
+    let (map, mut warnings) = resolve_map(robot, opts.cell.map);
+    let cell = make_cell(opts.fixture, map, &opts.cell)?;
     let model = MeasurementModel::new(robot, opts.fixture, map);
+    let (scene, scene_report) = build_scene(robot, &opts.cell, &opts.fixture, &map)?;
+    let ck = Checker::new(robot, &model, &cell, &scene, opts.cell.margin);
 
     let movable = model::movable_joints(&model, robot);
+    let reservoir = opts.max_candidates.saturating_mul(RESERVOIR_FACTOR);
     let scfg = SampleConfig {
         step: opts.step,
-        max_candidates: opts.max_candidates,
+        max_candidates: reservoir,
         seed: opts.seed,
         movable,
     };
-    let (pool, sample) = sample::run(robot, &model, &cell, &scfg, progress);
+    let (sampled, sample) = sample::run(robot, &model, &inset_cell(&cell), &scfg, progress);
+    let (candidates, collision_checked, collisions) =
+        collision_filter(&ck, sampled.candidates, opts.max_candidates);
+    // One program can only use poses that safe motions connect: keep the largest component.
+    let qs: Vec<[f64; 6]> = candidates.iter().map(|c| c.q).collect();
+    let keep = crate::safety::roadmap::largest_component(
+        &ck,
+        &qs,
+        &robot.max_speeds(),
+        COMPONENT_NEIGHBOURS,
+    );
+    let disconnected = candidates.len() - keep.len();
+    let pool = Pool {
+        candidates: keep.iter().map(|&i| candidates[i]).collect(),
+    };
+    if disconnected > 0 {
+        warnings.push(format!(
+            "{disconnected} of {} admitted poses are not connected by safe motions to the largest group (e.g. the other wrist branch) and are left out",
+            candidates.len()
+        ));
+    }
+    let mut rejected: BTreeMap<String, u64> = sample
+        .rejected
+        .iter()
+        .map(|(r, n)| (r.name().to_string(), *n))
+        .collect();
+    if collisions > 0 {
+        rejected.insert(Reason::Collision.name().to_string(), collisions);
+    }
     if pool.candidates.is_empty() {
-        return Err(empty_pool_error(robot, &model, &cell, opts.seed));
+        if sample.valid == 0
+            && !sample
+                .rejected
+                .keys()
+                .any(|r| !matches!(r, Reason::BarLength | Reason::Floor))
+        {
+            return Err(empty_pool_error(robot, &model, &cell, opts.seed));
+        }
+        let why: Vec<String> = rejected.iter().map(|(k, v)| format!("{k} {v}")).collect();
+        return Err(PipelineError::AllRejected(why.join(", ")));
     }
 
     // Identifiability over the poses the bar can actually measure: the pool itself.
@@ -253,38 +416,71 @@ pub fn compile(
     let identifiability = model::analyse(&rows, &IdentifyOptions::default());
     warnings.extend(map_warnings(&model, &identifiability));
 
-    let selection = select::run(
-        &model,
-        &pool,
-        &identifiability.identifiable,
-        &SelectConfig { poses: opts.poses },
-    )?;
-    let poses: Vec<[f64; 6]> = selection
-        .indices
-        .iter()
-        .map(|&i| pool.candidates[i].q)
-        .collect();
+    // Select, order and make the path safe; poses no safe move reaches are taken out of the
+    // pool and the selection is redone, so that reachable poses replace them.
     let speeds = robot.max_speeds();
-    let start = (0..poses.len())
-        .map(|k| (k, order::move_time(&opts.start, &poses[k], &speeds)))
-        .fold((0, f64::INFINITY), |b, c| if c.1 < b.1 { c } else { b })
-        .0;
-    let tour = order::solve(&poses, start, &speeds)?;
-    let ordered: Vec<[f64; 6]> = tour.order.iter().map(|&k| poses[k]).collect();
+    let support_pool: Vec<[f64; 6]> = pool.candidates.iter().map(|c| c.q).collect();
+    let mut usable = pool.clone();
+    let mut excluded_unreachable = 0;
+    let mut round = 0;
+    let (selection, tour, plan) = loop {
+        let selection = select::run(
+            &model,
+            &usable,
+            &identifiability.identifiable,
+            &SelectConfig { poses: opts.poses },
+        )?;
+        let poses: Vec<[f64; 6]> = selection
+            .indices
+            .iter()
+            .map(|&i| usable.candidates[i].q)
+            .collect();
+        let start = (0..poses.len())
+            .map(|k| (k, order::move_time(&opts.start, &poses[k], &speeds)))
+            .fold((0, f64::INFINITY), |b, c| if c.1 < b.1 { c } else { b })
+            .0;
+        let tour = order::solve(&poses, start, &speeds)?;
+        let ordered: Vec<[f64; 6]> = tour.order.iter().map(|&k| poses[k]).collect();
+        let plan = safepath::plan(&ck, &ordered, &support_pool, opts.blend, &speeds, opts.seed);
+        if plan.dropped.is_empty()
+            || round == REPAIR_ROUNDS
+            || usable.candidates.len() <= identifiability.count() + plan.dropped.len()
+        {
+            break (selection, tour, plan);
+        }
+        round += 1;
+        let unreachable: Vec<[f64; 6]> = plan.dropped.iter().map(|d| d.q).collect();
+        excluded_unreachable += unreachable.len();
+        usable.candidates.retain(|c| !unreachable.contains(&c.q));
+    };
+    if excluded_unreachable > 0 {
+        warnings.push(format!(
+            "{excluded_unreachable} selected poses could not be reached safely and were replaced"
+        ));
+    }
+    for d in &plan.dropped {
+        warnings.push(format!(
+            "dropped tour pose {}: no safe move found ({})",
+            d.index + 1,
+            d.violation
+        ));
+    }
+    let wq: Vec<[f64; 6]> = plan.waypoints.iter().map(|w| w.q).collect();
     let move_times: Vec<f64> = std::iter::once(0.0)
         .chain(
-            ordered
-                .windows(2)
+            wq.windows(2)
                 .map(|w| order::move_time(&w[0], &w[1], &speeds)),
         )
         .collect();
+    let time_sorted: f64 = move_times.iter().sum();
     let path = Path {
-        poses: ordered,
+        poses: wq,
         move_times,
         time_unsorted: tour.time_unsorted,
-        time_sorted: tour.time_sorted,
+        time_sorted,
     };
 
+    let measured = plan.waypoints.iter().filter(|w| !w.support).count();
     let cond = selection
         .curve
         .iter()
@@ -296,9 +492,11 @@ pub fn compile(
         robot_file: robot.source.clone(),
         fixture_mm: opts.fixture.map(to_mm).into(),
         map_mm: map.map(to_mm).into(),
-        bar_mm: [to_mm(opts.bar_min), to_mm(opts.bar_max)],
+        bar_mm: [to_mm(cell.bar_min), to_mm(cell.bar_max)],
         blend_mm: to_mm(opts.blend),
-        poses: path.poses.len(),
+        margin_mm: to_mm(opts.cell.margin),
+        poses: measured,
+        supports: plan.supports,
         identifiable: identifiability.count(),
         cond,
         time_unsorted_s: path.time_unsorted,
@@ -306,18 +504,64 @@ pub fn compile(
         inputs_sha256: inputs_hash(robot, opts, template),
         joint_names: robot.joints.iter().map(|j| j.name.clone()).collect(),
     };
-    let moves = path
-        .poses
+    let mut pose_no = 0;
+    let moves = plan
+        .waypoints
         .iter()
         .zip(&path.move_times)
-        .map(|(q, &t)| Move {
-            q_deg: q.map(to_deg),
-            time_s: t,
-            length_mm: to_mm(model.length(&model.nominal, q)),
+        .map(|(w, &t)| {
+            if !w.support {
+                pose_no += 1;
+            }
+            Move {
+                q_deg: w.q.map(to_deg),
+                support: w.support,
+                pose: if w.support { 0 } else { pose_no },
+                blend_mm: to_mm(w.blend),
+                time_s: t,
+                length_mm: to_mm(model.length(&model.nominal, &w.q)),
+            }
         })
         .collect();
     let program = Program { header, moves };
     let text = emit::render(template, &program).map_err(PipelineError::Template)?;
+
+    // The compiler does not trust its own memory either: re-read the text and check it.
+    let verified =
+        verify::check_text(&ck, robot, &text).map_err(|f| PipelineError::Unsafe(f.to_string()))?;
+
+    let report = Report {
+        schema: "edbbgen.report/1",
+        grid_size: sample.grid_size,
+        evaluated: sample.evaluated,
+        valid_before_collisions: sample.valid,
+        rejected,
+        collision_checked,
+        pool: pool.candidates.len(),
+        disconnected,
+        replaced_unreachable: excluded_unreachable,
+        identifiable: identifiability.count(),
+        selected: selection.indices.len(),
+        support_poses: plan.supports,
+        dropped: plan.dropped.clone(),
+        exact_stops: plan.exact_stops,
+        min_clearance_mm: to_mm(verified.min_clearance.distance),
+        min_clearance_between: [
+            verified.min_clearance.a.clone(),
+            verified.min_clearance.b.clone(),
+        ],
+        bar_length_mm: [
+            to_mm(verified.extremes.min_length),
+            to_mm(verified.extremes.max_length),
+        ],
+        max_socket_angle_deg: to_deg(verified.extremes.max_socket_angle),
+        max_cup_angle_deg: to_deg(verified.extremes.max_cup_angle),
+        estimated_time_s: path.time_sorted,
+        time_unsorted_s: path.time_unsorted,
+        collision_pairs_checked: scene_report.pairs_checked,
+        excluded_pairs: scene_report.excluded.clone(),
+        warnings: warnings.clone(),
+    };
     Ok(Compiled {
         cell,
         model,
@@ -326,8 +570,11 @@ pub fn compile(
         pool,
         selection,
         path,
+        plan,
         program,
         text,
+        verified,
+        report,
         warnings,
     })
 }

@@ -23,29 +23,32 @@ pub struct Cli {
 pub enum Command {
     /// Identifiability of the 30 model parameters and observability of a rich pose set.
     Model(ModelArgs),
+    /// Re-read a program and re-check it: poses, moves and blends against every limit.
+    Verify(VerifyArgs),
 }
 
 /// Robot, cell and instrument: shared by the compiler and `model`.
 #[derive(Args, Debug, Clone)]
 pub struct CellArgs {
+    /// Cell description (fixture, bar, tool, environment, cables, margin); flags override it.
+    #[arg(long, value_name = "CELL.toml")]
+    pub cell: Option<PathBuf>,
     /// MAP (tool ball centre) in the flange frame, mm [default: the robot file's tool, else the
     /// flange origin].
     #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true)]
     pub tool: Option<String>,
-    /// Usable bar length range (ball-centre distance), mm.
-    #[arg(long, value_name = "MIN..MAX", default_value = "300..520")]
-    pub bar: String,
-    /// Diameter of the EDBB's balls, mm: their centres can come no closer than this.
-    #[arg(long, value_name = "MM", default_value = "25")]
-    pub ball: String,
-    /// Floor height in the robot base frame, mm: the MAP stays above it.
-    #[arg(
-        long,
-        value_name = "MM",
-        default_value = "0",
-        allow_hyphen_values = true
-    )]
-    pub floor: String,
+    /// Usable bar length range (ball-centre distance), mm [default: 300..520].
+    #[arg(long, value_name = "MIN..MAX")]
+    pub bar: Option<String>,
+    /// Diameter of the EDBB's balls, mm: their centres can come no closer than this [default: 25].
+    #[arg(long, value_name = "MM")]
+    pub ball: Option<String>,
+    /// Floor height in the robot base frame, mm [default: 0].
+    #[arg(long, value_name = "MM", allow_hyphen_values = true)]
+    pub floor: Option<String>,
+    /// Safety margin: minimum clearance between any two bodies, mm [default: 10].
+    #[arg(long, value_name = "MM")]
+    pub margin: Option<String>,
     /// URDF: the link that ends the chain [default: flange, tool0, or the chain's last link].
     #[arg(long, value_name = "LINK")]
     pub flange: Option<String>,
@@ -65,13 +68,8 @@ pub struct CompileArgs {
     /// Robot description: a .urdf or a .dh.toml file.
     #[arg(value_name = "ROBOT", required = true)]
     pub robot: Option<PathBuf>,
-    /// Fixture ball centre in the robot base frame, mm.
-    #[arg(
-        long,
-        value_name = "X,Y,Z",
-        required = true,
-        allow_hyphen_values = true
-    )]
+    /// Fixture ball centre in the robot base frame, mm [default: the cell file's].
+    #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true)]
     pub fixture: Option<String>,
     /// Output program.
     #[arg(short, long, value_name = "PATH.nc", required = true)]
@@ -106,6 +104,27 @@ pub struct CompileArgs {
     /// Also print a stage's result as JSON on stdout: model, sample, pool, selection, path, program.
     #[arg(long, value_name = "STAGE")]
     pub emit: Option<String>,
+    /// Write the counts of every stage as JSON (schema edbbgen.report/1).
+    #[arg(long, value_name = "REPORT.json")]
+    pub report: Option<PathBuf>,
+}
+
+#[derive(Args, Debug)]
+pub struct VerifyArgs {
+    /// Robot description: a .urdf or a .dh.toml file.
+    #[arg(value_name = "ROBOT")]
+    pub robot: PathBuf,
+    /// The program to check.
+    #[arg(value_name = "PROGRAM.nc")]
+    pub program: PathBuf,
+    /// Fixture ball centre, mm [default: the cell file's, else the program header's].
+    #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true)]
+    pub fixture: Option<String>,
+    #[command(flatten)]
+    pub cell: CellArgs,
+    /// Print the summary as JSON.
+    #[arg(long)]
+    pub json: bool,
 }
 
 #[derive(Args, Debug)]
@@ -113,9 +132,9 @@ pub struct ModelArgs {
     /// Robot description: a .urdf or a .dh.toml file.
     #[arg(value_name = "ROBOT")]
     pub robot: PathBuf,
-    /// Fixture ball centre in the robot base frame, mm.
+    /// Fixture ball centre in the robot base frame, mm [default: the cell file's].
     #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true)]
-    pub fixture: String,
+    pub fixture: Option<String>,
     #[command(flatten)]
     pub cell: CellArgs,
     /// Size of the random pose set the analysis uses.

@@ -3,11 +3,12 @@
 
 pub mod args;
 
+use crate::cell::CellSpec;
 use crate::model::{self, IdentifyOptions, MeasurementModel, Status};
 use crate::pipeline::{self, CompileOptions};
 use crate::robot::{self, LoadOptions, Robot};
 use crate::units::{fmt_fixed, to_mm, DEG, MM};
-use args::{CellArgs, Cli, Command, CompileArgs, ModelArgs};
+use args::{CellArgs, Cli, Command, CompileArgs, ModelArgs, VerifyArgs};
 use clap::Parser;
 use nalgebra::{DMatrix, Vector3};
 use std::io::{IsTerminal, Write};
@@ -22,6 +23,8 @@ pub enum Error {
     Load(#[from] robot::LoadError),
     #[error(transparent)]
     Pipeline(#[from] pipeline::PipelineError),
+    #[error(transparent)]
+    Cell(#[from] crate::cell::CellError),
     #[error("{path}: {msg}")]
     File { path: String, msg: String },
 }
@@ -51,6 +54,7 @@ pub fn run(argv: Vec<std::ffi::OsString>) -> Result<i32, Error> {
     };
     match cli.command {
         Some(Command::Model(m)) => run_model(&m),
+        Some(Command::Verify(v)) => run_verify(&v),
         None => run_compile(&cli.compile),
     }
 }
@@ -119,40 +123,70 @@ fn steps(s: &str) -> Result<[f64; 6], Error> {
     Ok(std::array::from_fn(|i| v[i] * DEG))
 }
 
-fn load_robot(path: &Path, cell: &CellArgs) -> Result<Robot, Error> {
+fn load_robot(path: &Path, cell: &CellArgs, spec: &CellSpec) -> Result<Robot, Error> {
     let opts = LoadOptions {
         flange_link: cell.flange.clone(),
         package_paths: cell.package_path.clone(),
+        speeds: spec.speeds,
     };
     Ok(robot::load(path, &opts)?)
 }
 
-struct Resolved {
-    tool: Option<Vector3<f64>>,
-    bar: (f64, f64),
-    floor: f64,
-    ball: f64,
+/// The cell: the file (or the defaults), then every flag that overrides it.
+fn resolve_cell(a: &CellArgs) -> Result<CellSpec, Error> {
+    let mut spec = match &a.cell {
+        Some(p) => crate::cell::load(p)?,
+        None => CellSpec::default(),
+    };
+    if let Some(t) = &a.tool {
+        spec.map = Some(xyz_mm("--tool", t)?);
+    }
+    if let Some(b) = &a.bar {
+        (spec.bar_min, spec.bar_max) = bar_range(b)?;
+    }
+    if let Some(f) = &a.floor {
+        spec.floor_z = scalar("--floor", f)? * MM;
+    }
+    if let Some(b) = &a.ball {
+        let b = scalar("--ball", b)?;
+        if !(b > 0.0 && b < 200.0) {
+            return Err(usage(format!(
+                "--ball: {b} mm must be between 0 and 200 mm"
+            )));
+        }
+        spec.ball = b * MM;
+    }
+    if let Some(m) = &a.margin {
+        let m = scalar("--margin", m)?;
+        if !(0.0..=500.0).contains(&m) {
+            return Err(usage(format!(
+                "--margin: {m} mm must be between 0 and 500 mm"
+            )));
+        }
+        spec.margin = m * MM;
+    }
+    Ok(spec)
 }
 
-fn resolve_cell(cell: &CellArgs) -> Result<Resolved, Error> {
-    Ok(Resolved {
-        tool: cell
-            .tool
-            .as_deref()
-            .map(|s| xyz_mm("--tool", s))
-            .transpose()?,
-        bar: bar_range(&cell.bar)?,
-        floor: scalar("--floor", &cell.floor)? * MM,
-        ball: {
-            let b = scalar("--ball", &cell.ball)?;
-            if !(b > 0.0 && b < 200.0) {
-                return Err(usage(format!(
-                    "--ball: {b} mm must be between 0 and 200 mm"
-                )));
-            }
-            b * MM
-        },
-    })
+/// The fixture: the flag, else the cell file's, else (verify) the program header's.
+fn resolve_fixture(
+    flag: Option<&str>,
+    spec: &CellSpec,
+    header: Option<&str>,
+) -> Result<Vector3<f64>, Error> {
+    if let Some(f) = flag {
+        return xyz_mm("--fixture", f);
+    }
+    if let Some(f) = spec.fixture {
+        return Ok(f);
+    }
+    if let Some(h) = header {
+        let nums = h.split("mm").next().unwrap_or("");
+        return xyz_mm("program header (fixture)", nums.trim());
+    }
+    Err(usage(
+        "--fixture: required (or give it in the cell file as [fixture] position)",
+    ))
 }
 
 // ---- progress -----------------------------------------------------------------------------
@@ -200,11 +234,11 @@ impl crate::sample::Progress for Bar {
 
 fn run_compile(a: &CompileArgs) -> Result<i32, Error> {
     // Required by clap; the Options only exist because subcommands negate the requirement.
-    let (Some(robot_path), Some(fixture), Some(output)) = (&a.robot, &a.fixture, &a.output) else {
-        return Err(usage("ROBOT, --fixture and -o are required"));
+    let (Some(robot_path), Some(output)) = (&a.robot, &a.output) else {
+        return Err(usage("ROBOT and -o are required"));
     };
-    let fixture = xyz_mm("--fixture", fixture)?;
-    let cell = resolve_cell(&a.cell)?;
+    let spec = resolve_cell(&a.cell)?;
+    let fixture = resolve_fixture(a.fixture.as_deref(), &spec, None)?;
     let blend = scalar("--blend", &a.blend)?;
     if !(0.0..=100.0).contains(&blend) {
         return Err(usage(format!("--blend: {blend} mm is outside 0..100 mm")));
@@ -243,30 +277,40 @@ fn run_compile(a: &CompileArgs) -> Result<i32, Error> {
             )));
         }
     }
-    let robot = load_robot(robot_path, &a.cell)?;
+    let step = steps(&a.step)?;
+    let robot = load_robot(robot_path, &a.cell, &spec)?;
     let (lo, hi) = robot.limits();
     let start = std::array::from_fn(|i| f64::clamp(start[i], lo[i], hi[i]));
     let opts = CompileOptions {
         fixture,
-        tool: cell.tool,
-        bar_min: cell.bar.0,
-        bar_max: cell.bar.1,
-        floor_z: cell.floor,
-        step: steps(&a.step)?,
+        cell: spec,
+        step,
         max_candidates: a.max_candidates,
         seed: a.cell.seed,
         poses: a.poses,
         blend: blend * MM,
-        ball: cell.ball,
         start,
     };
     let bar = Bar::new(a.cell.quiet, "sampling");
-    let out = pipeline::compile(&robot, &opts, &template, &bar)?;
+    let out = match pipeline::compile(&robot, &opts, &template, &bar) {
+        Ok(out) => out,
+        Err(e) if e.exit_code() == 1 => {
+            eprintln!("edbbgen: {e}");
+            return Ok(1);
+        }
+        Err(e) => return Err(e.into()),
+    };
     for w in &out.warnings {
         eprintln!("edbbgen: warning: {w}");
     }
     if let Some(stage) = &a.emit {
         println!("{}", emit_stage(&out, stage));
+    }
+    if let Some(r) = &a.report {
+        write_atomic(
+            r,
+            &(serde_json::to_string_pretty(&out.report).unwrap_or_default() + "\n"),
+        )?;
     }
 
     if a.check {
@@ -291,16 +335,21 @@ fn run_compile(a: &CompileArgs) -> Result<i32, Error> {
     write_atomic(output, &out.text)?;
     if a.emit.is_none() {
         let h = &out.program.header;
+        let v = &out.verified;
         println!(
-            "{}: {} poses ({} identifiable parameters, cond {}), estimated {} s in tour order ({} s unsorted); {} valid of {} grid poses",
+            "{}: {} poses + {} support ({} identifiable parameters, cond {}), estimated {} s in tour order ({} s unsorted); verified: min clearance {} mm ({} / {}), bar {}..{} mm",
             output.display(),
             h.poses,
+            h.supports,
             h.identifiable,
             fmt_fixed(h.cond, 2),
             fmt_fixed(h.time_s, 1),
             fmt_fixed(h.time_unsorted_s, 1),
-            out.sample.valid,
-            out.sample.grid_size
+            fmt_fixed(to_mm(v.min_clearance.distance), 1),
+            v.min_clearance.a,
+            v.min_clearance.b,
+            fmt_fixed(to_mm(v.extremes.min_length), 1),
+            fmt_fixed(to_mm(v.extremes.max_length), 1),
         );
     }
     Ok(0)
@@ -313,7 +362,9 @@ const EMIT_STAGES: &[&str] = &[
     "pool",
     "selection",
     "path",
+    "plan",
     "program",
+    "report",
 ];
 
 fn emit_stage(c: &pipeline::Compiled, stage: &str) -> String {
@@ -324,6 +375,8 @@ fn emit_stage(c: &pipeline::Compiled, stage: &str) -> String {
         "pool" => serde_json::to_value(&c.pool),
         "selection" => serde_json::to_value(&c.selection),
         "path" => serde_json::to_value(&c.path),
+        "plan" => serde_json::to_value(&c.plan),
+        "report" => serde_json::to_value(&c.report),
         _ => serde_json::to_value(&c.program),
     };
     v.and_then(|v| serde_json::to_string_pretty(&v))
@@ -355,17 +408,76 @@ fn write_atomic(path: &Path, text: &str) -> Result<(), Error> {
     Ok(())
 }
 
+// ---- verify -------------------------------------------------------------------------------
+
+fn run_verify(a: &VerifyArgs) -> Result<i32, Error> {
+    let spec = resolve_cell(&a.cell)?;
+    let text = std::fs::read_to_string(&a.program).map_err(|e| Error::File {
+        path: a.program.display().to_string(),
+        msg: format!("cannot read: {e}"),
+    })?;
+    let parsed = crate::verify::gcode::parse(&text).map_err(|e| Error::File {
+        path: a.program.display().to_string(),
+        msg: e.to_string(),
+    })?;
+    let fixture = resolve_fixture(a.fixture.as_deref(), &spec, parsed.header_value("fixture"))?;
+    let robot = load_robot(&a.robot, &a.cell, &spec)?;
+    // MAP: flag or cell, else the program header's, else the robot file's.
+    let header_map = match (spec.map, parsed.header_value("MAP")) {
+        (None, Some(h)) => Some(xyz_mm(
+            "program header (MAP)",
+            h.split("mm").next().unwrap_or("").trim(),
+        )?),
+        _ => None,
+    };
+    let (map, _) = pipeline::resolve_map(&robot, spec.map.or(header_map));
+    let cell = pipeline::make_cell(fixture, map, &spec)?;
+    let model = MeasurementModel::new(&robot, fixture, map);
+    let (scene, _) = pipeline::build_scene(&robot, &spec, &fixture, &map)?;
+    let ck = crate::safety::Checker::new(&robot, &model, &cell, &scene, spec.margin);
+    match crate::verify::check_text(&ck, &robot, &text) {
+        Ok(s) => {
+            if a.json {
+                println!("{}", serde_json::to_string_pretty(&s).unwrap_or_default());
+            } else {
+                println!(
+                    "{}: ok: {} poses, {} support poses, {} moves, {} blends, {} s; min clearance {} mm ({} / {}); bar {}..{} mm; max cone angles {} deg (socket), {} deg (cup)",
+                    a.program.display(),
+                    s.poses,
+                    s.supports,
+                    s.moves,
+                    s.blends,
+                    fmt_fixed(s.duration, 1),
+                    fmt_fixed(to_mm(s.min_clearance.distance), 1),
+                    s.min_clearance.a,
+                    s.min_clearance.b,
+                    fmt_fixed(to_mm(s.extremes.min_length), 2),
+                    fmt_fixed(to_mm(s.extremes.max_length), 2),
+                    fmt_fixed(s.extremes.max_socket_angle / DEG, 1),
+                    fmt_fixed(s.extremes.max_cup_angle / DEG, 1),
+                );
+            }
+            Ok(0)
+        }
+        Err(f) => {
+            eprintln!("edbbgen: {}: {f}", a.program.display());
+            Ok(1)
+        }
+    }
+}
+
 // ---- model --------------------------------------------------------------------------------
 
 fn run_model(a: &ModelArgs) -> Result<i32, Error> {
-    let fixture = xyz_mm("--fixture", &a.fixture)?;
-    let cell_opts = resolve_cell(&a.cell)?;
+    let spec = resolve_cell(&a.cell)?;
+    let fixture = resolve_fixture(a.fixture.as_deref(), &spec, None)?;
     if a.samples < 60 {
         return Err(usage("--samples: must be at least 60"));
     }
-    let robot = load_robot(&a.robot, &a.cell)?;
-    let (map, mut warnings) = pipeline::resolve_map(&robot, cell_opts.tool);
-    let cell = pipeline::make_cell(fixture, map, cell_opts.bar, cell_opts.floor, cell_opts.ball)?;
+    let robot = load_robot(&a.robot, &a.cell, &spec)?;
+    let (map, mut warnings) = pipeline::resolve_map(&robot, spec.map);
+    // Identifiability is geometry: the shell and the floor decide which poses count, not cones.
+    let cell = pipeline::make_cell(fixture, map, &spec)?;
     let model = MeasurementModel::new(&robot, fixture, map);
     let rows = pipeline::rich_rows(&robot, &model, &cell, a.samples, a.cell.seed)
         .map_err(|closest| pipeline::PipelineError::no_pose(&cell, closest))?;
@@ -434,14 +546,9 @@ fn run_model(a: &ModelArgs) -> Result<i32, Error> {
             "{}",
             model_text(&robot, &cell, &known, &free, &obs, rows.len())
         );
-        for w in &warnings {
-            eprintln!("edbbgen: warning: {w}");
-        }
     }
-    if a.json {
-        for w in &warnings {
-            eprintln!("edbbgen: warning: {w}");
-        }
+    for w in &warnings {
+        eprintln!("edbbgen: warning: {w}");
     }
     Ok(0)
 }

@@ -79,6 +79,9 @@ pub struct LoadOptions {
     pub flange_link: Option<String>,
     /// URDF: directories searched for `package://NAME/...` mesh paths.
     pub package_paths: Vec<PathBuf>,
+    /// Joint speeds (rad/s) that replace the file's (e.g. from the cell file, for URDFs
+    /// without joint velocities).
+    pub speeds: Option<[f64; 6]>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -157,7 +160,7 @@ impl Robot {
                 return Err(LoadError::invalid(
                     path,
                     format!(
-                        "joint {n} ({}): max speed missing or zero; give each joint a velocity limit",
+                        "joint {n} ({}): max speed missing or zero; give each joint a velocity limit (URDF <limit velocity=..>) or set [robot] speeds in the cell file",
                         j.name
                     ),
                 ));

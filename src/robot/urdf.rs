@@ -965,6 +965,7 @@ mod tests {
             let opts = LoadOptions {
                 flange_link: None,
                 package_paths: vec![dir],
+                speeds: None,
             };
             assert_eq!(
                 resolve_mesh("package://pkg/meshes/a.stl", Path::new("/x"), &opts),

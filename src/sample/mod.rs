@@ -19,7 +19,7 @@
 //! `max_candidates` poses with the smallest seeded hash of their grid index), so memory does not
 //! grow with the grid, and the result is identical on any number of threads.
 
-use crate::ir::{Candidate, Cell, Pool};
+use crate::ir::{Candidate, Cell, Pool, Reason};
 use crate::model::MeasurementModel;
 use crate::robot::kinematics::dh_transform;
 use crate::robot::{Frame, Robot};
@@ -89,8 +89,10 @@ pub struct SampleReport {
     pub grid_size: u64,
     /// Poses actually evaluated after the q1 solution and reach pruning.
     pub evaluated: u64,
-    /// Valid poses: MAP in the shell and above the floor.
+    /// Valid poses: every check of [`Cell::verdict`] passed.
     pub valid: u64,
+    /// Evaluated poses rejected, per reason (the first failing check counts).
+    pub rejected: std::collections::BTreeMap<Reason, u64>,
     /// Valid poses kept in the pool (≤ max_candidates).
     pub kept: usize,
     /// Per joint, [min, max] of q over the valid poses (rad); NaN when there are none.
@@ -200,6 +202,12 @@ pub fn run(
         grid_size,
         evaluated: acc.evaluated,
         valid: acc.valid,
+        rejected: Reason::ALL
+            .iter()
+            .zip(acc.rejected)
+            .filter(|(_, n)| *n > 0)
+            .map(|(r, n)| (*r, n))
+            .collect(),
         kept: candidates.len(),
         valid_range: acc.range,
     };
@@ -218,6 +226,8 @@ struct Ctx<'a> {
     t: [Vec<Frame>; 5],
     /// MAP in DH frame 5 for every q6 grid value.
     map5: Vec<Vector3<f64>>,
+    /// Tool-cup axis in DH frame 5 for every q6 grid value.
+    cup5: Vec<Vector3<f64>>,
     /// Reach radius after joints 2..5 (index k−2 for frame k).
     reach: [f64; 4],
     /// Fixture in DH frame 0, cylindrical.
@@ -250,6 +260,8 @@ impl<'a> Ctx<'a> {
         });
         let tool = model.flange.apply(&model.nominal.map);
         let map5 = t[4].iter().map(|t6| t6.apply(&tool)).collect();
+        let cup = model.flange.r * cell.tool_axis;
+        let cup5 = t[4].iter().map(|t6| t6.r * cup).collect();
         let link = |i: usize| dh[i].a.hypot(dh[i].d);
         let tail = tool.norm();
         let reach = std::array::from_fn(|k| ((k + 2)..6).map(link).sum::<f64>() + tail);
@@ -263,6 +275,7 @@ impl<'a> Ctx<'a> {
             theta1: dh[0].theta,
             t,
             map5,
+            cup5,
             reach,
             rf: f0.x.hypot(f0.y),
             phif: f0.y.atan2(f0.x),
@@ -302,8 +315,9 @@ impl<'a> Ctx<'a> {
                 }
                 for (i6, m5) in self.map5.iter().enumerate() {
                     let x = f5.apply(m5);
+                    let cup = f5.r * self.cup5[i6];
                     let idx = [0, i2, i3, i4 as u64, i5 as u64, i6 as u64];
-                    self.solve_q1(&x, &idx, cfg, acc);
+                    self.solve_q1(&x, &cup, &idx, cfg, acc);
                 }
             }
         }
@@ -311,10 +325,17 @@ impl<'a> Ctx<'a> {
 
     /// Visits the q1 grid values whose MAP can lie in the shell, for the q1-free MAP position x.
     #[inline]
-    fn solve_q1(&self, x: &Vector3<f64>, idx: &[u64; 6], cfg: &SampleConfig, acc: &mut Acc) {
+    fn solve_q1(
+        &self,
+        x: &Vector3<f64>,
+        cup: &Vector3<f64>,
+        idx: &[u64; 6],
+        cfg: &SampleConfig,
+        acc: &mut Acc,
+    ) {
         let g = &self.grids[0];
         if let Some(v) = g.held {
-            self.check(x, v, 0, idx, cfg, acc);
+            self.check(x, cup, v, 0, idx, cfg, acc);
             return;
         }
         let (rmin, rmax) = (self.cell.bar_min, self.cell.bar_max);
@@ -380,7 +401,15 @@ impl<'a> Ctx<'a> {
         let mut last_k = i64::MIN;
         for &(lo, hi) in ks.iter() {
             for k in lo.max(last_k.saturating_add(1))..=hi {
-                self.check(x, k as f64 * g.step, (k - g.k_lo) as u64, idx, cfg, acc);
+                self.check(
+                    x,
+                    cup,
+                    k as f64 * g.step,
+                    (k - g.k_lo) as u64,
+                    idx,
+                    cfg,
+                    acc,
+                );
                 last_k = k;
             }
         }
@@ -388,9 +417,11 @@ impl<'a> Ctx<'a> {
 
     /// The exact test of one pose.
     #[inline]
+    #[allow(clippy::too_many_arguments)]
     fn check(
         &self,
         x: &Vector3<f64>,
+        cup: &Vector3<f64>,
         q1: f64,
         j1: u64,
         idx: &[u64; 6],
@@ -401,9 +432,8 @@ impl<'a> Ctx<'a> {
         let (s, c) = (self.theta1 + q1).sin_cos();
         let p0 = Vector3::new(c * x.x - s * x.y, s * x.x + c * x.y, x.z);
         let p = self.base.apply(&p0);
-        if !self.cell.admits(&p) {
-            return;
-        }
+        let cup0 = Vector3::new(c * cup.x - s * cup.y, s * cup.x + c * cup.y, cup.z);
+        let cup_world = self.base.r * cup0;
         let mut grid = 0u64;
         let mut q = [0.0; 6];
         for i in 0..6 {
@@ -411,19 +441,25 @@ impl<'a> Ctx<'a> {
             grid = grid * self.radix[i] + j;
             q[i] = if i == 0 { q1 } else { self.grids[i].value(j) };
         }
+        if let Err(reason) = self.cell.verdict(&q, &p, &cup_world) {
+            acc.rejected[reason as usize] += 1;
+            return;
+        }
         acc.valid += 1;
         for i in 0..6 {
             acc.range[i][0] = acc.range[i][0].min(q[i]);
             acc.range[i][1] = acc.range[i][1].max(q[i]);
         }
         let key = splitmix64(cfg.seed ^ grid.wrapping_mul(0x9e37_79b9_7f4a_7c15));
+        let length = (p - self.cell.fixture).norm();
         acc.offer(Entry {
             key,
             cand: Candidate {
                 q,
                 map: [p.x, p.y, p.z],
-                length: (p - self.cell.fixture).norm(),
+                length,
                 grid,
+                key,
             },
         });
     }
@@ -465,6 +501,7 @@ struct Acc {
     heap: BinaryHeap<Entry>,
     evaluated: u64,
     valid: u64,
+    rejected: [u64; Reason::ALL.len()],
     range: [[f64; 2]; 6],
 }
 
@@ -475,6 +512,7 @@ impl Acc {
             heap: BinaryHeap::new(),
             evaluated: 0,
             valid: 0,
+            rejected: [0; Reason::ALL.len()],
             range: [[f64::INFINITY, f64::NEG_INFINITY]; 6],
         }
     }
@@ -498,6 +536,9 @@ impl Acc {
         }
         self.evaluated += other.evaluated;
         self.valid += other.valid;
+        for (a, b) in self.rejected.iter_mut().zip(other.rejected) {
+            *a += b;
+        }
         for i in 0..6 {
             self.range[i][0] = self.range[i][0].min(other.range[i][0]);
             self.range[i][1] = self.range[i][1].max(other.range[i][1]);
@@ -533,13 +574,15 @@ mod tests {
         )
         .expect("bundled NJ-130");
         let model = MeasurementModel::new(&robot, fixture, map);
-        let cell = Cell {
-            fixture,
-            map,
-            bar_min: bar.0,
-            bar_max: bar.1,
-            floor_z: 0.0,
-        };
+        let mut cell = Cell::shell_only(fixture, map, bar.0, bar.1, 0.0);
+        // Real cones and harness limits, so the brute force checks them too.
+        cell.fixture_cone_cos = (70.0 * DEG).cos();
+        cell.tool_cone_cos = (75.0 * DEG).cos();
+        cell.cables = [
+            Some([-150.0 * DEG, 150.0 * DEG]),
+            None,
+            Some([-200.0 * DEG, 200.0 * DEG]),
+        ];
         (robot, model, cell)
     }
 
@@ -555,7 +598,14 @@ mod tests {
                 q[i] = grids[i].value(rem % n[i]);
                 rem /= n[i];
             }
-            if cell.admits(&model.map_position(&model.nominal, &q)) {
+            let f = model.base.mul(&crate::robot::kinematics::flange_pose(
+                &Frame::IDENTITY,
+                &model.nominal.dh,
+                &model.flange,
+                &q,
+            ));
+            let cup = f.r * cell.tool_axis;
+            if cell.verdict(&q, &f.apply(&model.nominal.map), &cup).is_ok() {
                 out.push(idx);
             }
         }
@@ -600,8 +650,12 @@ mod tests {
                 [30.0; 6],
             ),
         ];
-        for (map, fixture, bar, step_deg) in cases {
-            let (robot, model, cell) = setup(map, fixture, bar);
+        for (k, (map, fixture, bar, step_deg)) in cases.into_iter().enumerate() {
+            let (robot, model, mut cell) = setup(map, fixture, bar);
+            if k == 2 {
+                // A fixture hanging above the robot: its socket opens downwards.
+                cell.fixture_axis = -Vector3::z();
+            }
             let cfg = SampleConfig {
                 step: step_deg.map(|s| s * DEG),
                 max_candidates: usize::MAX,
@@ -637,6 +691,7 @@ mod tests {
                 let p = model.map_position(&model.nominal, &c.q);
                 assert!((p - Vector3::from(c.map)).norm() < 1e-12);
                 assert!(cell.admits(&p));
+                assert!(cell.cables_admit(&c.q));
             }
         }
     }

@@ -1,4 +1,241 @@
-//! Verification: in = program text (+ robot and cell); out = what the program really commands,
-//! re-read from the text. [`gcode`] is the reader `verify` and `simulate` share.
+//! Verification: in = program text, robot and cell; out = a [`Summary`] of what the program
+//! really does, or the first [`Failure`] (line, time, what hit what or which limit).
+//!
+//! `verify` never looks at the compiler's memory: it re-reads the text with [`gcode`],
+//! reconstructs the motion the controller will execute — straight joint moves, and at every
+//! corner the blend of [`crate::safety::blend`] with the blend distance in force — and checks
+//! every pose, move and blend continuously with [`crate::safety::Checker`]. The bar is taken as
+//! mounted from the first pause (M0) after the first move to the next pause.
 
 pub mod gcode;
+
+use crate::collision::Contact;
+use crate::ir::Reason;
+use crate::order::move_time;
+use crate::robot::Robot;
+use crate::safety::{blend, describe_contact, Checker, Extremes, Violation};
+use crate::units::{fmt_fixed, to_mm, DEG};
+use gcode::{FeedMode, Step};
+use serde::{Deserialize, Serialize};
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Summary {
+    /// Motion lines (including the approach).
+    pub moves: usize,
+    /// Measurement poses (motion lines without a `support` comment).
+    pub poses: usize,
+    pub supports: usize,
+    pub blends: usize,
+    /// Program duration from the first move on (s), pauses excluded.
+    pub duration: f64,
+    pub extremes: Extremes,
+    /// Smallest clearance measured at the program's poses and blend midpoints.
+    pub min_clearance: Contact,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Failure {
+    /// 1-based program line of the motion that fails (0 = the program as a whole).
+    pub line: usize,
+    /// Program time at the failure (s), from the first move.
+    pub time: f64,
+    pub violation: Violation,
+}
+
+impl std::fmt::Display for Failure {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "line {}, t = {} s: {}",
+            self.line,
+            fmt_fixed(self.time, 2),
+            self.violation
+        )
+    }
+}
+
+fn fail(line: usize, time: f64, reason: Reason, detail: String) -> Failure {
+    Failure {
+        line,
+        time,
+        violation: Violation { reason, detail },
+    }
+}
+
+struct Motion {
+    line: usize,
+    target: [f64; 6],
+    duration: f64,
+    blend: f64,
+    support: bool,
+    /// Followed directly by another motion (no pause/dwell/end between): blendable corner.
+    flows_on: bool,
+}
+
+/// Checks program text against the checker's robot and cell.
+pub fn check_text(ck: &Checker, robot: &Robot, text: &str) -> Result<Summary, Failure> {
+    let parsed = gcode::parse(text).map_err(|e| {
+        fail(
+            e.line,
+            0.0,
+            Reason::JointLimit,
+            format!("cannot read the program: {}", e.msg),
+        )
+    })?;
+    let speeds = robot.max_speeds();
+    // Collect the motions, with the bar mounted between the first and the second pause.
+    let mut motions: Vec<Motion> = Vec::new();
+    let mut pauses = 0;
+    let mut mounted_from = None;
+    let mut prev: Option<[f64; 6]> = None;
+    for (k, l) in parsed.lines.iter().enumerate() {
+        match &l.step {
+            Step::Move {
+                rapid,
+                target,
+                feed,
+                blend,
+            } => {
+                let q = target.map(|d| d * DEG);
+                let min_time = prev.map_or(0.0, |p| move_time(&p, &q, &speeds));
+                let duration = match (rapid, feed) {
+                    (true, _) => min_time,
+                    (false, Some((FeedMode::InverseTime, f))) => 60.0 / f,
+                    (false, Some((FeedMode::UnitsPerMinute, f))) => {
+                        let dist: f64 = prev.map_or(0.0, |p| {
+                            (0..6)
+                                .map(|i| (target[i] - p[i] / DEG).powi(2))
+                                .sum::<f64>()
+                                .sqrt()
+                        });
+                        60.0 * dist / f
+                    }
+                    (false, None) => min_time,
+                };
+                if duration < min_time * (1.0 - 1e-6) {
+                    return Err(fail(
+                        l.line,
+                        0.0,
+                        Reason::JointSpeed,
+                        format!(
+                            "move takes {} s but the slowest axis needs {} s at its maximum speed",
+                            fmt_fixed(duration, 3),
+                            fmt_fixed(min_time, 3)
+                        ),
+                    ));
+                }
+                let flows_on = matches!(
+                    parsed.lines.get(k + 1).map(|n| &n.step),
+                    Some(Step::Move { .. })
+                );
+                let support = l.comment.as_deref().is_some_and(|c| c.contains("support"));
+                motions.push(Motion {
+                    line: l.line,
+                    target: q,
+                    duration,
+                    blend: blend.unwrap_or(0.0) * 1e-3,
+                    support,
+                    flows_on,
+                });
+                prev = Some(q);
+            }
+            Step::Pause => {
+                pauses += 1;
+                if pauses == 1 && !motions.is_empty() {
+                    mounted_from = Some(motions.len() - 1);
+                }
+            }
+            Step::Dwell(_) | Step::End => {}
+        }
+    }
+    if motions.is_empty() {
+        return Err(fail(
+            0,
+            0.0,
+            Reason::JointLimit,
+            "the program commands no motion".into(),
+        ));
+    }
+    // Without a mounting pause the bar is taken as mounted throughout.
+    let first = mounted_from.unwrap_or(0);
+    let mut ext = Extremes::default();
+    let mut time = 0.0;
+    let mut min_clear = Contact {
+        distance: f64::INFINITY,
+        a: String::new(),
+        b: String::new(),
+    };
+    let mut blends = 0;
+    let note_clear = |q: &[f64; 6], min_clear: &mut Contact| {
+        let c = ck.clearance(q);
+        if c.distance < min_clear.distance {
+            *min_clear = c;
+        }
+    };
+    for (j, m) in motions.iter().enumerate().skip(first) {
+        if j == first {
+            ck.pose(&m.target).map_err(|v| Failure {
+                line: m.line,
+                time,
+                violation: v,
+            })?;
+            note_clear(&m.target, &mut min_clear);
+            continue;
+        }
+        let a = motions[j - 1].target;
+        let mut e = Extremes::default();
+        if let Err((s, v)) = ck.line(&a, &m.target, &mut e) {
+            return Err(Failure {
+                line: m.line,
+                time: time + s * m.duration,
+                violation: v,
+            });
+        }
+        ext.merge(&e);
+        note_clear(&m.target, &mut min_clear);
+        time += m.duration;
+        // The corner at the end of this move, blended when the next motion follows directly.
+        if m.blend > 0.0 && m.flows_on && j + 1 < motions.len() {
+            let b = motions[j + 1].target;
+            if let Some(bl) = blend::geometry(ck.model, &a, &m.target, &b, m.blend) {
+                let mut e = Extremes::default();
+                if let Err((_, v)) = crate::safety::path::check_blend(ck, &bl, &mut e) {
+                    let detail = format!(
+                        "in the {} mm blend at the end of this move: {}",
+                        fmt_fixed(to_mm(m.blend), 1),
+                        v.detail
+                    );
+                    return Err(Failure {
+                        line: m.line,
+                        time,
+                        violation: Violation {
+                            reason: v.reason,
+                            detail,
+                        },
+                    });
+                }
+                ext.merge(&e);
+                note_clear(&bl.point(0.5), &mut min_clear);
+                blends += 1;
+            }
+        }
+    }
+    if min_clear.distance < ck.margin {
+        return Err(fail(
+            0,
+            time,
+            Reason::Collision,
+            describe_contact(&min_clear, ck.margin),
+        ));
+    }
+    let mounted = &motions[first..];
+    Ok(Summary {
+        moves: motions.len(),
+        poses: mounted.iter().filter(|m| !m.support).count(),
+        supports: mounted.iter().filter(|m| m.support).count(),
+        blends,
+        duration: time,
+        extremes: ext,
+        min_clearance: min_clear,
+    })
+}

@@ -1,0 +1,368 @@
+//! Safety: in = robot, cell, collision scene and joint-space motions; out = verdicts that name
+//! the first violation, or the extremes seen (bar length, cone angles, clearance).
+//!
+//! A pose is checked against joint limits, the wiring-harness limits, the bar range, the floor,
+//! the socket and tool-cup cones, and collisions with the safety margin. A motion (a straight
+//! joint move or a blend curve) is checked continuously:
+//! - it is sampled so that no point of any body moves more than margin/4 between samples (the
+//!   bound comes from the scene's per-joint sweep radii and the joints' total variation); every
+//!   sample keeps the full margin, so between samples the clearance stays above margin/2 > 0;
+//! - the bar length and the cone angles are then proven between samples with Lipschitz bounds
+//!   (a function whose slope is at most K stays within (f(a)+f(b))/2 ± K·h/2 on [a, b]),
+//!   bisecting where the bound is not yet tight enough, to 0.01 mm and 0.01°.
+
+pub mod blend;
+pub mod path;
+pub mod roadmap;
+
+use crate::collision::{Contact, Scene};
+use crate::ir::{Cell, Reason};
+use crate::model::MeasurementModel;
+use crate::robot::kinematics::chain_frames;
+use crate::robot::Robot;
+use crate::units::{fmt_fixed, to_deg, to_mm};
+use nalgebra::Vector3;
+use serde::{Deserialize, Serialize};
+
+/// Tolerances of the continuous proof between samples.
+pub const BAR_TOLERANCE: f64 = 1e-5; // 0.01 mm
+pub const ANGLE_TOLERANCE: f64 = 0.01 * std::f64::consts::PI / 180.0;
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Violation {
+    pub reason: Reason,
+    /// What hit what, or which limit, with the numbers (one line, mm and degrees).
+    pub detail: String,
+}
+
+impl std::fmt::Display for Violation {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}: {}", self.reason.name(), self.detail)
+    }
+}
+
+/// The quantities of one admitted pose that the continuous proof needs.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PoseInfo {
+    pub length: f64,
+    pub socket: f64,
+    pub cup: f64,
+}
+
+/// The extremes met along everything checked (for summaries and reports).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Extremes {
+    pub min_length: f64,
+    pub max_length: f64,
+    pub max_socket_angle: f64,
+    pub max_cup_angle: f64,
+    pub samples: u64,
+}
+
+impl Default for Extremes {
+    fn default() -> Self {
+        Extremes {
+            min_length: f64::INFINITY,
+            max_length: 0.0,
+            max_socket_angle: 0.0,
+            max_cup_angle: 0.0,
+            samples: 0,
+        }
+    }
+}
+
+impl Extremes {
+    fn add(&mut self, p: &PoseInfo) {
+        self.min_length = self.min_length.min(p.length);
+        self.max_length = self.max_length.max(p.length);
+        self.max_socket_angle = self.max_socket_angle.max(p.socket);
+        self.max_cup_angle = self.max_cup_angle.max(p.cup);
+        self.samples += 1;
+    }
+
+    pub fn merge(&mut self, o: &Extremes) {
+        self.min_length = self.min_length.min(o.min_length);
+        self.max_length = self.max_length.max(o.max_length);
+        self.max_socket_angle = self.max_socket_angle.max(o.max_socket_angle);
+        self.max_cup_angle = self.max_cup_angle.max(o.max_cup_angle);
+        self.samples += o.samples;
+    }
+}
+
+/// Everything a check needs; immutable and shareable across threads.
+pub struct Checker<'a> {
+    pub robot: &'a Robot,
+    pub model: &'a MeasurementModel,
+    pub cell: &'a Cell,
+    pub scene: &'a Scene,
+    pub margin: f64,
+    sweep: [f64; 6],
+    lo: [f64; 6],
+    hi: [f64; 6],
+}
+
+impl<'a> Checker<'a> {
+    pub fn new(
+        robot: &'a Robot,
+        model: &'a MeasurementModel,
+        cell: &'a Cell,
+        scene: &'a Scene,
+        margin: f64,
+    ) -> Self {
+        let (lo, hi) = robot.limits();
+        Checker {
+            robot,
+            model,
+            cell,
+            scene,
+            margin,
+            sweep: scene.sweep_radius(),
+            lo,
+            hi,
+        }
+    }
+
+    /// The full check of one pose.
+    pub fn pose(&self, q: &[f64; 6]) -> Result<PoseInfo, Violation> {
+        for i in 0..6 {
+            if !(q[i] >= self.lo[i] - 1e-9 && q[i] <= self.hi[i] + 1e-9) {
+                return Err(Violation {
+                    reason: Reason::JointLimit,
+                    detail: format!(
+                        "joint {} ({}) at {} deg outside {}..{} deg",
+                        i + 1,
+                        self.robot.joints[i].name,
+                        deg(q[i]),
+                        deg(self.lo[i]),
+                        deg(self.hi[i])
+                    ),
+                });
+            }
+        }
+        let frames = chain_frames(
+            &self.model.base,
+            &self.model.nominal.dh,
+            &self.model.flange,
+            q,
+        );
+        let map = frames[7].apply(&self.model.nominal.map);
+        let cup = frames[7].r * self.cell.tool_axis;
+        if let Err(reason) = self.cell.verdict(q, &map, &cup) {
+            return Err(Violation {
+                reason,
+                detail: self.describe(reason, q, &map, &cup),
+            });
+        }
+        if let Some(c) = self.scene.violation(&frames, &map, self.margin) {
+            return Err(Violation {
+                reason: Reason::Collision,
+                detail: describe_contact(&c, self.margin),
+            });
+        }
+        let length = (map - self.cell.fixture).norm();
+        let (socket, cup) = self.cell.cone_angles(&map, &cup);
+        Ok(PoseInfo {
+            length,
+            socket,
+            cup,
+        })
+    }
+
+    /// Minimum clearance at a pose (slower than the margin test: every pair is measured).
+    pub fn clearance(&self, q: &[f64; 6]) -> Contact {
+        let frames = chain_frames(
+            &self.model.base,
+            &self.model.nominal.dh,
+            &self.model.flange,
+            q,
+        );
+        let map = frames[7].apply(&self.model.nominal.map);
+        self.scene.clearance(&frames, &map)
+    }
+
+    fn describe(
+        &self,
+        reason: Reason,
+        q: &[f64; 6],
+        map: &Vector3<f64>,
+        cup: &Vector3<f64>,
+    ) -> String {
+        let c = self.cell;
+        match reason {
+            Reason::CableLimit => {
+                let names = ["q4", "q6", "q4 + q6"];
+                let vals = [q[3], q[5], q[3] + q[5]];
+                (0..3)
+                    .find_map(|k| {
+                        c.cables[k]
+                            .filter(|r| vals[k] < r[0] || vals[k] > r[1])
+                            .map(|r| {
+                                format!(
+                                    "{} = {} deg outside the harness range {}..{} deg",
+                                    names[k],
+                                    deg(vals[k]),
+                                    deg(r[0]),
+                                    deg(r[1])
+                                )
+                            })
+                    })
+                    .unwrap_or_else(|| "harness limit".into())
+            }
+            Reason::BarLength => format!(
+                "bar length {} mm outside {}..{} mm",
+                fmt_fixed(to_mm((map - c.fixture).norm()), 3),
+                fmt_fixed(to_mm(c.bar_min), 1),
+                fmt_fixed(to_mm(c.bar_max), 1)
+            ),
+            Reason::Floor => format!(
+                "MAP at z = {} mm, not above the floor at {} mm",
+                fmt_fixed(to_mm(map.z), 1),
+                fmt_fixed(to_mm(c.floor_z), 1)
+            ),
+            Reason::SocketCone => {
+                let (s, _) = c.cone_angles(map, cup);
+                format!(
+                    "bar at {} deg from the socket axis (cone {} deg)",
+                    fmt_fixed(to_deg(s), 2),
+                    fmt_fixed(to_deg(c.fixture_cone_cos.acos()), 1)
+                )
+            }
+            Reason::CupCone => {
+                let (_, t) = c.cone_angles(map, cup);
+                format!(
+                    "bar at {} deg from the tool-cup axis (cone {} deg)",
+                    fmt_fixed(to_deg(t), 2),
+                    fmt_fixed(to_deg(c.tool_cone_cos.acos()), 1)
+                )
+            }
+            Reason::JointLimit | Reason::JointSpeed | Reason::Collision => {
+                reason.name().to_string()
+            }
+        }
+    }
+
+    /// Continuous check of a curve q(s), s ∈ [0, 1], whose joints vary by at most `variation`
+    /// (total variation per joint). Returns the parameter and the violation of the first failure.
+    pub fn curve(
+        &self,
+        q: &dyn Fn(f64) -> [f64; 6],
+        variation: &[f64; 6],
+        ext: &mut Extremes,
+    ) -> Result<(), (f64, Violation)> {
+        let motion: f64 = (0..6).map(|i| self.sweep[i] * variation[i]).sum();
+        let rotation: f64 = variation.iter().sum();
+        let step = if self.margin > 0.0 {
+            self.margin / 4.0
+        } else {
+            1e-3
+        };
+        let n = ((motion / step).ceil() as usize).clamp(1, 1_000_000);
+        let mut prev_s = 0.0;
+        let mut prev = self.pose(&q(0.0)).map_err(|v| (0.0, v))?;
+        ext.add(&prev);
+        for k in 1..=n {
+            let s = k as f64 / n as f64;
+            let cur = self.pose(&q(s)).map_err(|v| (s, v))?;
+            ext.add(&cur);
+            self.refine(
+                q,
+                prev_s,
+                prev,
+                s,
+                cur,
+                motion / n as f64,
+                rotation / n as f64,
+                0,
+                ext,
+            )?;
+            prev_s = s;
+            prev = cur;
+        }
+        Ok(())
+    }
+
+    /// Proves the bar length and the cone angles between two admitted samples, bisecting where
+    /// the Lipschitz bound does not yet do it. `m`: bound on the MAP's motion over [s0, s1];
+    /// `w`: bound on the flange's rotation (rad).
+    #[allow(clippy::too_many_arguments)]
+    fn refine(
+        &self,
+        q: &dyn Fn(f64) -> [f64; 6],
+        s0: f64,
+        a: PoseInfo,
+        s1: f64,
+        b: PoseInfo,
+        m: f64,
+        w: f64,
+        depth: u32,
+        ext: &mut Extremes,
+    ) -> Result<(), (f64, Violation)> {
+        let c = self.cell;
+        let lmin = a.length.min(b.length) - m;
+        let ang = if lmin > 0.0 { m / lmin } else { f64::INFINITY };
+        let ok_len = (a.length + b.length) / 2.0 + m / 2.0 <= c.bar_max + BAR_TOLERANCE
+            && (a.length + b.length) / 2.0 - m / 2.0 >= c.bar_min - BAR_TOLERANCE;
+        let socket_limit = c.fixture_cone_cos.clamp(-1.0, 1.0).acos();
+        let cup_limit = c.tool_cone_cos.clamp(-1.0, 1.0).acos();
+        let ok_socket = c.fixture_cone_cos <= -1.0
+            || (a.socket + b.socket) / 2.0 + ang / 2.0 <= socket_limit + ANGLE_TOLERANCE;
+        let ok_cup = c.tool_cone_cos <= -1.0
+            || (a.cup + b.cup) / 2.0 + (ang + w) / 2.0 <= cup_limit + ANGLE_TOLERANCE;
+        if ok_len && ok_socket && ok_cup {
+            return Ok(());
+        }
+        if depth >= 40 {
+            let s = 0.5 * (s0 + s1);
+            return Err((
+                s,
+                Violation {
+                    reason: Reason::BarLength,
+                    detail: "cannot prove the bar range and cones between samples".into(),
+                },
+            ));
+        }
+        let s = 0.5 * (s0 + s1);
+        let mid = self.pose(&q(s)).map_err(|v| (s, v))?;
+        ext.add(&mid);
+        self.refine(q, s0, a, s, mid, m / 2.0, w / 2.0, depth + 1, ext)?;
+        self.refine(q, s, mid, s1, b, m / 2.0, w / 2.0, depth + 1, ext)
+    }
+
+    /// Continuous check of the straight joint move a → b.
+    pub fn line(
+        &self,
+        a: &[f64; 6],
+        b: &[f64; 6],
+        ext: &mut Extremes,
+    ) -> Result<(), (f64, Violation)> {
+        let var: [f64; 6] = std::array::from_fn(|i| (b[i] - a[i]).abs());
+        self.curve(&|s| lerp(a, b, s), &var, ext)
+    }
+}
+
+pub fn lerp(a: &[f64; 6], b: &[f64; 6], s: f64) -> [f64; 6] {
+    std::array::from_fn(|i| a[i] + (b[i] - a[i]) * s)
+}
+
+fn deg(rad: f64) -> String {
+    fmt_fixed(to_deg(rad), 2)
+}
+
+pub fn describe_contact(c: &Contact, margin: f64) -> String {
+    if c.distance < 0.0 {
+        format!(
+            "{} and {} intersect by {} mm",
+            c.a,
+            c.b,
+            fmt_fixed(to_mm(-c.distance), 2)
+        )
+    } else {
+        format!(
+            "{} and {} are {} mm apart (margin {} mm)",
+            c.a,
+            c.b,
+            fmt_fixed(to_mm(c.distance), 2),
+            fmt_fixed(to_mm(margin), 1)
+        )
+    }
+}

@@ -1,0 +1,234 @@
+//! Path safety: in = measurement poses in tour order and the pool of admitted poses; out = the
+//! waypoints actually commanded: every move checked continuously, support poses inserted where a
+//! straight joint move fails, poses dropped where no support is found, and a blend (or an exact
+//! stop) decided for every corner.
+
+use super::blend::{self, Blend};
+use super::{lerp, Checker, Extremes, Violation};
+use crate::order::move_time;
+use rand::{Rng, SeedableRng};
+use serde::{Deserialize, Serialize};
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Waypoint {
+    pub q: [f64; 6],
+    /// A support pose (a via point inserted for safety), not a measurement pose.
+    pub support: bool,
+    /// Blend distance at this corner (m); 0 = exact stop.
+    pub blend: f64,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Dropped {
+    /// Index of the pose in the tour.
+    pub index: usize,
+    pub q: [f64; 6],
+    /// Why the move to it failed.
+    pub violation: Violation,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Plan {
+    pub waypoints: Vec<Waypoint>,
+    pub supports: usize,
+    pub dropped: Vec<Dropped>,
+    /// Corners where the blend failed its check and the controller stops exactly instead.
+    pub exact_stops: usize,
+    pub extremes: Extremes,
+}
+
+/// How hard to look for support poses.
+pub const PERTURB_TRIES: usize = 32;
+pub const MAX_DEPTH: u32 = 3;
+pub const INSERT_TRIES: usize = 16;
+
+pub fn plan(
+    ck: &Checker,
+    tour: &[[f64; 6]],
+    pool: &[[f64; 6]],
+    blend_distance: f64,
+    speeds: &[f64; 6],
+    seed: u64,
+) -> Plan {
+    let mut ext = Extremes::default();
+    let mut wps: Vec<Waypoint> = Vec::new();
+    let mut deferred: Vec<(usize, Violation)> = Vec::new();
+    let mut dropped = Vec::new();
+    let mut supports = 0;
+    let measure = |q: &[f64; 6]| Waypoint {
+        q: *q,
+        support: false,
+        blend: 0.0,
+    };
+    // Pass 1: the tour as ordered; a pose that cannot be reached safely (not even through
+    // support poses) is deferred, and the tour goes on from where it is.
+    for (idx, q) in tour.iter().enumerate() {
+        let Some(last) = wps.last().map(|w| w.q) else {
+            match ck.pose(q) {
+                Ok(info) => {
+                    ext.add(&info);
+                    wps.push(measure(q));
+                }
+                Err(v) => dropped.push(Dropped {
+                    index: idx,
+                    q: *q,
+                    violation: v,
+                }),
+            }
+            continue;
+        };
+        let mut e = Extremes::default();
+        match ck.line(&last, q, &mut e) {
+            Ok(()) => {
+                ext.merge(&e);
+                wps.push(measure(q));
+            }
+            Err((_, violation)) => {
+                let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(
+                    seed ^ (idx as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15),
+                );
+                let mut e = Extremes::default();
+                match find_support(ck, &last, q, pool, speeds, &mut rng, MAX_DEPTH, &mut e) {
+                    Some(vias) => {
+                        ext.merge(&e);
+                        supports += vias.len();
+                        wps.extend(vias.into_iter().map(|v| Waypoint {
+                            q: v,
+                            support: true,
+                            blend: 0.0,
+                        }));
+                        wps.push(measure(q));
+                    }
+                    None => deferred.push((idx, violation)),
+                }
+            }
+        }
+    }
+    // Pass 2: insert each deferred pose where both moves around it pass, cheapest place first.
+    for (idx, violation) in deferred {
+        let q = tour[idx];
+        let mut places: Vec<(f64, usize)> = (0..wps.len())
+            .map(|i| {
+                let a = &wps[i].q;
+                let added = match wps.get(i + 1) {
+                    Some(b) => {
+                        move_time(a, &q, speeds) + move_time(&q, &b.q, speeds)
+                            - move_time(a, &b.q, speeds)
+                    }
+                    None => move_time(a, &q, speeds),
+                };
+                (added, i)
+            })
+            .collect();
+        places.sort_by(|x, y| x.0.total_cmp(&y.0).then(x.1.cmp(&y.1)));
+        let mut placed = false;
+        for &(_, i) in places.iter().take(INSERT_TRIES) {
+            let mut e = Extremes::default();
+            let before_ok = ck.line(&wps[i].q, &q, &mut e).is_ok();
+            let after_ok = before_ok
+                && wps
+                    .get(i + 1)
+                    .is_none_or(|b| ck.line(&q, &b.q, &mut e).is_ok());
+            if after_ok {
+                ext.merge(&e);
+                wps.insert(i + 1, measure(&q));
+                placed = true;
+                break;
+            }
+        }
+        if !placed {
+            dropped.push(Dropped {
+                index: idx,
+                q,
+                violation,
+            });
+        }
+    }
+    dropped.sort_by_key(|d| d.index);
+    // Trailing support poses lead nowhere.
+    while wps.last().is_some_and(|w| w.support) {
+        wps.pop();
+        supports -= 1;
+    }
+    let mut exact_stops = 0;
+    if blend_distance > 0.0 {
+        for k in 1..wps.len().saturating_sub(1) {
+            let bl = blend::geometry(
+                ck.model,
+                &wps[k - 1].q,
+                &wps[k].q,
+                &wps[k + 1].q,
+                blend_distance,
+            );
+            let mut e = Extremes::default();
+            match bl.map(|b| check_blend(ck, &b, &mut e)) {
+                Some(Ok(())) => {
+                    ext.merge(&e);
+                    wps[k].blend = blend_distance;
+                }
+                _ => exact_stops += 1,
+            }
+        }
+    }
+    Plan {
+        waypoints: wps,
+        supports,
+        dropped,
+        exact_stops,
+        extremes: ext,
+    }
+}
+
+pub fn check_blend(ck: &Checker, b: &Blend, ext: &mut Extremes) -> Result<(), (f64, Violation)> {
+    ck.curve(&|t| b.point(t), &b.variation(), ext)
+}
+
+/// Via points that make a → b safe: first a chain through the roadmap of admitted pool poses
+/// ([`super::roadmap`]), then perturbed midpoints, recursively on the half that still fails.
+#[allow(clippy::too_many_arguments)]
+fn find_support(
+    ck: &Checker,
+    a: &[f64; 6],
+    b: &[f64; 6],
+    pool: &[[f64; 6]],
+    speeds: &[f64; 6],
+    rng: &mut impl Rng,
+    depth: u32,
+    ext: &mut Extremes,
+) -> Option<Vec<[f64; 6]>> {
+    if depth == 0 {
+        return None;
+    }
+    if depth == MAX_DEPTH {
+        if let Some(vias) = super::roadmap::connect(ck, a, b, pool, speeds, ext) {
+            return Some(vias);
+        }
+    }
+    let (lo, hi) = ck.robot.limits();
+    for attempt in 0..PERTURB_TRIES {
+        // Growing perturbations around the midpoint, mostly in the arm joints.
+        let scale = 0.15 + 0.6 * attempt as f64 / PERTURB_TRIES as f64;
+        let mid = lerp(a, b, 0.5);
+        let m: [f64; 6] = std::array::from_fn(|i| {
+            (mid[i] + rng.random_range(-scale..=scale)).clamp(lo[i], hi[i])
+        });
+        if ck.pose(&m).is_err() {
+            continue;
+        }
+        let mut e = Extremes::default();
+        if ck.line(a, &m, &mut e).is_err() {
+            continue;
+        }
+        if ck.line(&m, b, &mut e).is_ok() {
+            ext.merge(&e);
+            return Some(vec![m]);
+        }
+        if let Some(mut rest) = find_support(ck, &m, b, pool, speeds, rng, depth - 1, &mut e) {
+            ext.merge(&e);
+            let mut out = vec![m];
+            out.append(&mut rest);
+            return Some(out);
+        }
+    }
+    None
+}
