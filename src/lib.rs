@@ -22,6 +22,7 @@
 
 pub mod cell;
 pub mod cli;
+pub mod collision;
 pub mod emit;
 pub mod ir;
 pub mod model;
