@@ -24,6 +24,7 @@
 //! (link 0) and the floor; the bar against links, hoses and world bodies, except the tool, the
 //! MAP ball, the fixture ball and the stand. Every excluded pair is listed with its reason.
 
+mod hull;
 mod mesh;
 #[cfg(test)]
 mod tests;
@@ -31,9 +32,13 @@ mod tests;
 use crate::cell::{CellSpec, ShapeKind};
 use crate::robot::kinematics::chain_frames;
 use crate::robot::{Frame, Geometry, Robot};
+use hull::Hull;
 use nalgebra::{Isometry3, Point3, Rotation3, Translation3, Unit, UnitQuaternion, Vector3};
-use parry3d_f64::query::{self, ClosestPoints};
-use parry3d_f64::shape::{Ball, Capsule, Cuboid, Cylinder, HalfSpace, Shape, SharedShape};
+use parry3d_f64::query::gjk::{GJKResult, VoronoiSimplex};
+use parry3d_f64::query::{self, details, ClosestPoints};
+use parry3d_f64::shape::{
+    Ball, Capsule, ConvexPolyhedron, Cuboid, Cylinder, HalfSpace, Shape, SharedShape, SupportMap,
+};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
@@ -132,6 +137,8 @@ enum Role {
 /// One convex piece of a body, placed in the body's frame.
 struct Part {
     shape: SharedShape,
+    /// Meshes: the same hull with a fast support function, used by every query.
+    hull: Option<Box<Hull>>,
     local: Isometry3<f64>,
     /// Bounding sphere in the body frame (for the floor: a point on the plane, radius 0).
     center: Point3<f64>,
@@ -153,6 +160,7 @@ struct Body {
 /// A part or a bounding sphere in world coordinates, ready for a query.
 struct Placed<'a> {
     shape: &'a dyn Shape,
+    hull: Option<&'a Hull>,
     iso: Isometry3<f64>,
     center: Point3<f64>,
     radius: f64,
@@ -187,6 +195,11 @@ fn part_query(a: &Placed, b: &Placed, limit: f64, mode: Mode) -> Option<f64> {
     }
     let d = if a.plane || b.plane {
         floor_distance(a, b)
+    } else if a.hull.is_some() || b.hull.is_some() {
+        match (support_map(a), support_map(b)) {
+            (Some(ga), Some(gb)) => hull_query(&a.iso.inv_mul(&b.iso), ga, gb, limit, mode)?,
+            _ => f64::NEG_INFINITY,
+        }
     } else {
         match mode {
             Mode::Filter => match query::closest_points(&a.iso, a.shape, &b.iso, b.shape, limit) {
@@ -203,6 +216,51 @@ fn part_query(a: &Placed, b: &Placed, limit: f64, mode: Mode) -> Option<f64> {
         }
     };
     (d < limit || (mode == Mode::Filter && d <= limit)).then_some(d)
+}
+
+fn support_map<'a>(p: &Placed<'a>) -> Option<&'a dyn SupportMap> {
+    match p.hull {
+        Some(h) => Some(h),
+        None => p.shape.as_support_map(),
+    }
+}
+
+/// `part_query` for support maps (parts with a [`Hull`]), through parry's generic GJK / EPA.
+#[inline]
+fn hull_query(
+    pos12: &Isometry3<f64>,
+    ga: &dyn SupportMap,
+    gb: &dyn SupportMap,
+    limit: f64,
+    mode: Mode,
+) -> Option<f64> {
+    let depth = || {
+        details::contact_support_map_support_map(pos12, ga, gb, 0.0)
+            .map_or(0.0, |c| c.dist.min(0.0))
+    };
+    Some(match mode {
+        Mode::Filter => {
+            let mut simplex = VoronoiSimplex::new();
+            match details::closest_points_support_map_support_map_with_params(
+                pos12,
+                ga,
+                gb,
+                limit,
+                &mut simplex,
+                None,
+            ) {
+                GJKResult::NoIntersection(_) => return None,
+                // Both points in the first shape's frame.
+                GJKResult::ClosestPoints(p, q, _) => (p - q).norm(),
+                GJKResult::Intersection => depth(),
+                GJKResult::Proximity(_) => limit,
+            }
+        }
+        Mode::Min => match details::distance_support_map_support_map(pos12, ga, gb) {
+            d if d > 0.0 => d,
+            _ => depth(),
+        },
+    })
 }
 
 /// Penetration depth (≤ 0) of two intersecting convex parts (EPA).
@@ -232,6 +290,7 @@ impl Part {
     fn place<'a>(&'a self, body: &Isometry3<f64>) -> Placed<'a> {
         Placed {
             shape: self.shape.as_ref(),
+            hull: self.hull.as_deref(),
             iso: body * self.local,
             center: body * self.center,
             radius: self.radius,
@@ -364,6 +423,7 @@ impl Scene {
         let (cap, r) = self.bar(&self.fixture, map_world)?;
         let bar = Placed {
             shape: &cap,
+            hull: None,
             iso: Isometry3::identity(),
             center: nalgebra::center(&cap.segment.a, &cap.segment.b),
             radius: r,
@@ -394,6 +454,7 @@ impl Scene {
         if let Some((cap, r)) = self.bar(&self.fixture, map_world) {
             let bar = Placed {
                 shape: &cap,
+                hull: None,
                 iso: Isometry3::identity(),
                 center: nalgebra::center(&cap.segment.a, &cap.segment.b),
                 radius: r,
@@ -485,6 +546,7 @@ fn part(origin: &Frame, prim: Prim, body: &str) -> Result<Part, CollisionError> 
         return Err(bad("origin is not finite".into()));
     }
     let mut local = to_iso(origin);
+    let mut hull = None;
     // (shape, bounding-sphere centre and radius in the shape's own frame)
     let (shape, c, r) = match prim {
         Prim::Box(s) => {
@@ -524,14 +586,17 @@ fn part(origin: &Frame, prim: Prim, body: &str) -> Result<Part, CollisionError> 
         }
         Prim::Mesh(path, scale) => {
             let pts = mesh::vertices(path, scale)?;
-            let hull = SharedShape::convex_hull(&pts).ok_or_else(|| CollisionError::Mesh {
+            let no_hull = || CollisionError::Mesh {
                 path: path.display().to_string(),
                 msg: format!(
                     "{body}: no convex hull ({} vertices; empty or flat?)",
                     pts.len()
                 ),
-            })?;
-            let (lo, hi) = pts.iter().fold(
+            };
+            let (vs, tris) =
+                parry3d_f64::transformation::try_convex_hull(&pts).map_err(|_| no_hull())?;
+            let poly = ConvexPolyhedron::from_convex_mesh(vs.clone(), &tris).ok_or_else(no_hull)?;
+            let (lo, hi) = vs.iter().fold(
                 (
                     Vector3::repeat(f64::INFINITY),
                     Vector3::repeat(f64::NEG_INFINITY),
@@ -539,12 +604,14 @@ fn part(origin: &Frame, prim: Prim, body: &str) -> Result<Part, CollisionError> 
                 |(lo, hi), p| (lo.inf(&p.coords), hi.sup(&p.coords)),
             );
             let c = Point3::from((lo + hi) * 0.5);
-            let r = pts.iter().map(|p| (p - c).norm()).fold(0.0, f64::max);
-            (hull, c, r)
+            let r = vs.iter().map(|p| (p - c).norm()).fold(0.0, f64::max);
+            hull = Some(Box::new(Hull::new(vs, &tris)));
+            (SharedShape::new(poly), c, r)
         }
     };
     Ok(Part {
         shape,
+        hull,
         center: local * c,
         local,
         radius: r,
@@ -729,6 +796,7 @@ pub fn build(
     // World.
     let floor = Part {
         shape: SharedShape::new(HalfSpace::new(Unit::new_unchecked(Vector3::z()))),
+        hull: None,
         local: Isometry3::translation(0.0, 0.0, cell.floor_z),
         center: Point3::new(0.0, 0.0, cell.floor_z),
         radius: 0.0,

@@ -74,6 +74,7 @@ fn world_scene(shapes: Vec<(&str, Frame, Prim)>, floor_z: Option<f64>) -> Scene 
     if let Some(z) = floor_z {
         let floor = Part {
             shape: SharedShape::new(HalfSpace::new(Unit::new_unchecked(Vector3::z()))),
+            hull: None,
             local: Isometry3::translation(0.0, 0.0, z),
             center: Point3::new(0.0, 0.0, z),
             radius: 0.0,
@@ -535,4 +536,64 @@ fn speed_of_the_filter() {
             qs.len()
         );
     }
+}
+
+/// The climbing support function agrees with the full scan, and hull queries agree with parry's
+/// own `ConvexPolyhedron` dispatch, on the densest robot.
+#[test]
+fn hull_support_is_exact() {
+    let r = robot(&format!("{SHARED}/kuka_kr120_r2500pro/robot.urdf"));
+    let (s, _) = scene(&r, &CellSpec::default());
+    let mut rng = ChaCha8Rng::seed_from_u64(17);
+    let parts: Vec<&Part> = s
+        .bodies
+        .iter()
+        .flat_map(|b| &b.parts)
+        .filter(|p| p.hull.is_some())
+        .collect();
+    assert!(parts.len() >= 6);
+    for p in &parts {
+        let h = p.hull.as_deref().unwrap();
+        for _ in 0..2000 {
+            let d = Vector3::new(
+                rng.random_range(-1.0..1.0),
+                rng.random_range(-1.0..1.0),
+                rng.random_range(-1.0..1.0),
+            );
+            let got = h.local_support_point(&d).coords.dot(&d);
+            let want = h.points()[hull::scan(h.points(), &d)].coords.dot(&d);
+            assert!(got >= want - 1e-12 * (1.0 + want.abs()), "{got} < {want}");
+        }
+    }
+    // Random placements of two hulls: the same distance (or depth) both ways.
+    let mut worst = 0.0f64;
+    for _ in 0..300 {
+        let (i, j) = (
+            rng.random_range(0..parts.len()),
+            rng.random_range(0..parts.len()),
+        );
+        let iso = |rng: &mut ChaCha8Rng| {
+            Isometry3::new(
+                Vector3::new(
+                    rng.random_range(-1.0..1.0),
+                    rng.random_range(-1.0..1.0),
+                    rng.random_range(-1.0..1.0),
+                ),
+                Vector3::new(
+                    rng.random_range(-3.0..3.0),
+                    rng.random_range(-3.0..3.0),
+                    rng.random_range(-3.0..3.0),
+                ),
+            )
+        };
+        let (ia, ib) = (iso(&mut rng), iso(&mut rng));
+        let (mut a, mut b) = (parts[i].place(&ia), parts[j].place(&ib));
+        let fast = part_query(&a, &b, f64::INFINITY, Mode::Min).unwrap();
+        let filt = part_query(&a, &b, fast + 1e-3, Mode::Filter).unwrap();
+        (a.hull, b.hull) = (None, None);
+        let slow = part_query(&a, &b, f64::INFINITY, Mode::Min).unwrap();
+        worst = worst.max((fast - slow).abs()).max((filt - slow).abs());
+    }
+    eprintln!("hull vs ConvexPolyhedron: worst difference {worst:.2e} m");
+    assert!(worst < 1e-6);
 }
