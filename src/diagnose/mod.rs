@@ -159,12 +159,14 @@ impl State {
     }
 }
 
-/// Cubic Lagrange interpolation of the recorded angles at time t (clamped to the record).
+/// Quintic (6-point) Lagrange interpolation of the recorded angles at time t: servo lags are
+/// a fraction of the sample period, and the interpolation error must stay below the bar noise.
 fn interp(t: &[f64], q: &[[f64; 6]], at: f64) -> [f64; 6] {
     let n = t.len();
-    let k = t.partition_point(|&x| x <= at).clamp(2, n.saturating_sub(2).max(2)) - 1;
-    let lo = k.saturating_sub(1).min(n.saturating_sub(4));
-    let idx: Vec<usize> = (lo..(lo + 4).min(n)).collect();
+    let k = t.partition_point(|&x| x <= at);
+    let lo = k.saturating_sub(3).min(n.saturating_sub(6));
+    let idx = lo..(lo + 6).min(n);
+    let idx: Vec<usize> = idx.collect();
     let mut out = [0.0; 6];
     for &a in &idx {
         let mut w = 1.0;
@@ -200,18 +202,19 @@ impl Data<'_> {
                 };
             }
         }
-        // Backlash: direction of the last motion; before the first, that of the first.
+        // Backlash: direction of the last motion between samples (the twin's rule); before the
+        // first motion, that of the first.
         let mut dir = vec![[0.0; 6]; n];
         for j in 0..6 {
-            let first = qdot
-                .iter()
-                .map(|v| v[j])
+            let step = |k: usize| m.q[k][j] - m.q[k - 1][j];
+            let first = (1..n)
+                .map(step)
                 .find(|v| v.abs() > MOTION_DEADBAND)
                 .map_or(1.0, f64::signum);
             let mut d = first;
             for k in 0..n {
-                if qdot[k][j].abs() > MOTION_DEADBAND {
-                    d = qdot[k][j].signum();
+                if k > 0 && step(k).abs() > MOTION_DEADBAND {
+                    d = step(k).signum();
                 }
                 dir[k][j] = d;
             }
@@ -738,7 +741,7 @@ pub fn run(
         let best = scored
             .iter()
             .filter(|(_, rss, bic, cv)| {
-                *bic < bic0 - 10.0 && *cv < 0.95 * cv0 && rss0 - rss >= 0.3 * excess
+                *bic < bic0 - 10.0 && *cv < 0.95 * cv0 && rss0 - rss >= 0.6 * excess
             })
             .min_by(|a, b| a.2.total_cmp(&b.2));
         let Some(&(e, _, bic, cv)) = best else {

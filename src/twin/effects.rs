@@ -11,8 +11,11 @@ use serde::{Deserialize, Serialize};
 
 /// Standard gravity, m/s².
 pub const G: f64 = 9.80665;
-/// A joint moving slower than this (rad/s) keeps its last motion direction (backlash).
-pub const MOTION_DEADBAND: f64 = 1e-4;
+/// Backlash: a joint that moves less than this between two samples (rad) keeps its last
+/// motion direction. The twin's drives are sampled at the bar's rate, so the simulator and the
+/// diagnosis judge the direction from the same samples (1e-6 rad: far above the CSV's 1e-6°
+/// quantisation of the recorded angles).
+pub const MOTION_DEADBAND: f64 = 1e-6;
 
 /// One effect of the library, with its joint (0-based) where it belongs to one.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize)]

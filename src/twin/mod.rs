@@ -75,6 +75,7 @@ pub fn simulate(
     if let Some(b) = &truth.backlash {
         dir[b.joint] = traj.first_direction(b.joint, t0);
     }
+    let mut prev_motor: Option<[f64; 6]> = None;
     let mut out = Measured {
         t: Vec::with_capacity(n),
         q: Vec::with_capacity(n),
@@ -90,20 +91,23 @@ pub fn simulate(
         let t = ts - t0;
         let setpoint = traj.position(ts);
         // Servo lag: the axes follow the logged setpoints with a delay.
-        let (motor, vel) = match truth.servo_lag {
-            Some(tau) => (traj.position(ts - tau), traj.velocity(ts - tau)),
-            None => (setpoint, traj.velocity(ts)),
+        let motor = match truth.servo_lag {
+            Some(tau) => traj.position(ts - tau),
+            None => setpoint,
         };
         let mut load = motor;
-        if let Some(c) = &truth.cyclic {
-            load[c.joint] += effects::cyclic(c, motor[c.joint]);
-        }
         if let Some(b) = &truth.backlash {
-            let v = vel[b.joint];
-            if v.abs() > effects::MOTION_DEADBAND {
-                dir[b.joint] = v.signum();
+            if let Some(prev) = prev_motor {
+                let step: f64 = motor[b.joint] - prev[b.joint];
+                if step.abs() > effects::MOTION_DEADBAND {
+                    dir[b.joint] = step.signum();
+                }
             }
             load[b.joint] -= 0.5 * b.play * dir[b.joint];
+        }
+        prev_motor = Some(motor);
+        if let Some(c) = &truth.cyclic {
+            load[c.joint] += effects::cyclic(c, motor[c.joint]);
         }
         if let Some(c) = &truth.compliance {
             let tau = gravity_torques(model, &Params::from_array(&truep), &motor, &masses);
