@@ -119,6 +119,10 @@ pub fn circle(a: &CircleArgs) -> Result<i32, Error> {
     };
     let text = twin::circle::program(&robot, &model, &opts).map_err(|e| usage(e.to_string()))?;
     write_atomic(&a.output, &text)?;
-    println!("{}: circle test, {} moves", a.output.display(), text.matches("\nG1 ").count());
+    println!(
+        "{}: circle test, {} moves",
+        a.output.display(),
+        text.matches("\nG1 ").count()
+    );
     Ok(0)
 }

@@ -272,7 +272,12 @@ fn apply(model: &MeasurementModel, d: &Data, s: &State, k: usize) -> ([f64; 6], 
             }
             Effect::JointCompliance => {
                 let fr = frames.get_or_insert_with(|| {
-                    chain_frames(&model.base, &Params::from_array(&s.p).dh, &model.flange, &q0)
+                    chain_frames(
+                        &model.base,
+                        &Params::from_array(&s.p).dh,
+                        &model.flange,
+                        &q0,
+                    )
                 });
                 for (n, col) in effect_cols(Effect::JointCompliance, 0).iter().enumerate() {
                     if let Col::Comp(j, i, comp) = col {
@@ -499,7 +504,10 @@ fn noise_estimate(r: &[f64]) -> f64 {
     if r.len() < 5 {
         return rms(r);
     }
-    let mut d2: Vec<f64> = r.windows(3).map(|w| (w[0] - 2.0 * w[1] + w[2]).abs()).collect();
+    let mut d2: Vec<f64> = r
+        .windows(3)
+        .map(|w| (w[0] - 2.0 * w[1] + w[2]).abs())
+        .collect();
     d2.sort_by(f64::total_cmp);
     1.4826 * d2[d2.len() / 2] / 6f64.sqrt()
 }
@@ -510,7 +518,10 @@ fn lag1(r: &[f64]) -> f64 {
     if var == 0.0 {
         return 0.0;
     }
-    r.windows(2).map(|w| (w[0] - mean) * (w[1] - mean)).sum::<f64>() / var
+    r.windows(2)
+        .map(|w| (w[0] - mean) * (w[1] - mean))
+        .sum::<f64>()
+        / var
 }
 
 /// The time span and joint ranges of the largest residual cluster (1 s moving RMS).
@@ -531,10 +542,11 @@ fn locate(m: &Measured, r: &[f64]) -> Option<Where> {
             ((pre[b] - pre[a]) / (b - a) as f64).sqrt()
         })
         .collect();
-    let (peak_k, peak) = mov
-        .iter()
-        .enumerate()
-        .fold((0, 0.0), |(bk, bv), (k, v)| if *v > bv { (k, *v) } else { (bk, bv) });
+    let (peak_k, peak) =
+        mov.iter().enumerate().fold(
+            (0, 0.0),
+            |(bk, bv), (k, v)| if *v > bv { (k, *v) } else { (bk, bv) },
+        );
     let half = 0.5 * peak;
     let mut a = peak_k;
     while a > 0 && mov[a - 1] >= half {
@@ -574,7 +586,11 @@ fn round(v: f64, d: i32) -> f64 {
 
 /// The candidates tried after the geometry.
 fn candidates() -> Vec<Effect> {
-    let mut c = vec![Effect::JointCompliance, Effect::ThermalDrift, Effect::ServoLag];
+    let mut c = vec![
+        Effect::JointCompliance,
+        Effect::ThermalDrift,
+        Effect::ServoLag,
+    ];
     c.extend((0..6).map(Effect::CyclicError));
     c.extend((0..6).map(Effect::Backlash));
     c
@@ -866,7 +882,12 @@ fn summary(r: &Report) -> String {
                 w.joints_deg
                     .iter()
                     .enumerate()
-                    .map(|(j, r)| format!("q{} {}..{}", j + 1, fmt_fixed(r[0], 1), fmt_fixed(r[1], 1)))
+                    .map(|(j, r)| format!(
+                        "q{} {}..{}",
+                        j + 1,
+                        fmt_fixed(r[0], 1),
+                        fmt_fixed(r[1], 1)
+                    ))
                     .collect::<Vec<_>>()
                     .join(", ")
             );

@@ -68,7 +68,11 @@ pub fn svg(d: &Diagnosis) -> String {
                 continue;
             }
             let x = fmt_fixed(LEFT + c as f64, 1);
-            pts += &format!("{x},{} {x},{} ", fmt_fixed(y(lo[c]), 1), fmt_fixed(y(hi[c]), 1));
+            pts += &format!(
+                "{x},{} {x},{} ",
+                fmt_fixed(y(lo[c]), 1),
+                fmt_fixed(y(hi[c]), 1)
+            );
         }
         s += &format!(
             "<polyline fill=\"none\" stroke=\"#1f5fbf\" stroke-width=\"1\" points=\"{}\"/>\n",
@@ -87,5 +91,7 @@ pub fn svg(d: &Diagnosis) -> String {
 }
 
 fn escape(s: &str) -> String {
-    s.replace('&', "&amp;").replace('<', "&lt;").replace('>', "&gt;")
+    s.replace('&', "&amp;")
+        .replace('<', "&lt;")
+        .replace('>', "&gt;")
 }

@@ -72,7 +72,12 @@ fn path(step: f64) -> Vec<(&'static str, Vector3<f64>)> {
 }
 
 /// Position IK by damped least squares from `seed`; None if it does not converge in limits.
-fn ik(model: &MeasurementModel, robot: &Robot, target: &Vector3<f64>, seed: &[f64; 6]) -> Option<[f64; 6]> {
+fn ik(
+    model: &MeasurementModel,
+    robot: &Robot,
+    target: &Vector3<f64>,
+    seed: &[f64; 6],
+) -> Option<[f64; 6]> {
     let (lo, hi) = robot.limits();
     let mut q = *seed;
     for _ in 0..200 {
@@ -100,7 +105,8 @@ fn ik(model: &MeasurementModel, robot: &Robot, target: &Vector3<f64>, seed: &[f6
             break;
         }
     }
-    let p = chain_frames(&model.base, &model.nominal.dh, &model.flange, &q)[7].apply(&model.nominal.map);
+    let p = chain_frames(&model.base, &model.nominal.dh, &model.flange, &q)[7]
+        .apply(&model.nominal.map);
     ((target - p).norm() < 1e-8).then_some(q)
 }
 
@@ -199,7 +205,9 @@ pub fn program(
     for (k, (l, d)) in pts.iter().enumerate() {
         let (a, b) = (&qs[k], &qs[k + 1]);
         let arc = (d - pts.get(k.wrapping_sub(1)).map_or(start_dir, |p| p.1)).norm() * r;
-        let eq7 = (0..6).map(|i| (b[i] - a[i]).abs() / vmax[i]).fold(0.0, f64::max);
+        let eq7 = (0..6)
+            .map(|i| (b[i] - a[i]).abs() / vmax[i])
+            .fold(0.0, f64::max);
         let t = (arc / opts.speed).max(eq7).max(1e-3);
         let note = if *l != label {
             label = l;

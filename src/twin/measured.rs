@@ -9,7 +9,14 @@
 use crate::units::{fmt_fixed, DEG, MM};
 
 pub const COLUMNS: [&str; 8] = [
-    "t_s", "q1_deg", "q2_deg", "q3_deg", "q4_deg", "q5_deg", "q6_deg", "length_mm",
+    "t_s",
+    "q1_deg",
+    "q2_deg",
+    "q3_deg",
+    "q4_deg",
+    "q5_deg",
+    "q6_deg",
+    "length_mm",
 ];
 
 /// One recorded run, sorted by time. SI: s, rad, m, °C.
@@ -75,10 +82,17 @@ fn err(line: usize, column: impl Into<String>, msg: impl Into<String>) -> CsvErr
 
 /// Parses measured data. `min_rows`: the fit needs at least this many rows.
 pub fn parse_csv(text: &str, min_rows: usize) -> Result<Measured, CsvError> {
-    let mut lines = text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty());
-    let (hl, header) = lines
-        .next()
-        .ok_or_else(|| err(1, "1", "empty file: expected the header t_s,q1_deg,...,length_mm"))?;
+    let mut lines = text
+        .lines()
+        .enumerate()
+        .filter(|(_, l)| !l.trim().is_empty());
+    let (hl, header) = lines.next().ok_or_else(|| {
+        err(
+            1,
+            "1",
+            "empty file: expected the header t_s,q1_deg,...,length_mm",
+        )
+    })?;
     let names: Vec<&str> = header.split(',').map(str::trim).collect();
     let mut idx = [0usize; 8];
     for (c, want) in COLUMNS.iter().enumerate() {

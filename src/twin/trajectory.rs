@@ -81,9 +81,7 @@ impl Trajectory {
                     };
                     let delta: [f64; 6] = std::array::from_fn(|i| target[i] - cur[i]);
                     // Eq. 7: the slowest axis at its maximum speed.
-                    let eq7 = (0..6)
-                        .map(|i| delta[i].abs() / vmax[i])
-                        .fold(0.0, f64::max);
+                    let eq7 = (0..6).map(|i| delta[i].abs() / vmax[i]).fold(0.0, f64::max);
                     if eq7 == 0.0 {
                         continue;
                     }

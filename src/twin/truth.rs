@@ -196,7 +196,9 @@ fn harmonics(key: &str, v: &[f64]) -> Result<[f64; 3], String> {
             v.len()
         ));
     }
-    Ok(std::array::from_fn(|h| v.get(h).copied().unwrap_or(0.0) * DEG))
+    Ok(std::array::from_fn(|h| {
+        v.get(h).copied().unwrap_or(0.0) * DEG
+    }))
 }
 
 impl Truth {
@@ -219,15 +221,15 @@ impl Truth {
             t.geometric[k] = v * if is_angle(k) { DEG } else { MM };
         }
         if let Some(c) = spec.joint_compliance {
-            if c.stiffness_nm_per_rad.iter().any(|k| k.is_nan() || *k <= 0.0) {
+            if c.stiffness_nm_per_rad
+                .iter()
+                .any(|k| k.is_nan() || *k <= 0.0)
+            {
                 return Err("joint_compliance.stiffness_nm_per_rad: must all be > 0".into());
             }
             t.compliance = Some(Compliance {
                 stiffness: c.stiffness_nm_per_rad,
-                masses: c
-                    .masses_kg
-                    .map(|m| lumped_masses(&m))
-                    .unwrap_or_default(),
+                masses: c.masses_kg.map(|m| lumped_masses(&m)).unwrap_or_default(),
             });
         }
         if let Some(th) = spec.thermal_drift {
