@@ -72,8 +72,8 @@ pub fn random_geometry(rng: &mut ChaCha8Rng) -> [f64; 30] {
         g[ALPHA + i] = rng.random_range(-0.02..0.02) * DEG;
         g[THETA + i] = rng.random_range(-0.02..0.02) * DEG;
     }
-    for k in 0..3 {
-        g[k] = rng.random_range(-0.1..0.1) * 1e-3;
+    for v in g.iter_mut().take(3) {
+        *v = rng.random_range(-0.1..0.1) * 1e-3;
     }
     g
 }
