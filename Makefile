@@ -2,7 +2,7 @@
 CARGO ?= cargo
 NJ130 := robots/comau_nj130/robot.dh.toml
 
-.PHONY: build run test check fmt clippy doc snapshots bench ci
+.PHONY: build run test check fmt clippy doc snapshots bench bench-diagnose paper ci
 
 build:
 	$(CARGO) build --release --locked
@@ -32,6 +32,14 @@ snapshots:
 
 bench:
 	$(CARGO) run --release --locked --example bench
+
+# Digital twin: diagnose on a 10-minute, 50 Hz run (30,000 rows).
+bench-diagnose:
+	$(CARGO) run --release --locked --example bench_diagnose
+
+# Fig. 12: sensitivity of the compiled program vs the ISO 230-4 circle test, 20 random robots.
+paper:
+	$(CARGO) run --release --locked --example paper
 
 check: fmt clippy test doc
 

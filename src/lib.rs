@@ -14,6 +14,9 @@
 //! - [`select`]: condition-number pruning of the candidates (Section 2.1.3, Fig. 5).
 //! - [`order`]: time-optimal open tour (Eq. 7).
 //! - [`emit`]: dialect templates → program text.
+//! - [`twin`]: the digital twin (truth model, effects library, program timing, simulation) and
+//!   the ISO 230-4 circle test; [`diagnose`]: measured vs simulated, calibration, effect
+//!   selection, report.
 //!
 //! Internally everything is SI (m, rad, s); millimetres and degrees exist only at the edges.
 
@@ -23,6 +26,7 @@
 pub mod cell;
 pub mod cli;
 pub mod collision;
+pub mod diagnose;
 pub mod emit;
 pub mod ir;
 pub mod model;
@@ -32,5 +36,6 @@ pub mod robot;
 pub mod safety;
 pub mod sample;
 pub mod select;
+pub mod twin;
 pub mod units;
 pub mod verify;

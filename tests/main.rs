@@ -4,5 +4,6 @@ mod common;
 
 mod cli_errors;
 mod compile;
+mod diagnose;
 mod model_cmd;
 mod snapshots;

@@ -25,6 +25,13 @@ pub enum Command {
     Model(ModelArgs),
     /// Re-read a program and re-check it: poses, moves and blends against every limit.
     Verify(VerifyArgs),
+    /// Digital twin: run a program on a virtual robot with the errors of TRUTH.toml and write
+    /// what the EDBB and the encoders would record (CSV).
+    Simulate(SimulateArgs),
+    /// Compare measured EDBB data with the model: calibrate, name the missing effect, report.
+    Diagnose(DiagnoseArgs),
+    /// The extended circle test after ISO 230-4 as a program (the baseline for comparison).
+    Circle(CircleArgs),
 }
 
 /// Robot, cell and instrument: shared by the compiler and `model`.
@@ -143,4 +150,79 @@ pub struct ModelArgs {
     /// Print the report as JSON.
     #[arg(long)]
     pub json: bool,
+}
+
+#[derive(Args, Debug)]
+pub struct SimulateArgs {
+    /// Robot description: a .urdf or a .dh.toml file.
+    #[arg(value_name = "ROBOT")]
+    pub robot: PathBuf,
+    /// The program to run (ngc, as `edbbgen` or `edbbgen circle` emit it).
+    #[arg(value_name = "PROGRAM.nc")]
+    pub program: PathBuf,
+    /// The real robot: geometric errors, effects and noise.
+    #[arg(long, value_name = "TRUTH.toml")]
+    pub truth: PathBuf,
+    /// Output CSV (measured-data contract).
+    #[arg(short, long, value_name = "MEASURED.csv")]
+    pub output: PathBuf,
+    /// Fixture ball centre, mm [default: the program's header].
+    #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true)]
+    pub fixture: Option<String>,
+    /// MAP in the flange frame, mm [default: the program's header, else the robot file's tool].
+    #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true)]
+    pub tool: Option<String>,
+    /// Cell file (accepted for symmetry with the compiler; the twin needs only the fixture).
+    #[arg(long, value_name = "CELL.toml")]
+    pub cell: Option<PathBuf>,
+    /// Bar sample rate, Hz.
+    #[arg(long, value_name = "HZ", default_value = "50")]
+    pub rate: String,
+    /// Noise seed.
+    #[arg(long, value_name = "N", default_value_t = 1)]
+    pub seed: u64,
+}
+
+#[derive(Args, Debug)]
+pub struct DiagnoseArgs {
+    /// Robot description: a .urdf or a .dh.toml file.
+    #[arg(value_name = "ROBOT")]
+    pub robot: PathBuf,
+    /// Fixture ball centre in the robot base frame, mm.
+    #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true)]
+    pub fixture: String,
+    /// MAP in the flange frame, mm [default: the robot file's tool].
+    #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true)]
+    pub tool: Option<String>,
+    /// Measured EDBB data (CSV contract).
+    #[arg(long, value_name = "MEASURED.csv")]
+    pub measured: PathBuf,
+    /// Write the JSON report here.
+    #[arg(long, value_name = "REPORT.json")]
+    pub json: Option<PathBuf>,
+    /// Write the residual plot (SVG) here.
+    #[arg(long, value_name = "REPORT.svg")]
+    pub plot: Option<PathBuf>,
+}
+
+#[derive(Args, Debug)]
+pub struct CircleArgs {
+    /// Robot description: a .urdf or a .dh.toml file.
+    #[arg(value_name = "ROBOT")]
+    pub robot: PathBuf,
+    /// Fixture ball centre (circle centre) in the robot base frame, mm.
+    #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true)]
+    pub fixture: String,
+    /// MAP in the flange frame, mm [default: the robot file's tool].
+    #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true)]
+    pub tool: Option<String>,
+    /// Output program.
+    #[arg(short, long, value_name = "CIRCLE.nc")]
+    pub output: PathBuf,
+    /// Circle diameter, mm (ISO 230-4 test of the paper: 700).
+    #[arg(long, value_name = "MM", default_value = "700")]
+    pub diameter: String,
+    /// MAP speed along the circle, mm/s.
+    #[arg(long, value_name = "MM_S", default_value = "50")]
+    pub speed: String,
 }

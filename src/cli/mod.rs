@@ -2,6 +2,7 @@
 //! write files (temp file + rename) and print results. Progress bars live here and only here.
 
 pub mod args;
+mod twin_cli;
 
 use crate::cell::CellSpec;
 use crate::model::{self, IdentifyOptions, MeasurementModel, Status};
@@ -55,6 +56,9 @@ pub fn run(argv: Vec<std::ffi::OsString>) -> Result<i32, Error> {
     match cli.command {
         Some(Command::Model(m)) => run_model(&m),
         Some(Command::Verify(v)) => run_verify(&v),
+        Some(Command::Simulate(a)) => twin_cli::simulate(&a),
+        Some(Command::Diagnose(a)) => twin_cli::diagnose(&a),
+        Some(Command::Circle(a)) => twin_cli::circle(&a),
         None => run_compile(&cli.compile),
     }
 }

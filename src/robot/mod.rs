@@ -52,6 +52,18 @@ pub enum Geometry {
     Mesh { path: PathBuf, scale: [f64; 3] },
 }
 
+/// A link's mass lumped at its centre of mass, attached to a DH frame like [`LinkShape`]
+/// (URDF `<inertial>`; a DH spec has none). Used by the digital twin's joint compliance.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PointMass {
+    /// DH frame the link is rigid with: 0 = robot base, i = moves with joint i.
+    pub frame: usize,
+    /// Centre of mass in that frame (m).
+    pub com: Vector3<f64>,
+    /// kg.
+    pub mass: f64,
+}
+
 /// The robot: the immutable model every stage shares (across rayon threads too).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Robot {
@@ -68,6 +80,9 @@ pub struct Robot {
     /// when the robot file declares one.
     pub tool: Option<Vector3<f64>>,
     pub shapes: Vec<LinkShape>,
+    /// Link masses from the URDF inertials, by frame; empty when the file has none.
+    #[serde(default)]
+    pub masses: Vec<PointMass>,
     /// SHA-256 of the robot file's bytes (set by [`load`]): part of the program's input hash.
     pub digest: String,
 }

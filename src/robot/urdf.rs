@@ -175,6 +175,24 @@ fn convert(text: &str, path: &Path, opts: &LoadOptions) -> Result<Robot, String>
     }
     shapes.sort_by_key(|s| s.frame);
 
+    // Inertials of the same links, as point masses at their centres of mass in DH frames.
+    let mut masses = Vec::new();
+    for (l, link) in doc.links.iter().enumerate() {
+        let Some(k) = group[l] else { continue };
+        let m = link.inertial.mass.value;
+        if !(m.is_finite() && m > 0.0) {
+            continue;
+        }
+        let origin = origin_frame(&link.inertial.origin.xyz, &link.inertial.origin.rpy)
+            .ok_or_else(|| format!("link {}: inertial origin is not finite", link.name))?;
+        masses.push(super::PointMass {
+            frame: k,
+            com: frames[k].inverse().mul(&pose0[l]).mul(&origin).t,
+            mass: m,
+        });
+    }
+    masses.sort_by_key(|m| m.frame);
+
     let tool = match tree.link_of.get(MAP_LINK) {
         None => None,
         Some(&m) if group[m] == Some(6) => Some(flange0.inverse().apply(&pose0[m].t)),
@@ -198,6 +216,7 @@ fn convert(text: &str, path: &Path, opts: &LoadOptions) -> Result<Robot, String>
         joints,
         tool,
         shapes,
+        masses,
         digest: String::new(),
     })
 }

@@ -1,0 +1,177 @@
+//! Measured EDBB data (DESIGN.md's CSV contract): in/out = CSV text; in memory SI units.
+//!
+//! ```text
+//! t_s,q1_deg,q2_deg,q3_deg,q4_deg,q5_deg,q6_deg,length_mm[,temp_c]
+//! ```
+//! Written with a fixed number of decimals (deterministic bytes); read strictly: every error
+//! names the line and the column.
+
+use crate::units::{fmt_fixed, DEG, MM};
+
+pub const COLUMNS: [&str; 8] = [
+    "t_s",
+    "q1_deg",
+    "q2_deg",
+    "q3_deg",
+    "q4_deg",
+    "q5_deg",
+    "q6_deg",
+    "length_mm",
+];
+
+/// One recorded run, sorted by time. SI: s, rad, m, °C.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Measured {
+    pub t: Vec<f64>,
+    pub q: Vec<[f64; 6]>,
+    pub length: Vec<f64>,
+    pub temp: Option<Vec<f64>>,
+}
+
+impl Measured {
+    pub fn len(&self) -> usize {
+        self.t.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.t.is_empty()
+    }
+
+    /// CSV text: times to 1 ms, angles to 1e-6 deg, lengths to 0.1 µm, temperatures to 0.001 K.
+    pub fn to_csv(&self) -> String {
+        let mut s = String::with_capacity(self.len() * 90);
+        s += &COLUMNS.join(",");
+        if self.temp.is_some() {
+            s += ",temp_c";
+        }
+        s.push('\n');
+        for k in 0..self.len() {
+            s += &fmt_fixed(self.t[k], 3);
+            for i in 0..6 {
+                s.push(',');
+                s += &fmt_fixed(self.q[k][i] / DEG, 6);
+            }
+            s.push(',');
+            s += &fmt_fixed(self.length[k] / MM, 4);
+            if let Some(t) = &self.temp {
+                s.push(',');
+                s += &fmt_fixed(t[k], 3);
+            }
+            s.push('\n');
+        }
+        s
+    }
+}
+
+#[derive(Debug, thiserror::Error, PartialEq)]
+#[error("line {line}, column {column}: {msg}")]
+pub struct CsvError {
+    pub line: usize,
+    /// 1-based column number and, where known, its name.
+    pub column: String,
+    pub msg: String,
+}
+
+fn err(line: usize, column: impl Into<String>, msg: impl Into<String>) -> CsvError {
+    CsvError {
+        line,
+        column: column.into(),
+        msg: msg.into(),
+    }
+}
+
+/// Parses measured data. `min_rows`: the fit needs at least this many rows.
+pub fn parse_csv(text: &str, min_rows: usize) -> Result<Measured, CsvError> {
+    let mut lines = text
+        .lines()
+        .enumerate()
+        .filter(|(_, l)| !l.trim().is_empty());
+    let (hl, header) = lines.next().ok_or_else(|| {
+        err(
+            1,
+            "1",
+            "empty file: expected the header t_s,q1_deg,...,length_mm",
+        )
+    })?;
+    let names: Vec<&str> = header.split(',').map(str::trim).collect();
+    let mut idx = [0usize; 8];
+    for (c, want) in COLUMNS.iter().enumerate() {
+        idx[c] = names.iter().position(|n| n == want).ok_or_else(|| {
+            err(
+                hl + 1,
+                format!("{} ({want})", names.len() + 1),
+                format!("missing column '{want}' in the header"),
+            )
+        })?;
+    }
+    let temp_idx = names.iter().position(|n| *n == "temp_c");
+    let mut m = Measured {
+        temp: temp_idx.map(|_| Vec::new()),
+        ..Measured::default()
+    };
+    for (l, raw) in lines {
+        let line = l + 1;
+        let cells: Vec<&str> = raw.split(',').map(str::trim).collect();
+        if cells.len() != names.len() {
+            return Err(err(
+                line,
+                format!("{}", cells.len().min(names.len()) + 1),
+                format!(
+                    "{} cells, the header has {} columns",
+                    cells.len(),
+                    names.len()
+                ),
+            ));
+        }
+        let cell = |c: usize| -> Result<f64, CsvError> {
+            let col = || format!("{} ({})", c + 1, names[c]);
+            let v: f64 = cells[c]
+                .parse()
+                .map_err(|_| err(line, col(), format!("'{}' is not a number", cells[c])))?;
+            if !v.is_finite() {
+                return Err(err(line, col(), format!("'{}' is not finite", cells[c])));
+            }
+            Ok(v)
+        };
+        let t = cell(idx[0])?;
+        if let Some(&prev) = m.t.last() {
+            if t <= prev {
+                return Err(err(
+                    line,
+                    format!("{} (t_s)", idx[0] + 1),
+                    format!("time {t} s is not after the previous row's {prev} s (rows must be sorted by time)"),
+                ));
+            }
+        }
+        let mut q = [0.0; 6];
+        for i in 0..6 {
+            q[i] = cell(idx[1 + i])? * DEG;
+        }
+        let len = cell(idx[7])?;
+        if len <= 0.0 {
+            return Err(err(
+                line,
+                format!("{} (length_mm)", idx[7] + 1),
+                format!("length {len} mm is not positive"),
+            ));
+        }
+        if let (Some(ti), Some(temps)) = (temp_idx, m.temp.as_mut()) {
+            temps.push(cell(ti)?);
+        }
+        m.t.push(t);
+        m.q.push(q);
+        m.length.push(len * MM);
+    }
+    if m.len() < min_rows {
+        let last = text.lines().count().max(1);
+        return Err(err(
+            last,
+            "1 (t_s)",
+            format!(
+                "{} data rows, fewer than the {min_rows} the fit needs (one per parameter at least)",
+                m.len()
+            ),
+        ));
+    }
+    Ok(m)
+}

@@ -1,0 +1,237 @@
+//! Timing of a parsed program: in = the program's steps; out = the joint trajectory q(t) the
+//! virtual controller follows and the recording window.
+//!
+//! - Each move is a synchronous joint-space line with a cycloidal speed profile
+//!   s(u) = u − sin(2πu)/2π (smooth acceleration, zero speed at both ends; peak speed twice the
+//!   mean). Its duration is the commanded one (G93: 60/F s; G94: joint path length / F; G0:
+//!   Eq. 7, the slowest axis at its maximum speed), stretched where needed so the peak speed
+//!   stays within every joint's limit (the controller is velocity-limited).
+//! - Blends (G64 P mm): the next move starts while the previous one still runs — the
+//!   controller superposes the two (overlapping blend). The overlap is the time in which the
+//!   MAP is within the blend distance of the corner (straight-line MAP distance along the move),
+//!   at most half of either move. The superposed trajectory stays smooth (C²).
+//! - G4 dwells stand still; an M0 pause ends any blend. The bar is mounted at the first M0 and
+//!   removed at the second: the recording window lies between them (the whole program when it
+//!   has no M0; from the first M0 to the end when it has one).
+
+use super::SimError;
+use crate::model::MeasurementModel;
+use crate::robot::Robot;
+use crate::verify::gcode::{FeedMode, Parsed, Step};
+use std::f64::consts::TAU;
+
+#[derive(Clone, Debug)]
+struct Seg {
+    t0: f64,
+    dur: f64,
+    delta: [f64; 6],
+}
+
+#[derive(Clone, Debug)]
+pub struct Trajectory {
+    start: [f64; 6],
+    segs: Vec<Seg>,
+    /// Sum of the deltas of segments 0..k (k = index), so `prefix[k]` = start + done moves.
+    prefix: Vec<[f64; 6]>,
+    /// End times of the segments (non-decreasing).
+    ends: Vec<f64>,
+    /// Recording window [start, end] (s, program time).
+    pub window: (f64, f64),
+}
+
+fn profile(u: f64) -> f64 {
+    let u = u.clamp(0.0, 1.0);
+    u - (TAU * u).sin() / TAU
+}
+
+fn profile_rate(u: f64) -> f64 {
+    if !(0.0..=1.0).contains(&u) {
+        return 0.0;
+    }
+    1.0 - (TAU * u).cos()
+}
+
+impl Trajectory {
+    pub fn from_program(
+        robot: &Robot,
+        model: &MeasurementModel,
+        program: &Parsed,
+    ) -> Result<Trajectory, SimError> {
+        let vmax = robot.max_speeds();
+        let mut start: Option<[f64; 6]> = None;
+        let mut cur = [0.0; 6];
+        let mut segs: Vec<Seg> = Vec::new();
+        let mut t_end = 0.0f64;
+        // Blend distance (m) of the corner at the end of the last segment, if it may blend.
+        let mut pending_blend: Option<f64> = None;
+        let mut pauses: Vec<f64> = Vec::new();
+        for l in &program.lines {
+            match &l.step {
+                Step::Move {
+                    rapid,
+                    target,
+                    feed,
+                    blend,
+                } => {
+                    let target: [f64; 6] = target.map(f64::to_radians);
+                    let Some(_) = start else {
+                        start = Some(target);
+                        cur = target;
+                        continue;
+                    };
+                    let delta: [f64; 6] = std::array::from_fn(|i| target[i] - cur[i]);
+                    // Eq. 7: the slowest axis at its maximum speed.
+                    let eq7 = (0..6).map(|i| delta[i].abs() / vmax[i]).fold(0.0, f64::max);
+                    if eq7 == 0.0 {
+                        continue;
+                    }
+                    let commanded = match (rapid, feed) {
+                        (false, Some((FeedMode::InverseTime, f))) => 60.0 / f,
+                        (false, Some((FeedMode::UnitsPerMinute, f))) => {
+                            let path = delta.iter().map(|d| d.to_degrees().powi(2)).sum::<f64>();
+                            path.sqrt() / f * 60.0
+                        }
+                        _ => eq7,
+                    };
+                    if !(commanded.is_finite() && commanded > 0.0) {
+                        return Err(SimError::Program {
+                            line: l.line,
+                            msg: "move without a usable feed".into(),
+                        });
+                    }
+                    // Cycloidal profile: peak speed = 2 × mean.
+                    let dur = commanded.max(2.0 * eq7);
+                    let mut t0 = t_end;
+                    if let (Some(b), Some(prev)) = (pending_blend, segs.last()) {
+                        let w_prev = blend_time(model, prev, &cur, b, true);
+                        let seg = Seg {
+                            t0: 0.0,
+                            dur,
+                            delta,
+                        };
+                        let w_next = blend_time(model, &seg, &cur, b, false);
+                        t0 -= w_prev.min(w_next).min(0.5 * prev.dur).min(0.5 * dur);
+                    }
+                    segs.push(Seg { t0, dur, delta });
+                    t_end = t_end.max(t0 + dur);
+                    cur = target;
+                    pending_blend = blend.filter(|b| *b > 0.0).map(|b| b * 1e-3);
+                }
+                Step::Dwell(s) => {
+                    t_end += s.max(0.0);
+                    pending_blend = None;
+                }
+                Step::Pause => {
+                    pauses.push(t_end);
+                    pending_blend = None;
+                }
+                Step::End => break,
+            }
+        }
+        let start = start.ok_or_else(|| SimError::Empty("the program has no moves".into()))?;
+        let mut prefix = Vec::with_capacity(segs.len() + 1);
+        let mut acc = start;
+        prefix.push(acc);
+        for s in &segs {
+            for i in 0..6 {
+                acc[i] += s.delta[i];
+            }
+            prefix.push(acc);
+        }
+        // Segments end in order (overlaps are at most half a move).
+        let mut ends: Vec<f64> = segs.iter().map(|s| s.t0 + s.dur).collect();
+        for k in 1..ends.len() {
+            ends[k] = ends[k].max(ends[k - 1]);
+        }
+        let window = match pauses.as_slice() {
+            [] => (0.0, t_end),
+            [a] => (*a, t_end),
+            [a, b, ..] => (*a, *b),
+        };
+        Ok(Trajectory {
+            start,
+            segs,
+            prefix,
+            ends,
+            window,
+        })
+    }
+
+    /// Setpoint at program time t (rad).
+    pub fn position(&self, t: f64) -> [f64; 6] {
+        let done = self.ends.partition_point(|&e| e <= t);
+        let mut q = self.prefix[done];
+        for s in self.segs[done..].iter().take_while(|s| s.t0 < t) {
+            let f = profile((t - s.t0) / s.dur);
+            for i in 0..6 {
+                q[i] += s.delta[i] * f;
+            }
+        }
+        q
+    }
+
+    /// Joint speeds at program time t (rad/s).
+    pub fn velocity(&self, t: f64) -> [f64; 6] {
+        let done = self.ends.partition_point(|&e| e <= t);
+        let mut v = [0.0; 6];
+        for s in self.segs[done..].iter().take_while(|s| s.t0 < t) {
+            let f = profile_rate((t - s.t0) / s.dur) / s.dur;
+            for i in 0..6 {
+                v[i] += s.delta[i] * f;
+            }
+        }
+        v
+    }
+
+    /// Direction (±1) of joint j's first motion after time t (+1 if it never moves).
+    pub fn first_direction(&self, j: usize, t: f64) -> f64 {
+        self.segs
+            .iter()
+            .filter(|s| s.t0 + s.dur > t && s.delta[j] != 0.0)
+            .map(|s| s.delta[j].signum())
+            .next()
+            .unwrap_or(1.0)
+    }
+
+    /// The start configuration (rad).
+    pub fn start(&self) -> [f64; 6] {
+        self.start
+    }
+}
+
+/// Time before the end (`at_end`) or after the start of `seg` during which the MAP is within
+/// `blend` metres of that end, along the straight MAP chord of the move.
+fn blend_time(
+    model: &MeasurementModel,
+    seg: &Seg,
+    corner: &[f64; 6],
+    blend: f64,
+    at_end: bool,
+) -> f64 {
+    let other: [f64; 6] = std::array::from_fn(|i| {
+        if at_end {
+            corner[i] - seg.delta[i]
+        } else {
+            corner[i] + seg.delta[i]
+        }
+    });
+    let d = (model.map_position(&model.nominal, corner)
+        - model.map_position(&model.nominal, &other))
+    .norm();
+    if d <= blend {
+        return 0.5 * seg.dur;
+    }
+    // Profile fraction f = blend / d reached at u: profile is symmetric, so the time from
+    // the near end equals the time from the start to reach fraction f.
+    let f = blend / d;
+    let (mut lo, mut hi) = (0.0, 0.5);
+    for _ in 0..40 {
+        let mid = 0.5 * (lo + hi);
+        if profile(mid) < f {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    0.5 * (lo + hi) * seg.dur
+}
