@@ -27,18 +27,8 @@ fn main() {
     .expect("robot");
     let fixture = Vector3::new(0.258, 1.468, 0.708);
     let opts = edbbgen::pipeline::CompileOptions {
-        fixture,
-        tool: None,
-        bar_min: 0.3,
-        bar_max: 0.52,
-        floor_z: 0.0,
         step: [10f64.to_radians(); 6],
-        max_candidates: edbbgen::pipeline::DEFAULT_MAX_CANDIDATES,
-        seed: 1,
-        poses: None,
-        blend: 0.01,
-        ball: 0.025,
-        start: [0.0; 6],
+        ..edbbgen::pipeline::CompileOptions::new(fixture)
     };
     let template = edbbgen::emit::dialect("ngc").expect("ngc");
     let compiled =

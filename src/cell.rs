@@ -16,7 +16,8 @@
 //! ball = 25.0                         # ball diameter
 //! [tool]
 //! map = [60.0, 30.0, 120.0]           # MAP (tool ball centre) in the flange frame (mm)
-//! axis = [0.0, 0.0, 1.0]              # tool cup axis in the flange frame (opening direction)
+//! axis = [0.0, 0.0, 1.0]              # tool cup axis in the flange frame (opening direction;
+//!                                     # default: along joint 6, away from the wrist)
 //! cone = 60.0                         # bar direction within this half-angle of the cup axis
 //! [[tool.shapes]]                     # the tool body, in the flange frame
 //! type = "cylinder"                   # box | cylinder | sphere | capsule | mesh
@@ -109,8 +110,9 @@ pub struct CellSpec {
     pub bar_diameter: f64,
     pub ball: f64,
     pub map: Option<Vector3<f64>>,
-    /// Unit cup axis in the flange frame.
-    pub tool_axis: Vector3<f64>,
+    /// Unit cup axis in the flange frame; None = the joint-6 axis pointing away from the wrist
+    /// ([`crate::pipeline::default_cup_axis`]).
+    pub tool_axis: Option<Vector3<f64>>,
     pub tool_cone: f64,
     pub tool_shapes: Vec<Shape>,
     pub floor_z: f64,
@@ -142,7 +144,7 @@ impl Default for CellSpec {
             bar_diameter: DEFAULT_BAR_DIAMETER_MM * MM,
             ball: crate::pipeline::DEFAULT_BALL_MM * MM,
             map: None,
-            tool_axis: Vector3::z(),
+            tool_axis: None,
             tool_cone: DEFAULT_CONE_DEG * DEG,
             tool_shapes: Vec::new(),
             floor_z: 0.0,
@@ -349,7 +351,7 @@ pub fn from_str(text: &str, path: &Path) -> Result<CellSpec, CellError> {
     if let Some(t) = f.tool {
         c.map = t.map.map(v3);
         if let Some(a) = t.axis {
-            c.tool_axis = unit(a, "tool.axis")?;
+            c.tool_axis = Some(unit(a, "tool.axis")?);
         }
         if let Some(d) = t.cone {
             c.tool_cone = cone(d, "tool.cone")?;

@@ -220,6 +220,8 @@ pub struct Header {
     pub margin_mm: f64,
     pub poses: usize,
     pub supports: usize,
+    /// Sections of the program (the bar is remounted between them).
+    pub sections: usize,
     pub identifiable: usize,
     pub cond: f64,
     pub time_unsorted_s: f64,
@@ -234,6 +236,8 @@ pub struct Move {
     pub q_deg: [f64; 6],
     /// A support pose (inserted for safety), not a measurement pose.
     pub support: bool,
+    /// Made without the bar: the approach, or a transit to the next section.
+    pub transit: bool,
     /// Measurement pose number (1-based) for measurement poses.
     pub pose: usize,
     /// Blend distance at the corner this move ends in (mm); 0 = exact stop.

@@ -39,6 +39,22 @@ pub struct CompileOptions {
     pub start: [f64; 6],
 }
 
+impl CompileOptions {
+    /// The compiler's defaults for a fixture (the CLI's defaults, in SI units).
+    pub fn new(fixture: Vector3<f64>) -> Self {
+        CompileOptions {
+            fixture,
+            cell: CellSpec::default(),
+            step: [DEFAULT_STEP_DEG.to_radians(); 6],
+            max_candidates: DEFAULT_MAX_CANDIDATES,
+            seed: DEFAULT_SEED,
+            poses: None,
+            blend: DEFAULT_BLEND_MM * 1e-3,
+            start: [0.0; 6],
+        }
+    }
+}
+
 pub const DEFAULT_BAR_MM: (f64, f64) = (300.0, 520.0);
 pub const DEFAULT_STEP_DEG: f64 = 10.0;
 pub const DEFAULT_MAX_CANDIDATES: usize = 3400;
@@ -49,14 +65,18 @@ pub const DEFAULT_BALL_MM: f64 = 25.0;
 /// Measurement poses keep this far from the bar's ends and the cone edges, so that the joint
 /// moves between them (which bow) have room; moves are checked against the full limits.
 pub const POSE_INSET_BAR_MM: f64 = 5.0;
-pub const POSE_INSET_CONE_DEG: f64 = 3.0;
+pub const POSE_INSET_CONE_DEG: f64 = 5.0;
 /// The sampler keeps this many times `max_candidates` cheap-valid poses; the collision filter
 /// then takes them in hash order until `max_candidates` pass.
 pub const RESERVOIR_FACTOR: usize = 4;
+/// Sections: at most this many, each with at least this many admitted poses (and 2 % of the
+/// pool); smaller groups are left out.
+pub const MAX_SECTIONS: usize = 4;
+pub const MIN_SECTION_POSES: usize = 10;
 /// Neighbours per pose in the connectivity graph of the pool.
 pub const COMPONENT_NEIGHBOURS: usize = 8;
 /// Rounds of "take unreachable poses out and select again".
-pub const REPAIR_ROUNDS: usize = 4;
+pub const REPAIR_ROUNDS: usize = 3;
 
 /// Millimetres with one decimal, for messages.
 fn mm1(v_mm: f64) -> String {
@@ -163,8 +183,19 @@ pub fn map_warnings(model: &MeasurementModel, id: &Identifiability) -> Vec<Strin
     w
 }
 
+/// The default tool-cup axis in the flange frame: along the axis of joint 6, pointing away from
+/// the wrist (for a DH flange that is +z; REP-199 URDF flanges have it along x).
+pub fn default_cup_axis(robot: &Robot) -> Vector3<f64> {
+    // In DH frame 6, z is the joint-6 axis; the wrist (frame 5's origin) lies behind it.
+    let t6 = crate::robot::kinematics::dh_transform(&robot.dh[5], 0.0);
+    let wrist_in_6 = t6.inverse().t;
+    let z = if wrist_in_6.z <= 0.0 { Vector3::z() } else { -Vector3::z() };
+    robot.flange.r.transpose() * z
+}
+
 /// The cell the stages use: the spec's limits, with the shell cut at the ball diameter.
 pub fn make_cell(
+    robot: &Robot,
     fixture: Vector3<f64>,
     map: Vector3<f64>,
     spec: &CellSpec,
@@ -183,7 +214,7 @@ pub fn make_cell(
         floor_z: spec.floor_z,
         fixture_axis: spec.fixture_axis,
         fixture_cone_cos: spec.fixture_cone.cos(),
-        tool_axis: spec.tool_axis,
+        tool_axis: spec.tool_axis.unwrap_or_else(|| default_cup_axis(robot)),
         tool_cone_cos: spec.tool_cone.cos(),
         cables: [spec.cable_q4, spec.cable_q6, spec.cable_q4_q6],
     })
@@ -348,7 +379,7 @@ pub fn compile(
     progress: &dyn Progress,
 ) -> Result<Compiled, PipelineError> {
     let (map, mut warnings) = resolve_map(robot, opts.cell.map);
-    let cell = make_cell(opts.fixture, map, &opts.cell)?;
+    let cell = make_cell(robot, opts.fixture, map, &opts.cell)?;
     let model = MeasurementModel::new(robot, opts.fixture, map);
     let (scene, scene_report) = build_scene(robot, &opts.cell, &opts.fixture, &map)?;
     let ck = Checker::new(robot, &model, &cell, &scene, opts.cell.margin);
@@ -364,21 +395,25 @@ pub fn compile(
     let (sampled, sample) = sample::run(robot, &model, &inset_cell(&cell), &scfg, progress);
     let (candidates, collision_checked, collisions) =
         collision_filter(&ck, sampled.candidates, opts.max_candidates);
-    // One program can only use poses that safe motions connect: keep the largest component.
+    // Poses that safe motions connect form groups; one group is measured per section of the
+    // program, and the operator remounts the bar between sections. Tiny groups are left out.
+    let speeds = robot.max_speeds();
     let qs: Vec<[f64; 6]> = candidates.iter().map(|c| c.q).collect();
-    let keep = crate::safety::roadmap::largest_component(
-        &ck,
-        &qs,
-        &robot.max_speeds(),
-        COMPONENT_NEIGHBOURS,
-    );
+    let labels = crate::safety::roadmap::components(&ck, &qs, &speeds, COMPONENT_NEIGHBOURS);
+    let n_groups = labels.iter().copied().max().map_or(0, |l| l + 1);
+    let mut group_size = vec![0usize; n_groups];
+    for &l in &labels {
+        group_size[l] += 1;
+    }
+    let min_group = MIN_SECTION_POSES.max(candidates.len() / 50);
+    let kept_groups = group_size.iter().take(MAX_SECTIONS).filter(|&&n| n >= min_group).count().max(1);
+    let keep: Vec<usize> = (0..candidates.len()).filter(|&i| labels[i] < kept_groups).collect();
     let disconnected = candidates.len() - keep.len();
-    let pool = Pool {
-        candidates: keep.iter().map(|&i| candidates[i]).collect(),
-    };
+    let group: Vec<usize> = keep.iter().map(|&i| labels[i]).collect();
+    let pool = Pool { candidates: keep.iter().map(|&i| candidates[i]).collect() };
     if disconnected > 0 {
         warnings.push(format!(
-            "{disconnected} of {} admitted poses are not connected by safe motions to the largest group (e.g. the other wrist branch) and are left out",
+            "{disconnected} of {} admitted poses lie in small groups that safe motions do not connect to the rest; left out",
             candidates.len()
         ));
     }
@@ -418,67 +453,42 @@ pub fn compile(
 
     // Select, order and make the path safe; poses no safe move reaches are taken out of the
     // pool and the selection is redone, so that reachable poses replace them.
-    let speeds = robot.max_speeds();
-    let support_pool: Vec<[f64; 6]> = pool.candidates.iter().map(|c| c.q).collect();
-    let mut usable = pool.clone();
+    let mut usable: Vec<usize> = (0..pool.candidates.len()).collect();
     let mut excluded_unreachable = 0;
     let mut round = 0;
-    let (selection, tour, plan) = loop {
-        let selection = select::run(
-            &model,
-            &usable,
-            &identifiability.identifiable,
-            &SelectConfig { poses: opts.poses },
-        )?;
-        let poses: Vec<[f64; 6]> = selection
-            .indices
-            .iter()
-            .map(|&i| usable.candidates[i].q)
-            .collect();
-        let start = (0..poses.len())
-            .map(|k| (k, order::move_time(&opts.start, &poses[k], &speeds)))
-            .fold((0, f64::INFINITY), |b, c| if c.1 < b.1 { c } else { b })
-            .0;
-        let tour = order::solve(&poses, start, &speeds)?;
-        let ordered: Vec<[f64; 6]> = tour.order.iter().map(|&k| poses[k]).collect();
-        let plan = safepath::plan(&ck, &ordered, &support_pool, opts.blend, &speeds, opts.seed);
-        if plan.dropped.is_empty()
-            || round == REPAIR_ROUNDS
-            || usable.candidates.len() <= identifiability.count() + plan.dropped.len()
-        {
-            break (selection, tour, plan);
+    let (selection, time_unsorted, plan) = loop {
+        let sub = Pool { candidates: usable.iter().map(|&i| pool.candidates[i]).collect() };
+        let selection = select::run(&model, &sub, &identifiability.identifiable, &SelectConfig { poses: opts.poses })?;
+        let chosen: Vec<usize> = selection.indices.iter().map(|&k| usable[k]).collect();
+        let (sections, time_unsorted) = order_sections(&pool, &group, &chosen, kept_groups, &opts.start, &speeds)?;
+        let plan = safepath::plan_sections(&ck, &sections, opts.blend, &speeds, opts.seed);
+        if plan.dropped.is_empty() || round == REPAIR_ROUNDS || usable.len() <= identifiability.count() + plan.dropped.len() {
+            break (selection, time_unsorted, plan);
         }
         round += 1;
         let unreachable: Vec<[f64; 6]> = plan.dropped.iter().map(|d| d.q).collect();
         excluded_unreachable += unreachable.len();
-        usable.candidates.retain(|c| !unreachable.contains(&c.q));
+        usable.retain(|&i| !unreachable.contains(&pool.candidates[i].q));
     };
     if excluded_unreachable > 0 {
-        warnings.push(format!(
-            "{excluded_unreachable} selected poses could not be reached safely and were replaced"
-        ));
+        warnings.push(format!("{excluded_unreachable} selected poses could not be reached safely and were replaced"));
     }
     for d in &plan.dropped {
+        warnings.push(format!("dropped tour pose {}: no safe move found ({})", d.index + 1, d.violation));
+    }
+    let sections = plan.waypoints.iter().filter(|w| w.transit && !w.support).count();
+    if sections > 1 {
         warnings.push(format!(
-            "dropped tour pose {}: no safe move found ({})",
-            d.index + 1,
-            d.violation
+            "the program has {sections} sections: the bar is removed and remounted between them (no safe motion joins their poses with the bar in place)"
         ));
     }
-    let wq: Vec<[f64; 6]> = plan.waypoints.iter().map(|w| w.q).collect();
-    let move_times: Vec<f64> = std::iter::once(0.0)
-        .chain(
-            wq.windows(2)
-                .map(|w| order::move_time(&w[0], &w[1], &speeds)),
-        )
-        .collect();
+    // The program carries joint values rounded to its 4 decimals of a degree: time the moves on
+    // exactly those values, so the emitted feed never asks an axis for more than its speed.
+    let wq: Vec<[f64; 6]> = plan.waypoints.iter().map(|w| w.q.map(|r| emit::round_deg(to_deg(r)).to_radians())).collect();
+    let move_times: Vec<f64> =
+        std::iter::once(0.0).chain(wq.windows(2).map(|w| order::move_time(&w[0], &w[1], &speeds))).collect();
     let time_sorted: f64 = move_times.iter().sum();
-    let path = Path {
-        poses: wq,
-        move_times,
-        time_unsorted: tour.time_unsorted,
-        time_sorted,
-    };
+    let path = Path { poses: wq, move_times, time_unsorted, time_sorted };
 
     let measured = plan.waypoints.iter().filter(|w| !w.support).count();
     let cond = selection
@@ -497,6 +507,7 @@ pub fn compile(
         margin_mm: to_mm(opts.cell.margin),
         poses: measured,
         supports: plan.supports,
+        sections,
         identifiable: identifiability.count(),
         cond,
         time_unsorted_s: path.time_unsorted,
@@ -514,8 +525,9 @@ pub fn compile(
                 pose_no += 1;
             }
             Move {
-                q_deg: w.q.map(to_deg),
+                q_deg: w.q.map(|r| emit::round_deg(to_deg(r))),
                 support: w.support,
+                transit: w.transit,
                 pose: if w.support { 0 } else { pose_no },
                 blend_mm: to_mm(w.blend),
                 time_s: t,
@@ -577,6 +589,51 @@ pub fn compile(
         report,
         warnings,
     })
+}
+
+/// Splits the chosen poses (pool indices) into sections by group and orders them: the section
+/// nearest to the current position first (Eq. 7), a time-optimal tour inside each, starting at
+/// its pose nearest to where the previous section ended. Returns the sections and the Eq. 7
+/// time of the chosen poses in pool order (the "unsorted" time).
+fn order_sections(
+    pool: &Pool,
+    group: &[usize],
+    chosen: &[usize],
+    groups: usize,
+    start: &[f64; 6],
+    speeds: &[f64; 6],
+) -> Result<(Vec<safepath::Section>, f64), PipelineError> {
+    let all: Vec<[f64; 6]> = chosen.iter().map(|&i| pool.candidates[i].q).collect();
+    let identity: Vec<usize> = (0..all.len()).collect();
+    let time_unsorted = order::path_time(&all, &identity, speeds);
+    let mut left: Vec<usize> = (0..groups).filter(|g| chosen.iter().any(|&i| group[i] == *g)).collect();
+    let mut here = *start;
+    let mut sections = Vec::new();
+    while !left.is_empty() {
+        // The group with the pose nearest to here.
+        let (gi, _) = left
+            .iter()
+            .enumerate()
+            .map(|(gi, &g)| {
+                let d = chosen.iter().filter(|&&i| group[i] == g).map(|&i| order::move_time(&here, &pool.candidates[i].q, speeds)).fold(f64::INFINITY, f64::min);
+                (gi, d)
+            })
+            .fold((0, f64::INFINITY), |b, c| if c.1 < b.1 { c } else { b });
+        let g = left.remove(gi);
+        let poses: Vec<[f64; 6]> = chosen.iter().filter(|&&i| group[i] == g).map(|&i| pool.candidates[i].q).collect();
+        let first = (0..poses.len())
+            .map(|k| (k, order::move_time(&here, &poses[k], speeds)))
+            .fold((0, f64::INFINITY), |b, c| if c.1 < b.1 { c } else { b })
+            .0;
+        let tour = order::solve(&poses, first, speeds)?;
+        let ordered: Vec<[f64; 6]> = tour.order.iter().map(|&k| poses[k]).collect();
+        if let Some(last) = ordered.last() {
+            here = *last;
+        }
+        let support: Vec<[f64; 6]> = (0..pool.candidates.len()).filter(|&i| group[i] == g).map(|i| pool.candidates[i].q).collect();
+        sections.push(safepath::Section { tour: ordered, pool: support });
+    }
+    Ok((sections, time_unsorted))
 }
 
 fn empty_pool_error(

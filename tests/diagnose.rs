@@ -25,19 +25,17 @@ pub struct Cell {
 
 pub fn cell(robot: Robot, fixture_mm: [f64; 3]) -> Cell {
     let fixture = Vector3::from(fixture_mm) * 1e-3;
+    // A rich program for the diagnosis to work on: wide cones (a cell whose socket and cup
+    // allow 85°) and 80 poses, so every joint and the whole bar range are exercised.
+    let mut spec = edbbgen::cell::CellSpec::default();
+    spec.fixture_cone = 85.0 * DEG;
+    spec.tool_cone = 85.0 * DEG;
     let opts = edbbgen::pipeline::CompileOptions {
-        fixture,
-        tool: None,
-        bar_min: 0.3,
-        bar_max: 0.52,
-        floor_z: 0.0,
         step: [20.0 * DEG; 6],
         max_candidates: 600,
-        seed: 1,
-        poses: None,
-        blend: 0.01,
-        ball: 0.025,
-        start: [0.0; 6],
+        poses: Some(80),
+        cell: spec,
+        ..edbbgen::pipeline::CompileOptions::new(fixture)
     };
     let template = edbbgen::emit::dialect("ngc").expect("ngc dialect");
     let out = edbbgen::pipeline::compile(&robot, &opts, template, &edbbgen::sample::NoProgress)

@@ -6,4 +6,5 @@ mod cli_errors;
 mod compile;
 mod diagnose;
 mod model_cmd;
+mod safety;
 mod snapshots;

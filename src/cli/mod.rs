@@ -435,7 +435,7 @@ fn run_verify(a: &VerifyArgs) -> Result<i32, Error> {
         _ => None,
     };
     let (map, _) = pipeline::resolve_map(&robot, spec.map.or(header_map));
-    let cell = pipeline::make_cell(fixture, map, &spec)?;
+    let cell = pipeline::make_cell(&robot, fixture, map, &spec)?;
     let model = MeasurementModel::new(&robot, fixture, map);
     let (scene, _) = pipeline::build_scene(&robot, &spec, &fixture, &map)?;
     let ck = crate::safety::Checker::new(&robot, &model, &cell, &scene, spec.margin);
@@ -481,7 +481,7 @@ fn run_model(a: &ModelArgs) -> Result<i32, Error> {
     let robot = load_robot(&a.robot, &a.cell, &spec)?;
     let (map, mut warnings) = pipeline::resolve_map(&robot, spec.map);
     // Identifiability is geometry: the shell and the floor decide which poses count, not cones.
-    let cell = pipeline::make_cell(fixture, map, &spec)?;
+    let cell = pipeline::make_cell(&robot, fixture, map, &spec)?;
     let model = MeasurementModel::new(&robot, fixture, map);
     let rows = pipeline::rich_rows(&robot, &model, &cell, a.samples, a.cell.seed)
         .map_err(|closest| pipeline::PipelineError::no_pose(&cell, closest))?;

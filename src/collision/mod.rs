@@ -413,6 +413,21 @@ impl Scene {
         map_world: &Vector3<f64>,
         margin: f64,
     ) -> Option<Contact> {
+        self.violation_with(frames, Some(map_world), margin)
+    }
+
+    /// As [`Scene::violation`] with the bar removed (between sections of a program, when the
+    /// operator has taken the EDBB out). The balls stay in the scene: conservative.
+    pub fn violation_unmounted(&self, frames: &[Frame; 8], margin: f64) -> Option<Contact> {
+        self.violation_with(frames, None, margin)
+    }
+
+    fn violation_with(
+        &self,
+        frames: &[Frame; 8],
+        map_world: Option<&Vector3<f64>>,
+        margin: f64,
+    ) -> Option<Contact> {
         let poses = Poses::new(frames);
         for &(a, b) in &self.pairs {
             let (ba, bb) = (&self.bodies[a], &self.bodies[b]);
@@ -420,7 +435,7 @@ impl Scene {
                 return Some(self.contact(d, a, Some(b)));
             }
         }
-        let (cap, r) = self.bar(&self.fixture, map_world)?;
+        let (cap, r) = self.bar(&self.fixture, map_world?)?;
         let bar = Placed {
             shape: &cap,
             hull: None,

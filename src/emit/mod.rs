@@ -13,11 +13,30 @@ pub fn dialect(name: &str) -> Option<&'static str> {
     DIALECTS.iter().find(|(n, _)| *n == name).map(|(_, t)| *t)
 }
 
+/// Joint values are emitted with this many decimals (degrees).
+pub const DEG_DECIMALS: i32 = 4;
+
+/// A joint value (degrees) as the program will carry it.
+pub fn round_deg(v: f64) -> f64 {
+    let k = 10f64.powi(DEG_DECIMALS);
+    (v * k).round() / k
+}
+
+/// The inverse-time feed word for a move of `seconds`: 60/t rounded *down* to 4 decimals, so
+/// the move never runs faster than planned.
+pub fn inverse_time_feed(seconds: f64) -> String {
+    let f = if seconds > 0.0 { 60.0 / seconds } else { 0.0 };
+    fmt_fixed((f * 1e4 * (1.0 - 1e-12)).floor() / 1e4, 4)
+}
+
 /// Renders `program` with `template`. The output always ends with one newline.
 pub fn render(template: &str, program: &Program) -> Result<String, String> {
     let mut env = Environment::new();
     env.set_undefined_behavior(minijinja::UndefinedBehavior::Strict);
     env.add_filter("f", |v: f64, decimals: usize| fmt_fixed(v, decimals));
+    env.add_filter("feed", inverse_time_feed);
+    // Text inside an RS274 comment: parentheses would end or nest it.
+    env.add_filter("comment", |v: String| v.replace('(', "[").replace(')', "]"));
     env.add_template("program", template).map_err(one_line)?;
     let tmpl = env.get_template("program").map_err(one_line)?;
     let ctx = minijinja::context! { h => Value::from_serialize(&program.header), moves => Value::from_serialize(&program.moves) };

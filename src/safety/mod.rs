@@ -96,6 +96,9 @@ pub struct Checker<'a> {
     pub cell: &'a Cell,
     pub scene: &'a Scene,
     pub margin: f64,
+    /// The EDBB is in place: bar range, cones and the bar's collisions apply. Without it (a
+    /// transit between sections) only limits, harness and the robot's collisions do.
+    pub mounted: bool,
     sweep: [f64; 6],
     lo: [f64; 6],
     hi: [f64; 6],
@@ -116,10 +119,16 @@ impl<'a> Checker<'a> {
             cell,
             scene,
             margin,
+            mounted: true,
             sweep: scene.sweep_radius(),
             lo,
             hi,
         }
+    }
+
+    /// The same checks with the bar removed.
+    pub fn unmounted(&self) -> Self {
+        Checker { mounted: false, ..*self }
     }
 
     /// The full check of one pose.
@@ -259,11 +268,15 @@ impl<'a> Checker<'a> {
         let n = ((motion / step).ceil() as usize).clamp(1, 1_000_000);
         let mut prev_s = 0.0;
         let mut prev = self.pose(&q(0.0)).map_err(|v| (0.0, v))?;
-        ext.add(&prev);
+        if self.mounted {
+            ext.add(&prev);
+        }
         for k in 1..=n {
             let s = k as f64 / n as f64;
             let cur = self.pose(&q(s)).map_err(|v| (s, v))?;
-            ext.add(&cur);
+            if self.mounted {
+                ext.add(&cur);
+            }
             self.refine(
                 q,
                 prev_s,
@@ -297,6 +310,9 @@ impl<'a> Checker<'a> {
         depth: u32,
         ext: &mut Extremes,
     ) -> Result<(), (f64, Violation)> {
+        if !self.mounted {
+            return Ok(());
+        }
         let c = self.cell;
         let lmin = a.length.min(b.length) - m;
         let ang = if lmin > 0.0 { m / lmin } else { f64::INFINITY };
@@ -323,7 +339,9 @@ impl<'a> Checker<'a> {
         }
         let s = 0.5 * (s0 + s1);
         let mid = self.pose(&q(s)).map_err(|v| (s, v))?;
-        ext.add(&mid);
+        if self.mounted {
+            ext.add(&mid);
+        }
         self.refine(q, s0, a, s, mid, m / 2.0, w / 2.0, depth + 1, ext)?;
         self.refine(q, s, mid, s1, b, m / 2.0, w / 2.0, depth + 1, ext)
     }

@@ -14,6 +14,10 @@ pub struct Waypoint {
     pub q: [f64; 6],
     /// A support pose (a via point inserted for safety), not a measurement pose.
     pub support: bool,
+    /// The move into this waypoint is made without the bar (the approach, or a transit to the
+    /// next section of the program, where the operator remounts the bar).
+    #[serde(default)]
+    pub transit: bool,
     /// Blend distance at this corner (m); 0 = exact stop.
     pub blend: f64,
 }
@@ -41,6 +45,7 @@ pub struct Plan {
 pub const PERTURB_TRIES: usize = 32;
 pub const MAX_DEPTH: u32 = 3;
 pub const INSERT_TRIES: usize = 16;
+pub const INSERT_WITH_SUPPORT: usize = 3;
 
 pub fn plan(
     ck: &Checker,
@@ -55,11 +60,7 @@ pub fn plan(
     let mut deferred: Vec<(usize, Violation)> = Vec::new();
     let mut dropped = Vec::new();
     let mut supports = 0;
-    let measure = |q: &[f64; 6]| Waypoint {
-        q: *q,
-        support: false,
-        blend: 0.0,
-    };
+    let measure = |q: &[f64; 6]| Waypoint { q: *q, support: false, transit: false, blend: 0.0 };
     // Pass 1: the tour as ordered; a pose that cannot be reached safely (not even through
     // support poses) is deferred, and the tour goes on from where it is.
     for (idx, q) in tour.iter().enumerate() {
@@ -92,11 +93,7 @@ pub fn plan(
                     Some(vias) => {
                         ext.merge(&e);
                         supports += vias.len();
-                        wps.extend(vias.into_iter().map(|v| Waypoint {
-                            q: v,
-                            support: true,
-                            blend: 0.0,
-                        }));
+                        wps.extend(vias.into_iter().map(|v| Waypoint { q: v, support: true, transit: false, blend: 0.0 }));
                         wps.push(measure(q));
                     }
                     None => deferred.push((idx, violation)),
@@ -122,19 +119,35 @@ pub fn plan(
             .collect();
         places.sort_by(|x, y| x.0.total_cmp(&y.0).then(x.1.cmp(&y.1)));
         let mut placed = false;
-        for &(_, i) in places.iter().take(INSERT_TRIES) {
+        for (rank, &(_, i)) in places.iter().take(INSERT_TRIES).enumerate() {
             let mut e = Extremes::default();
-            let before_ok = ck.line(&wps[i].q, &q, &mut e).is_ok();
-            let after_ok = before_ok
-                && wps
-                    .get(i + 1)
-                    .is_none_or(|b| ck.line(&q, &b.q, &mut e).is_ok());
-            if after_ok {
-                ext.merge(&e);
-                wps.insert(i + 1, measure(&q));
-                placed = true;
-                break;
-            }
+            let a = wps[i].q;
+            let b = wps.get(i + 1).map(|w| w.q);
+            // Direct moves first; for the cheapest places also chains through the roadmap.
+            let into = if ck.line(&a, &q, &mut e).is_ok() {
+                Some(Vec::new())
+            } else if rank < INSERT_WITH_SUPPORT {
+                super::roadmap::connect(ck, &a, &q, pool, speeds, &mut e)
+            } else {
+                None
+            };
+            let Some(into) = into else { continue };
+            let out = match b {
+                None => Some(Vec::new()),
+                Some(b) if ck.line(&q, &b, &mut e).is_ok() => Some(Vec::new()),
+                Some(b) if rank < INSERT_WITH_SUPPORT => super::roadmap::connect(ck, &q, &b, pool, speeds, &mut e),
+                Some(_) => None,
+            };
+            let Some(out) = out else { continue };
+            ext.merge(&e);
+            supports += into.len() + out.len();
+            let support = |v: [f64; 6]| Waypoint { q: v, support: true, transit: false, blend: 0.0 };
+            let mut seq: Vec<Waypoint> = into.into_iter().map(support).collect();
+            seq.push(measure(&q));
+            seq.extend(out.into_iter().map(support));
+            wps.splice(i + 1..i + 1, seq);
+            placed = true;
+            break;
         }
         if !placed {
             dropped.push(Dropped {
@@ -177,6 +190,56 @@ pub fn plan(
         exact_stops,
         extremes: ext,
     }
+}
+
+/// One section: the measurement poses in tour order and the admitted poses of its component
+/// (for support poses).
+pub struct Section {
+    pub tour: Vec<[f64; 6]>,
+    pub pool: Vec<[f64; 6]>,
+}
+
+/// Plans every section (bar mounted) and the transits between them (bar removed). A section
+/// whose transit cannot be made safe is dropped whole.
+pub fn plan_sections(ck: &Checker, sections: &[Section], blend_distance: f64, speeds: &[f64; 6], seed: u64) -> Plan {
+    let free = ck.unmounted();
+    let mut out = Plan { waypoints: Vec::new(), supports: 0, dropped: Vec::new(), exact_stops: 0, extremes: Extremes::default() };
+    let mut offset = 0;
+    for (k, sec) in sections.iter().enumerate() {
+        let mut p = plan(ck, &sec.tour, &sec.pool, blend_distance, speeds, seed ^ k as u64);
+        for d in &mut p.dropped {
+            d.index += offset;
+        }
+        offset += sec.tour.len();
+        let Some(first) = p.waypoints.first().map(|w| w.q) else {
+            out.dropped.append(&mut p.dropped);
+            continue;
+        };
+        // The transit from the previous section, without the bar.
+        let mut vias: Vec<[f64; 6]> = Vec::new();
+        if let Some(last) = out.waypoints.last().map(|w| w.q) {
+            let mut e = Extremes::default();
+            if let Err((_, v)) = free.line(&last, &first, &mut e) {
+                let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed ^ 0x7472_616e_7369_74 ^ k as u64);
+                match find_support(&free, &last, &first, &[], speeds, &mut rng, MAX_DEPTH, &mut e) {
+                    Some(v) => vias = v,
+                    None => {
+                        let q = sec.tour[0];
+                        out.dropped.push(Dropped { index: offset - sec.tour.len(), q, violation: v });
+                        continue;
+                    }
+                }
+            }
+        }
+        out.supports += vias.len() + p.supports;
+        out.waypoints.extend(vias.into_iter().map(|q| Waypoint { q, support: true, transit: true, blend: 0.0 }));
+        p.waypoints[0].transit = true;
+        out.waypoints.append(&mut p.waypoints);
+        out.dropped.append(&mut p.dropped);
+        out.exact_stops += p.exact_stops;
+        out.extremes.merge(&p.extremes);
+    }
+    out
 }
 
 pub fn check_blend(ck: &Checker, b: &Blend, ext: &mut Extremes) -> Result<(), (f64, Violation)> {

@@ -129,29 +129,19 @@ pub fn connect(
     None
 }
 
-/// The largest set of pool poses that safe motions connect (with the bar mounted), as sorted
-/// indices. Poses are linked to their `k` nearest neighbours (Eq. 7) when both ends and the
-/// move's midpoint and quarter points pass the pose check — a fast proxy for the continuous
-/// check, good enough to tell the components apart (e.g. the two wrist branches, which a bar in
-/// its cones cannot cross); every move of the final path is still checked continuously.
-pub fn largest_component(
-    ck: &Checker,
-    pool: &[[f64; 6]],
-    speeds: &[f64; 6],
-    k: usize,
-) -> Vec<usize> {
+/// The groups of pool poses that safe motions connect (with the bar mounted): a component
+/// label per pose, labels numbered by size (0 = largest; ties by smallest member index).
+/// Poses are linked to their `k` nearest neighbours (Eq. 7) when the move's quarter, middle and
+/// three-quarter points pass the pose check — a fast proxy for the continuous check, good enough
+/// to tell the groups apart (e.g. wrist configurations a bar in its cones cannot cross); every
+/// move of the final path is still checked continuously.
+pub fn components(ck: &Checker, pool: &[[f64; 6]], speeds: &[f64; 6], k: usize) -> Vec<usize> {
     use rayon::prelude::*;
     let n = pool.len();
-    if n == 0 {
-        return Vec::new();
-    }
     let edges: Vec<Vec<usize>> = (0..n)
         .into_par_iter()
         .map(|i| {
-            let mut near: Vec<(f64, usize)> = (0..n)
-                .filter(|&j| j != i)
-                .map(|j| (move_time(&pool[i], &pool[j], speeds), j))
-                .collect();
+            let mut near: Vec<(f64, usize)> = (0..n).filter(|&j| j != i).map(|j| (move_time(&pool[i], &pool[j], speeds), j)).collect();
             let kk = k.min(near.len());
             if kk == 0 {
                 return Vec::new();
@@ -159,11 +149,7 @@ pub fn largest_component(
             near.select_nth_unstable_by(kk - 1, |x, y| x.0.total_cmp(&y.0).then(x.1.cmp(&y.1)));
             near[..kk]
                 .iter()
-                .filter(|&&(_, j)| {
-                    [0.25, 0.5, 0.75]
-                        .iter()
-                        .all(|&s| ck.pose(&super::lerp(&pool[i], &pool[j], s)).is_ok())
-                })
+                .filter(|&&(_, j)| [0.25, 0.5, 0.75].iter().all(|&s| ck.pose(&super::lerp(&pool[i], &pool[j], s)).is_ok()))
                 .map(|&(_, j)| j)
                 .collect()
         })
@@ -184,14 +170,17 @@ pub fn largest_component(
             }
         }
     }
+    let roots: Vec<usize> = (0..n).map(|i| find(&mut parent, i)).collect();
     let mut size = vec![0usize; n];
-    for i in 0..n {
-        let r = find(&mut parent, i);
+    for &r in &roots {
         size[r] += 1;
     }
-    // Largest component; ties go to the one with the smallest index (roots are minimal).
-    let best = (0..n)
-        .max_by(|&a, &b| size[a].cmp(&size[b]).then(b.cmp(&a)))
-        .unwrap_or(0);
-    (0..n).filter(|&i| find(&mut parent, i) == best).collect()
+    // Roots are each component's smallest member: order by size, then by root.
+    let mut order: Vec<usize> = (0..n).filter(|&r| roots[r] == r).collect();
+    order.sort_by(|&a, &b| size[b].cmp(&size[a]).then(a.cmp(&b)));
+    let mut label = vec![0usize; n];
+    for (l, &r) in order.iter().enumerate() {
+        label[r] = l;
+    }
+    roots.iter().map(|&r| label[r]).collect()
 }

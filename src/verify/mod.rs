@@ -4,8 +4,9 @@
 //! `verify` never looks at the compiler's memory: it re-reads the text with [`gcode`],
 //! reconstructs the motion the controller will execute — straight joint moves, and at every
 //! corner the blend of [`crate::safety::blend`] with the blend distance in force — and checks
-//! every pose, move and blend continuously with [`crate::safety::Checker`]. The bar is taken as
-//! mounted from the first pause (M0) after the first move to the next pause.
+//! every pose, move and blend continuously with [`crate::safety::Checker`]. The bar is mounted at
+//! the first pause (M0), removed at the next, and so on; moves without it (the approach,
+//! transits between sections) are checked for the robot's collisions, limits and harness.
 
 pub mod gcode;
 
@@ -25,6 +26,8 @@ pub struct Summary {
     /// Measurement poses (motion lines without a `support` comment).
     pub poses: usize,
     pub supports: usize,
+    /// Bar-mounted sections.
+    pub sections: usize,
     pub blends: usize,
     /// Program duration from the first move on (s), pauses excluded.
     pub duration: f64,
@@ -70,6 +73,8 @@ struct Motion {
     support: bool,
     /// Followed directly by another motion (no pause/dwell/end between): blendable corner.
     flows_on: bool,
+    /// The bar is in place during this move.
+    mounted: bool,
 }
 
 /// Checks program text against the checker's robot and cell.
@@ -83,31 +88,22 @@ pub fn check_text(ck: &Checker, robot: &Robot, text: &str) -> Result<Summary, Fa
         )
     })?;
     let speeds = robot.max_speeds();
-    // Collect the motions, with the bar mounted between the first and the second pause.
+    // Collect the motions; the bar is mounted at the first pause, removed at the next, and so
+    // on: a motion made while it is in place is checked with it.
     let mut motions: Vec<Motion> = Vec::new();
-    let mut pauses = 0;
-    let mut mounted_from = None;
+    let mut mounted = false;
+    let mut mount_at: Vec<usize> = Vec::new();
     let mut prev: Option<[f64; 6]> = None;
     for (k, l) in parsed.lines.iter().enumerate() {
         match &l.step {
-            Step::Move {
-                rapid,
-                target,
-                feed,
-                blend,
-            } => {
+            Step::Move { rapid, target, feed, blend } => {
                 let q = target.map(|d| d * DEG);
                 let min_time = prev.map_or(0.0, |p| move_time(&p, &q, &speeds));
                 let duration = match (rapid, feed) {
                     (true, _) => min_time,
                     (false, Some((FeedMode::InverseTime, f))) => 60.0 / f,
                     (false, Some((FeedMode::UnitsPerMinute, f))) => {
-                        let dist: f64 = prev.map_or(0.0, |p| {
-                            (0..6)
-                                .map(|i| (target[i] - p[i] / DEG).powi(2))
-                                .sum::<f64>()
-                                .sqrt()
-                        });
+                        let dist: f64 = prev.map_or(0.0, |p| (0..6).map(|i| (target[i] - p[i] / DEG).powi(2)).sum::<f64>().sqrt());
                         60.0 * dist / f
                     }
                     (false, None) => min_time,
@@ -117,54 +113,35 @@ pub fn check_text(ck: &Checker, robot: &Robot, text: &str) -> Result<Summary, Fa
                         l.line,
                         0.0,
                         Reason::JointSpeed,
-                        format!(
-                            "move takes {} s but the slowest axis needs {} s at its maximum speed",
-                            fmt_fixed(duration, 3),
-                            fmt_fixed(min_time, 3)
-                        ),
+                        format!("move takes {} s but the slowest axis needs {} s at its maximum speed", fmt_fixed(duration, 3), fmt_fixed(min_time, 3)),
                     ));
                 }
-                let flows_on = matches!(
-                    parsed.lines.get(k + 1).map(|n| &n.step),
-                    Some(Step::Move { .. })
-                );
+                let flows_on = matches!(parsed.lines.get(k + 1).map(|n| &n.step), Some(Step::Move { .. }));
                 let support = l.comment.as_deref().is_some_and(|c| c.contains("support"));
-                motions.push(Motion {
-                    line: l.line,
-                    target: q,
-                    duration,
-                    blend: blend.unwrap_or(0.0) * 1e-3,
-                    support,
-                    flows_on,
-                });
+                motions.push(Motion { line: l.line, target: q, duration, blend: blend.unwrap_or(0.0) * 1e-3, support, flows_on, mounted });
                 prev = Some(q);
             }
             Step::Pause => {
-                pauses += 1;
-                if pauses == 1 && !motions.is_empty() {
-                    mounted_from = Some(motions.len() - 1);
+                mounted = !mounted;
+                if mounted {
+                    mount_at.push(motions.len());
                 }
             }
             Step::Dwell(_) | Step::End => {}
         }
     }
     if motions.is_empty() {
-        return Err(fail(
-            0,
-            0.0,
-            Reason::JointLimit,
-            "the program commands no motion".into(),
-        ));
+        return Err(fail(0, 0.0, Reason::JointLimit, "the program commands no motion".into()));
     }
-    // Without a mounting pause the bar is taken as mounted throughout.
-    let first = mounted_from.unwrap_or(0);
+    if mount_at.is_empty() {
+        // A program without pauses: the bar is taken as mounted throughout.
+        motions.iter_mut().for_each(|m| m.mounted = true);
+        mount_at.push(1);
+    }
+    let free = ck.unmounted();
     let mut ext = Extremes::default();
     let mut time = 0.0;
-    let mut min_clear = Contact {
-        distance: f64::INFINITY,
-        a: String::new(),
-        b: String::new(),
-    };
+    let mut min_clear = Contact { distance: f64::INFINITY, a: String::new(), b: String::new() };
     let mut blends = 0;
     let note_clear = |q: &[f64; 6], min_clear: &mut Contact| {
         let c = ck.clearance(q);
@@ -172,47 +149,36 @@ pub fn check_text(ck: &Checker, robot: &Robot, text: &str) -> Result<Summary, Fa
             *min_clear = c;
         }
     };
-    for (j, m) in motions.iter().enumerate().skip(first) {
-        if j == first {
-            ck.pose(&m.target).map_err(|v| Failure {
-                line: m.line,
-                time,
-                violation: v,
-            })?;
+    for j in 0..motions.len() {
+        let m = &motions[j];
+        let with = if m.mounted { ck } else { &free };
+        if j == 0 {
+            // The approach starts wherever the robot is: only its target can be checked.
+            with.pose(&m.target).map_err(|v| Failure { line: m.line, time, violation: v })?;
+        } else {
+            let a = motions[j - 1].target;
+            let mut e = Extremes::default();
+            if let Err((s, v)) = with.line(&a, &m.target, &mut e) {
+                return Err(Failure { line: m.line, time: time + s * m.duration, violation: v });
+            }
+            ext.merge(&e);
+            time += m.duration;
+        }
+        // Where the bar goes in, the pose must hold it.
+        if mount_at.contains(&(j + 1)) {
+            ck.pose(&m.target).map_err(|v| Failure { line: m.line, time, violation: Violation { reason: v.reason, detail: format!("where the bar is mounted: {}", v.detail) } })?;
+        }
+        if m.mounted {
             note_clear(&m.target, &mut min_clear);
-            continue;
         }
-        let a = motions[j - 1].target;
-        let mut e = Extremes::default();
-        if let Err((s, v)) = ck.line(&a, &m.target, &mut e) {
-            return Err(Failure {
-                line: m.line,
-                time: time + s * m.duration,
-                violation: v,
-            });
-        }
-        ext.merge(&e);
-        note_clear(&m.target, &mut min_clear);
-        time += m.duration;
         // The corner at the end of this move, blended when the next motion follows directly.
-        if m.blend > 0.0 && m.flows_on && j + 1 < motions.len() {
-            let b = motions[j + 1].target;
+        if m.mounted && m.blend > 0.0 && m.flows_on && j > 0 && j + 1 < motions.len() && motions[j + 1].mounted {
+            let (a, b) = (motions[j - 1].target, motions[j + 1].target);
             if let Some(bl) = blend::geometry(ck.model, &a, &m.target, &b, m.blend) {
                 let mut e = Extremes::default();
                 if let Err((_, v)) = crate::safety::path::check_blend(ck, &bl, &mut e) {
-                    let detail = format!(
-                        "in the {} mm blend at the end of this move: {}",
-                        fmt_fixed(to_mm(m.blend), 1),
-                        v.detail
-                    );
-                    return Err(Failure {
-                        line: m.line,
-                        time,
-                        violation: Violation {
-                            reason: v.reason,
-                            detail,
-                        },
-                    });
+                    let detail = format!("in the {} mm blend at the end of this move: {}", fmt_fixed(to_mm(m.blend), 1), v.detail);
+                    return Err(Failure { line: m.line, time, violation: Violation { reason: v.reason, detail } });
                 }
                 ext.merge(&e);
                 note_clear(&bl.point(0.5), &mut min_clear);
@@ -221,18 +187,13 @@ pub fn check_text(ck: &Checker, robot: &Robot, text: &str) -> Result<Summary, Fa
         }
     }
     if min_clear.distance < ck.margin {
-        return Err(fail(
-            0,
-            time,
-            Reason::Collision,
-            describe_contact(&min_clear, ck.margin),
-        ));
+        return Err(fail(0, time, Reason::Collision, describe_contact(&min_clear, ck.margin)));
     }
-    let mounted = &motions[first..];
     Ok(Summary {
         moves: motions.len(),
-        poses: mounted.iter().filter(|m| !m.support).count(),
-        supports: mounted.iter().filter(|m| m.support).count(),
+        poses: motions.iter().filter(|m| !m.support).count(),
+        supports: motions.iter().filter(|m| m.support).count(),
+        sections: mount_at.len(),
         blends,
         duration: time,
         extremes: ext,
