@@ -149,9 +149,9 @@ pub fn knee(curve: &[(usize, f64)], m: usize) -> (usize, String) {
 /// any orthonormal U the smallest eigenvalue of Uᵀ(G − r·rᵀ)U bounds λ'min from above and, for
 /// another U, the largest bounds λ'max from below. So the score λ'max/λ'min has a lower bound:
 /// 1. for every candidate, from two low and two high directions in closed form (2×2 matrices).
-///    U is the eigenbasis of a step at most [`REFRESH`] − 1 removals ago, so the projections Uᵀr
+///    U is the eigenbasis of a step at most `REFRESH` − 1 removals ago, so the projections Uᵀr
 ///    are reused and a step costs a few flops per candidate;
-/// 2. for those not ruled out, visited in ascending order of bound 1, the sharper [`ritz_bound`]
+/// 2. for those not ruled out, visited in ascending order of bound 1, the sharper `ritz_bound`
 ///    (k directions at each end of the current eigenbasis, the rest lumped);
 /// 3. the exact score for those not ruled out either.
 ///
@@ -160,7 +160,7 @@ pub fn knee(curve: &[(usize, f64)], m: usize) -> (usize, String) {
 /// tie-break by index included, is the exhaustive one. The Gram matrix, its eigendecomposition
 /// and the exact scores use the reference's arithmetic, so the curve is bit for bit the same.
 /// Greedy elimination makes the extreme eigenvalues cluster, which is why bound 1 looks at two
-/// directions at each end and bound 2 at [`RITZ_K`].
+/// directions at each end and bound 2 at `RITZ_K`.
 pub fn eliminate(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
     let n0 = j.len() / m;
     let row = |i: usize| &j[i * m..(i + 1) * m];
