@@ -2,7 +2,7 @@
 CARGO ?= cargo
 NJ130 := robots/comau_nj130/robot.dh.toml
 
-.PHONY: build run test check fmt clippy doc snapshots bench bench-diagnose paper ci
+.PHONY: build run test check fmt clippy doc snapshots bench bench-peers bench-diagnose paper ci
 
 build:
 	$(CARGO) build --release --locked
@@ -30,7 +30,9 @@ snapshots:
 	rm -f snapshots/*.snap.new
 	git diff --stat -- snapshots/
 
-bench:
+# Throughput of the hot stages and the end-to-end compile (see BENCHMARKS.md); writes
+# target/bench.json. The release binary is built first: the bench times it end to end.
+bench: build
 	$(CARGO) run --release --locked --example bench
 
 # Digital twin: diagnose on a 10-minute, 50 Hz run (30,000 rows).
@@ -40,6 +42,17 @@ bench-diagnose:
 # Fig. 12: sensitivity of the compiled program vs the ISO 230-4 circle test, 20 random robots.
 paper:
 	$(CARGO) run --release --locked --example paper
+
+# edbbgen against LKH-3 (elkai), OR-tools and Pinocchio on the same instances, in a throwaway
+# venv under target/. Not part of `make test` or CI: it downloads the peers from PyPI.
+PEERS_VENV := target/peers-venv
+bench-peers: build
+	test -x $(PEERS_VENV)/bin/python || python3 -m venv $(PEERS_VENV)
+	for p in numpy elkai ortools pin; do \
+	  $(PEERS_VENV)/bin/pip install -q $$p || echo "bench-peers: $$p failed to install; continuing without it"; \
+	done
+	$(CARGO) run --release --locked --example bench -- --peers target/peers
+	$(PEERS_VENV)/bin/python bench/peers.py target/peers target/bench.json
 
 check: fmt clippy test doc
 

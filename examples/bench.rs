@@ -1,76 +1,279 @@
-//! `make bench`: throughput of the hot stages on the bundled NJ-130 cell. Prints a table and
-//! writes target/bench.json. Speed is measured here, never asserted by tests.
+//! `make bench`: throughput of the hot stages on the bundled NJ-130 cell, and the end-to-end
+//! compile. Prints a table and writes target/bench.json. Speed is measured here, never asserted
+//! by tests. Every timing is the best of a few repetitions (the machine may be shared).
+//!
+//! `--peers DIR` also writes the instances `make bench-peers` hands to the peer solvers: the Eq. 7
+//! cost matrices of the TSP instances (`tsp_N.txt`: N, then N rows of N costs in seconds; pose 0
+//! is the fixed start) and the NJ-130 DH table with a few reference MAP positions (`nj130.json`).
 
-use edbbgen::ir::Cell;
+use edbbgen::ir::{Cell, Pool};
 use edbbgen::model::{MeasurementModel, N_PARAMS};
+use edbbgen::robot::Robot;
 use edbbgen::sample::{self, NoProgress, SampleConfig};
 use edbbgen::units::{DEG, MM};
 use nalgebra::Vector3;
+use rayon::prelude::*;
+use serde_json::json;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+const ROOT: &str = env!("CARGO_MANIFEST_DIR");
+
+struct Row {
+    name: String,
+    value: f64,
+    unit: &'static str,
+}
+
+/// Best (shortest) wall time of `reps` runs of `f`, and the last result.
+fn best_of<T>(reps: usize, mut f: impl FnMut() -> T) -> (f64, T) {
+    let mut best = f64::INFINITY;
+    let mut out = None;
+    for _ in 0..reps.max(1) {
+        let t = Instant::now();
+        let r = f();
+        best = best.min(t.elapsed().as_secs_f64());
+        out = Some(r);
+    }
+    (best, out.expect("at least one run"))
+}
+
+fn configs(n: u64) -> impl Iterator<Item = [f64; 6]> {
+    (0..n).map(|k| {
+        let x = k as f64 * 1e-6;
+        [x, -x, 0.5 * x, x, -0.3 * x, 2.0 * x]
+    })
+}
+
+fn pool(robot: &Robot, model: &MeasurementModel, cell: &Cell, cap: usize) -> (Pool, f64) {
+    let cfg = SampleConfig {
+        step: [10.0 * DEG; 6],
+        max_candidates: cap,
+        seed: 1,
+        movable: [true; 6],
+    };
+    let (dt, (pool, _)) = best_of(1, || sample::run(robot, model, cell, &cfg, &NoProgress));
+    (pool, dt)
+}
+
+/// Runs the release binary under `/usr/bin/time -v`: (wall s, peak RSS MiB), best of `reps`.
+fn compile(args: &[&str], reps: usize) -> Option<(f64, f64)> {
+    let exe = Path::new(ROOT).join("target/release/edbbgen");
+    let out = std::env::temp_dir().join(format!("edbbgen-bench-{}.nc", std::process::id()));
+    let mut best: Option<(f64, f64)> = None;
+    for _ in 0..reps {
+        let run = std::process::Command::new("/usr/bin/time")
+            .arg("-v")
+            .arg(&exe)
+            .args(args)
+            .arg("-q")
+            .arg("-o")
+            .arg(&out)
+            .current_dir(ROOT)
+            .output()
+            .ok()?;
+        if !run.status.success() {
+            eprintln!(
+                "compile {args:?} failed: {}",
+                String::from_utf8_lossy(&run.stderr)
+            );
+            return None;
+        }
+        let err = String::from_utf8_lossy(&run.stderr);
+        let field = |key: &str| {
+            err.lines()
+                .find_map(|l| l.trim().strip_prefix(key).map(|v| v.trim().to_string()))
+        };
+        let wall = field("Elapsed (wall clock) time (h:mm:ss or m:ss):")?;
+        let secs = wall
+            .split(':')
+            .try_fold(0.0, |acc, p| p.parse::<f64>().ok().map(|v| acc * 60.0 + v))?;
+        let rss_kb: f64 = field("Maximum resident set size (kbytes):")?.parse().ok()?;
+        let this = (secs, rss_kb / 1024.0);
+        best = Some(match best {
+            Some(b) if b.0 <= this.0 => b,
+            _ => this,
+        });
+    }
+    let _ = std::fs::remove_file(&out);
+    best
+}
+
+fn write_peers(dir: &Path, robot: &Robot, model: &MeasurementModel, instances: &[(usize, Pool)]) {
+    if let Err(e) = std::fs::create_dir_all(dir) {
+        eprintln!("cannot create {}: {e}", dir.display());
+        return;
+    }
+    let speed = robot.max_speeds();
+    for (n, pool) in instances {
+        let poses: Vec<[f64; 6]> = pool.candidates.iter().map(|c| c.q).collect();
+        let mut s = format!("{}\n", poses.len());
+        for a in &poses {
+            let row: Vec<String> = poses
+                .iter()
+                .map(|b| format!("{:e}", edbbgen::order::move_time(a, b, &speed)))
+                .collect();
+            s.push_str(&row.join(" "));
+            s.push('\n');
+        }
+        let path = dir.join(format!("tsp_{n}.txt"));
+        if let Err(e) = std::fs::write(&path, s) {
+            eprintln!("cannot write {}: {e}", path.display());
+        }
+    }
+    let check: Vec<serde_json::Value> = [
+        [0.0; 6],
+        [0.3, -0.4, 0.5, 0.6, -0.7, 0.8],
+        [-1.0, 0.2, -0.3, 1.5, 0.9, -2.0],
+    ]
+    .iter()
+    .map(|q| json!({"q": q, "map": model.map_position(&model.nominal, q).as_slice()}))
+    .collect();
+    let dh: Vec<serde_json::Value> = robot
+        .dh
+        .iter()
+        .map(|d| json!({"alpha": d.alpha, "a": d.a, "d": d.d, "theta": d.theta}))
+        .collect();
+    let spec = json!({
+        "units": "m, rad",
+        "convention": "T_i = RotZ(theta_i + q_i) TransZ(d_i) TransX(a_i) RotX(alpha_i)",
+        "base_is_identity": robot.base.t.norm() == 0.0 && robot.base.r == nalgebra::Matrix3::identity(),
+        "flange_is_identity": robot.flange.t.norm() == 0.0 && robot.flange.r == nalgebra::Matrix3::identity(),
+        "dh": dh,
+        "map": model.nominal.map.as_slice(),
+        "check": check,
+    });
+    let path = dir.join("nj130.json");
+    if let Err(e) = std::fs::write(
+        &path,
+        serde_json::to_string_pretty(&spec).unwrap_or_default(),
+    ) {
+        eprintln!("cannot write {}: {e}", path.display());
+    }
+}
+
 fn main() {
-    let path = std::path::Path::new(concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/robots/comau_nj130/robot.dh.toml"
-    ));
-    let robot = edbbgen::robot::load(path, &Default::default()).expect("NJ-130");
+    let mut args = std::env::args().skip(1);
+    let mut peers: Option<PathBuf> = None;
+    while let Some(a) = args.next() {
+        match a.as_str() {
+            "--peers" => peers = args.next().map(PathBuf::from),
+            _ => {
+                eprintln!("usage: bench [--peers DIR]");
+                std::process::exit(2);
+            }
+        }
+    }
+    let path = Path::new(ROOT).join("robots/comau_nj130/robot.dh.toml");
+    let robot = edbbgen::robot::load(&path, &Default::default()).expect("NJ-130");
     let fixture = Vector3::new(258.0, 1468.0, 708.0) * MM;
     let map = Vector3::new(60.0, 30.0, 120.0) * MM;
     let model = MeasurementModel::new(&robot, fixture, map);
     let cell = Cell::shell_only(fixture, map, 0.30, 0.52, 0.0);
-    let mut rows: Vec<(String, f64, String)> = Vec::new();
+    let threads = rayon::current_num_threads();
+    let mut rows: Vec<Row> = Vec::new();
+    let mut row = |name: String, value: f64, unit: &'static str| {
+        eprintln!("  {name}: {value:.4} {unit}");
+        rows.push(Row { name, value, unit });
+    };
 
-    // FK (map position) on a stream of configurations.
+    // FK (MAP position) and identification-Jacobian rows, 1 thread and all threads.
     let n = 2_000_000u64;
-    let t = Instant::now();
-    let mut acc = 0.0;
-    for k in 0..n {
-        let x = k as f64 * 1e-6;
-        let q = [x, -x, 0.5 * x, x, -0.3 * x, 2.0 * x];
-        acc += model.map_position(&model.nominal, &q).x;
-    }
-    let fk = n as f64 / t.elapsed().as_secs_f64();
+    let (dt, acc) = best_of(3, || {
+        configs(n)
+            .map(|q| model.map_position(&model.nominal, &q).x)
+            .sum::<f64>()
+    });
     std::hint::black_box(acc);
-    rows.push(("FK (MAP position), 1 thread".into(), fk, "poses/s".into()));
-
-    let t = Instant::now();
-    let mut row = [0.0; N_PARAMS];
-    let m = 500_000u64;
-    for k in 0..m {
-        let x = k as f64 * 1e-6;
-        let q = [x, -x, 0.5 * x, x, -0.3 * x, 2.0 * x];
-        acc += model.jacobian_row(&model.nominal, &q, &mut row);
-    }
+    let fk1 = n as f64 / dt;
+    row("FK (MAP position), 1 thread".into(), fk1, "poses/s");
+    let (dt, acc) = best_of(3, || {
+        (0..n)
+            .into_par_iter()
+            .map(|k| {
+                let x = k as f64 * 1e-6;
+                let q = [x, -x, 0.5 * x, x, -0.3 * x, 2.0 * x];
+                model.map_position(&model.nominal, &q).x
+            })
+            .sum::<f64>()
+    });
     std::hint::black_box(acc);
-    rows.push((
-        "identification-Jacobian rows, 1 thread".into(),
-        m as f64 / t.elapsed().as_secs_f64(),
-        "rows/s".into(),
-    ));
+    let fkn = n as f64 / dt;
+    row(
+        format!("FK (MAP position), {threads} threads"),
+        fkn,
+        "poses/s",
+    );
+    let nj = 500_000u64;
+    let (dt, acc) = best_of(3, || {
+        let mut r = [0.0; N_PARAMS];
+        configs(nj)
+            .map(|q| model.jacobian_row(&model.nominal, &q, &mut r) + r[7])
+            .sum::<f64>()
+    });
+    std::hint::black_box(acc);
+    let jac1 = nj as f64 / dt;
+    row(
+        "identification-Jacobian rows (30 params), 1 thread".into(),
+        jac1,
+        "rows/s",
+    );
+    let (dt, acc) = best_of(3, || {
+        (0..nj)
+            .into_par_iter()
+            .map_init(
+                || [0.0; N_PARAMS],
+                |r, k| {
+                    let x = k as f64 * 1e-6;
+                    let q = [x, -x, 0.5 * x, x, -0.3 * x, 2.0 * x];
+                    model.jacobian_row(&model.nominal, &q, r) + r[7]
+                },
+            )
+            .sum::<f64>()
+    });
+    std::hint::black_box(acc);
+    let jacn = nj as f64 / dt;
+    row(
+        format!("identification-Jacobian rows, {threads} threads"),
+        jacn,
+        "rows/s",
+    );
 
+    // Sampling + FK + shell test, streaming (the default 10 degree grid).
     let cfg = SampleConfig {
         step: [10.0 * DEG; 6],
         max_candidates: 3400,
         seed: 1,
         movable: [true; 6],
     };
-    let t = Instant::now();
-    let (pool, report) = sample::run(&robot, &model, &cell, &cfg, &NoProgress);
-    let dt = t.elapsed().as_secs_f64();
-    rows.push((
-        "sampling 10 deg grid: grid poses covered".into(),
+    let (dt, (pool3400, report)) =
+        best_of(3, || sample::run(&robot, &model, &cell, &cfg, &NoProgress));
+    row(
+        "sampling 10 deg: grid poses covered".into(),
         report.grid_size as f64 / dt,
-        "configs/s".into(),
-    ));
-    rows.push((
-        "sampling 10 deg grid: poses evaluated".into(),
+        "configs/s",
+    );
+    row(
+        "sampling 10 deg: poses evaluated (FK + shell)".into(),
         report.evaluated as f64 / dt,
-        "configs/s".into(),
-    ));
-    rows.push(("sampling 10 deg grid: wall time".into(), dt, "s".into()));
+        "configs/s",
+    );
+    row("sampling 10 deg: wall time".into(), dt, "s");
+    let cfg5 = SampleConfig {
+        step: [5.0 * DEG; 6],
+        ..cfg.clone()
+    };
+    let (dt5, (_, report5)) = best_of(1, || sample::run(&robot, &model, &cell, &cfg5, &NoProgress));
+    row(
+        "sampling 5 deg: poses evaluated (FK + shell)".into(),
+        report5.evaluated as f64 / dt5,
+        "configs/s",
+    );
+    row("sampling 5 deg: wall time".into(), dt5, "s");
 
+    // Pruning: the full cond(n) curve down to m.
     let ids: Vec<usize> = {
-        let r: Vec<[f64; N_PARAMS]> = pool
+        let r: Vec<[f64; N_PARAMS]> = pool3400
             .candidates
             .iter()
             .map(|c| {
@@ -81,42 +284,96 @@ fn main() {
             .collect();
         edbbgen::model::analyse(&r, &Default::default()).identifiable
     };
-    let t = Instant::now();
-    let sel = edbbgen::select::run(&model, &pool, &ids, &Default::default()).expect("selection");
-    rows.push((
-        format!(
-            "pruning: full cond(n) curve {} -> {}",
-            pool.candidates.len(),
-            sel.m
-        ),
-        t.elapsed().as_secs_f64(),
-        "s".into(),
-    ));
-
-    let poses: Vec<[f64; 6]> = pool.candidates.iter().map(|c| c.q).collect();
-    let t = Instant::now();
-    let tour = edbbgen::order::solve(&poses, 0, &robot.max_speeds()).expect("tour");
-    rows.push((
-        format!("TSP on {} poses", poses.len()),
-        t.elapsed().as_secs_f64(),
-        "s".into(),
-    ));
-    rows.push((
-        format!("TSP tour cost on {} poses", poses.len()),
-        tour.time_sorted,
-        "s (Eq. 7)".into(),
-    ));
-
-    println!("{:<48} {:>16}  unit", "benchmark", "value");
-    for (name, v, unit) in &rows {
-        println!("{name:<48} {v:>16.4}  {unit}");
+    let (pool20k, _) = pool(&robot, &model, &cell, 20_000);
+    let mut prune = Vec::new();
+    for (p, reps) in [(&pool3400, 3), (&pool20k, 1)] {
+        let (dt, sel) = best_of(reps, || {
+            edbbgen::select::run(&model, p, &ids, &Default::default()).expect("selection")
+        });
+        let n = p.candidates.len();
+        row(
+            format!("pruning: full cond(n) curve {n} -> {}", sel.m),
+            dt,
+            "s",
+        );
+        prune.push(json!({"n": n, "m": sel.m, "time_s": dt, "poses": sel.indices.len()}));
     }
-    let json: Vec<serde_json::Value> = rows
-        .iter()
-        .map(|(n, v, u)| serde_json::json!({"name": n, "value": v, "unit": u}))
-        .collect();
-    let out = std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/target/bench.json"));
-    if let Err(e) = std::fs::write(out, serde_json::to_string_pretty(&json).unwrap_or_default()) {
+
+    // TSP on pools of real valid poses, pose 0 as the fixed start.
+    let speed = robot.max_speeds();
+    let mut tsp = Vec::new();
+    let mut instances = Vec::new();
+    for k in [35usize, 200, 1000, 3400] {
+        let (p, _) = pool(&robot, &model, &cell, k);
+        let poses: Vec<[f64; 6]> = p.candidates.iter().map(|c| c.q).collect();
+        let (dt, tour) = best_of(3, || {
+            edbbgen::order::solve(&poses, 0, &speed).expect("tour")
+        });
+        row(format!("TSP {} poses: time", poses.len()), dt, "s");
+        row(
+            format!("TSP {} poses: tour cost (Eq. 7)", poses.len()),
+            tour.time_sorted,
+            "s",
+        );
+        tsp.push(json!({"n": poses.len(), "time_s": dt, "cost_s": tour.time_sorted}));
+        instances.push((k, p));
+    }
+
+    // End to end: the release binary, wall time and peak memory.
+    let mut e2e = Vec::new();
+    let nj130 = [
+        "robots/comau_nj130/robot.dh.toml",
+        "--fixture",
+        "258,1468,708",
+    ];
+    let kuka = [
+        "../shared/robots/kuka_kr210_l150/robot.urdf",
+        "--fixture",
+        "1400,400,700",
+        "--tool",
+        "60,30,120",
+    ];
+    for (name, args) in [
+        ("NJ-130 default", &nj130[..]),
+        ("KUKA KR 210 L150", &kuka[..]),
+    ] {
+        match compile(args, 2) {
+            Some((wall, rss)) => {
+                row(format!("compile {name}: wall time"), wall, "s");
+                row(format!("compile {name}: peak memory"), rss, "MiB");
+                e2e.push(json!({"case": name, "args": args, "wall_s": wall, "peak_rss_mib": rss}));
+            }
+            None => eprintln!("compile {name}: skipped (build the release binary first)"),
+        }
+    }
+
+    println!("{:<56} {:>16}  unit", "benchmark", "value");
+    for r in &rows {
+        println!("{:<56} {:>16.4}  {}", r.name, r.value, r.unit);
+    }
+    let cpu = std::fs::read_to_string("/proc/cpuinfo")
+        .ok()
+        .and_then(|s| {
+            s.lines().find_map(|l| {
+                l.strip_prefix("model name")
+                    .map(|v| v.trim_start_matches([' ', '\t', ':']).to_string())
+            })
+        })
+        .unwrap_or_default();
+    let doc = json!({
+        "machine": {"threads": threads, "cpu": cpu},
+        "rows": rows.iter().map(|r| json!({"name": r.name, "value": r.value, "unit": r.unit})).collect::<Vec<_>>(),
+        "fk_poses_per_s": {"1": fk1, "all": fkn},
+        "jacobian_rows_per_s": {"1": jac1, "all": jacn},
+        "pruning": prune,
+        "tsp": tsp,
+        "compile": e2e,
+    });
+    let out = Path::new(ROOT).join("target/bench.json");
+    if let Err(e) = std::fs::write(&out, serde_json::to_string_pretty(&doc).unwrap_or_default()) {
         eprintln!("cannot write {}: {e}", out.display());
+    }
+    if let Some(dir) = peers {
+        write_peers(&dir, &robot, &model, &instances);
     }
 }

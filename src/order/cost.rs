@@ -17,46 +17,62 @@ pub fn move_time(a: &[f64; 6], b: &[f64; 6], max_speed: &[f64; 6]) -> f64 {
     t
 }
 
-/// Dense, symmetric n×n matrix of [`move_time`] between every pair of poses.
+/// The symmetric Eq. 7 cost between every pair of poses, computed on demand.
 ///
-/// Entries are exactly `move_time(poses[i], poses[j])`, so sums over it agree bit for bit with
-/// [`super::path_time`] evaluated in the same order.
+/// Poses are stored divided by the joint speeds, so an entry is max_k |a_k/w_k − b_k/w_k|: equal
+/// to `move_time(poses[i], poses[j])` up to rounding (the search compares sums of them with a
+/// tolerance, and reported times always come from [`super::path_time`]). A dense matrix would be n² entries (92 MB at
+/// 3,400 poses) read in random order by the local search: recomputing six differences is
+/// cheaper than the cache misses, and memory stays linear in n.
 pub(crate) struct Costs {
     n: usize,
-    c: Vec<f64>,
+    /// Poses in joint-time units (rad / (rad/s) = s).
+    poses: Vec<[f64; 6]>,
 }
 
 impl Costs {
     pub(crate) fn new(poses: &[[f64; 6]], max_speed: &[f64; 6]) -> Self {
-        let n = poses.len();
-        // Joint-major copies so each row is six straight vectorisable sweeps. The arithmetic is
-        // exactly move_time's (same subtraction order, division, and max), so entries are equal
-        // bit for bit to move_time(poses[i], poses[j]).
-        let cols: [Vec<f64>; 6] = std::array::from_fn(|k| poses.iter().map(|p| p[k]).collect());
-        let mut c = vec![0.0_f64; n * n];
-        // Each row depends only on its own pose, so the parallel fill is deterministic.
-        c.par_chunks_mut(n.max(1)).enumerate().for_each(|(i, row)| {
-            for k in 0..6 {
-                let (a, w) = (poses[i][k], max_speed[k]);
-                for (cell, &b) in row.iter_mut().zip(&cols[k]) {
-                    *cell = cell.max((a - b).abs() / w);
-                }
-            }
-        });
-        Costs { n, c }
+        Costs {
+            n: poses.len(),
+            poses: poses
+                .iter()
+                .map(|p| std::array::from_fn(|k| p[k] / max_speed[k]))
+                .collect(),
+        }
     }
 
     #[inline]
     pub(crate) fn get(&self, i: usize, j: usize) -> f64 {
-        self.c[i * self.n + j]
+        let (a, b) = (&self.poses[i], &self.poses[j]);
+        let mut t = 0.0_f64;
+        for k in 0..6 {
+            t = t.max((a[k] - b[k]).abs());
+        }
+        t
     }
 
     pub(crate) fn len(&self) -> usize {
         self.n
     }
 
+    /// The largest entry: per joint the widest spread of the poses. Exact: the pair (argmax,
+    /// argmin) of that joint gives the same subtraction.
     pub(crate) fn max(&self) -> f64 {
-        self.c.iter().copied().fold(0.0, f64::max)
+        (0..6)
+            .map(|k| {
+                let (lo, hi) = self
+                    .poses
+                    .iter()
+                    .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), p| {
+                        (lo.min(p[k]), hi.max(p[k]))
+                    });
+                if hi >= lo {
+                    hi - lo
+                } else {
+                    0.0
+                }
+            })
+            .fold(0.0, f64::max)
     }
 
     /// For every pose, the `k` other poses closest to it, nearest first; equal costs are ordered
@@ -69,9 +85,9 @@ impl Costs {
             list.par_chunks_mut(k).enumerate().for_each(|(i, out)| {
                 // One sweep keeping the k best seen so far, sorted by (cost, index). Scanning j
                 // upwards, a newcomer goes after every kept entry of equal cost: lower index wins.
-                let row = &self.c[i * n..(i + 1) * n];
                 let mut best: Vec<(f64, usize)> = Vec::with_capacity(k + 1);
-                for (j, &cost) in row.iter().enumerate() {
+                for j in 0..n {
+                    let cost = self.get(i, j);
                     if j == i || (best.len() == k && cost >= best[k - 1].0) {
                         continue;
                     }

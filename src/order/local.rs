@@ -69,8 +69,9 @@ pub(crate) fn perturb(
     seed: u64,
 ) -> usize {
     use rand::{Rng, SeedableRng};
-    /// Longest segment a kick moves; longer swaps rarely pay off and cost more to repair.
-    const MAX_SEGMENT: usize = 30;
+    /// Longest segment a kick moves: short swaps are cheap to repair, so more of them fit in the
+    /// same work, which found shorter tours on NJ-130 pools of 200 to 3,400 poses.
+    const MAX_SEGMENT: usize = 15;
     let n = order.len();
     if n < 3 {
         return 0; // Needs the fixed start plus two non-empty segments.
@@ -119,12 +120,26 @@ pub(crate) fn perturb(
     kept
 }
 
+/// Longest segment an Or-opt move shifts. Up to 1,000 poses segments of up to 10 cities (a
+/// 3-opt "segment insertion" with or without reversal) are affordable and close about half of
+/// the gap to LKH-3 on NJ-130 pools; beyond that the classic 3 keeps a 3,400-pose tour under 1 s.
+/// A function of n alone, so the result stays machine-independent.
+pub(crate) fn or_opt_max_segment(n: usize) -> usize {
+    if n <= 1000 {
+        10
+    } else {
+        3
+    }
+}
+
 struct Path<'a> {
     c: &'a Costs,
     nb: &'a Neighbours,
     t: &'a mut [usize],
     pos: Vec<usize>,
     eps: f64,
+    /// Longest segment Or-opt moves (see [`or_opt_max_segment`]).
+    or_max: usize,
     /// Work-queue membership; all false between searches.
     queued: Vec<bool>,
     /// Sum of the gains of the moves applied since last reset.
@@ -136,6 +151,7 @@ struct Path<'a> {
 impl<'a> Path<'a> {
     fn new(c: &'a Costs, nb: &'a Neighbours, t: &'a mut [usize], eps: f64) -> Self {
         let n = t.len();
+        let or_max = or_opt_max_segment(n);
         let mut pos = vec![0usize; n];
         for (p, &city) in t.iter().enumerate() {
             pos[city] = p;
@@ -146,6 +162,7 @@ impl<'a> Path<'a> {
             t,
             pos,
             eps,
+            or_max,
             queued: vec![false; n],
             gain: 0.0,
             dirty: (n, 0),
@@ -305,7 +322,7 @@ impl<'a> Path<'a> {
         if i == 0 {
             return false;
         }
-        for len in 1..=3usize {
+        for len in 1..=self.or_max {
             // Keep at least the fixed first city and one other outside the segment.
             if len + 2 > n {
                 break;

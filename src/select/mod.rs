@@ -142,7 +142,296 @@ pub fn knee(curve: &[(usize, f64)], m: usize) -> (usize, String) {
 
 /// Greedy elimination on a row-major n × m matrix. Returns the removal order (row indices) and
 /// the curve (n, cond) from n = rows down to n = m.
+///
+/// It makes exactly the choices of [`eliminate_reference`] (which scores every candidate by the
+/// secular equation at every step) but scores most candidates only by cheap lower bounds. In the
+/// eigenbasis of G a candidate is z = Vᵀr and G − r·rᵀ ≅ diag(λ) − z·zᵀ; by Rayleigh-Ritz, for
+/// any orthonormal U the smallest eigenvalue of Uᵀ(G − r·rᵀ)U bounds λ'min from above and, for
+/// another U, the largest bounds λ'max from below. So the score λ'max/λ'min has a lower bound:
+/// 1. for every candidate, from two low and two high directions in closed form (2×2 matrices).
+///    U is the eigenbasis of a step at most `REFRESH` − 1 removals ago, so the projections Uᵀr
+///    are reused and a step costs a few flops per candidate;
+/// 2. for those not ruled out, visited in ascending order of bound 1, the sharper `ritz_bound`
+///    (k directions at each end of the current eigenbasis, the rest lumped);
+/// 3. the exact score for those not ruled out either.
+///
+/// A candidate is skipped only when a bound exceeds the best exact score of the step by a
+/// relative margin far above rounding, so the skipped ones provably score worse and the choice,
+/// tie-break by index included, is the exhaustive one. The Gram matrix, its eigendecomposition
+/// and the exact scores use the reference's arithmetic, so the curve is bit for bit the same.
+/// Greedy elimination makes the extreme eigenvalues cluster, which is why bound 1 looks at two
+/// directions at each end and bound 2 at `RITZ_K`.
 pub fn eliminate(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
+    let n0 = j.len() / m;
+    let row = |i: usize| &j[i * m..(i + 1) * m];
+    let mut alive = vec![true; n0];
+    // Active rows, column-major (cols[k][p] = J[ids[p], k]) so the bound pass streams each
+    // column once; removal is swap_remove, the order of positions carries no meaning.
+    let mut ids: Vec<usize> = (0..n0).collect();
+    let mut cols: Vec<Vec<f64>> = (0..m)
+        .map(|k| (0..n0).map(|i| j[i * m + k]).collect())
+        .collect();
+    let mut removed = Vec::with_capacity(n0.saturating_sub(m));
+    let mut curve = Vec::with_capacity(n0 - m + 1);
+    // Ascending index order, exactly as the reference sums.
+    let gram = |alive: &[bool]| {
+        let mut g = DMatrix::<f64>::zeros(m, m);
+        for i in (0..n0).filter(|&i| alive[i]) {
+            let r = row(i);
+            for a in 0..m {
+                for b in a..m {
+                    g[(a, b)] += r[a] * r[b];
+                }
+            }
+        }
+        for a in 0..m {
+            for b in 0..a {
+                g[(a, b)] = g[(b, a)];
+            }
+        }
+        g
+    };
+    let mut g = gram(&alive);
+    let mut lbs: Vec<f64> = Vec::with_capacity(n0);
+    let mut queue: Vec<(f64, usize)> = Vec::new();
+    let mut sharp: Vec<f64> = Vec::new();
+    let norms: Vec<f64> = (0..n0)
+        .map(|i| row(i).iter().map(|v| v * v).sum())
+        .collect();
+    let ritz_k = RITZ_K.min(m.saturating_sub(1));
+    // The bound basis (4 directions, row-major) and every active row's projections on it.
+    let mut basis = vec![0.0; 4 * m];
+    let mut proj: Vec<[f64; 4]> = vec![[0.0; 4]; n0];
+    let mut since_refresh = REFRESH;
+    loop {
+        let eig = SymmetricEigen::new(g.clone());
+        let mut order: Vec<usize> = (0..m).collect();
+        order.sort_by(|&a, &b| eig.eigenvalues[a].total_cmp(&eig.eigenvalues[b]));
+        let lam: Vec<f64> = order.iter().map(|&k| eig.eigenvalues[k]).collect();
+        let vt: Vec<f64> = order
+            .iter()
+            .flat_map(|&k| {
+                eig.eigenvectors
+                    .column(k)
+                    .iter()
+                    .copied()
+                    .collect::<Vec<_>>()
+            })
+            .collect();
+        let n = ids.len();
+        curve.push((n, cond_of(lam[0], lam[m - 1])));
+        if n == m {
+            break;
+        }
+        // The exact score, with the reference's arithmetic.
+        let exact = |p: usize, z: &mut [f64]| {
+            let r = row(ids[p]);
+            for k in 0..m {
+                z[k] = vt[k * m..(k + 1) * m]
+                    .iter()
+                    .zip(r)
+                    .map(|(v, x)| v * x)
+                    .sum();
+            }
+            let (lo, hi) = downdated_extremes(&lam, z);
+            if lo > 0.0 {
+                hi / lo
+            } else {
+                f64::INFINITY
+            }
+        };
+        // Lower bounds for every active candidate (see the doc comment): Rayleigh-Ritz on two
+        // low and two high directions U, in closed form. U is the eigenbasis of some recent
+        // step; the bound holds for any orthonormal U, it is only sharpest for the current one,
+        // and a stale U lets the projections Uᵀr be reused instead of recomputed every step.
+        if since_refresh >= REFRESH {
+            since_refresh = 0;
+            let two = m >= 2;
+            let dirs = if two { [0, 1, m - 2, m - 1] } else { [0; 4] };
+            for (slot, &e) in basis.chunks_mut(m).zip(&dirs) {
+                slot.copy_from_slice(&vt[e * m..(e + 1) * m]);
+            }
+            let basis = &basis;
+            let cols = &cols;
+            let refresh = |start: usize, zs: &mut [[f64; 4]]| {
+                let len = zs.len();
+                for z in zs.iter_mut() {
+                    *z = [0.0; 4];
+                }
+                for k in 0..m {
+                    let c = &cols[k][start..start + len];
+                    let u = [basis[k], basis[m + k], basis[2 * m + k], basis[3 * m + k]];
+                    for (z, &y) in zs.iter_mut().zip(c) {
+                        for d in 0..4 {
+                            z[d] += u[d] * y;
+                        }
+                    }
+                }
+            };
+            if n >= PARALLEL_BOUND {
+                proj.par_chunks_mut(BOUND_CHUNK)
+                    .enumerate()
+                    .for_each(|(c, zs)| refresh(c * BOUND_CHUNK, zs));
+            } else {
+                refresh(0, &mut proj[..]);
+            }
+        }
+        since_refresh += 1;
+        // UᵀGU on each pair, once per step.
+        let quad = |x: usize, y: usize| -> f64 {
+            let (u, v) = (&basis[x * m..(x + 1) * m], &basis[y * m..(y + 1) * m]);
+            let mut s = 0.0;
+            for a in 0..m {
+                let mut t = 0.0;
+                for b in 0..m {
+                    t += g[(a, b)] * v[b];
+                }
+                s += u[a] * t;
+            }
+            s
+        };
+        let (la, lb_, lc) = (quad(0, 0), quad(0, 1), quad(1, 1));
+        let (ha, hb, hc) = (quad(2, 2), quad(2, 3), quad(3, 3));
+        lbs.clear();
+        lbs.resize(n, 0.0);
+        let bound_chunk = |start: usize, out: &mut [f64]| {
+            let len = out.len();
+            for (o, z) in out.iter_mut().zip(&proj[start..start + len]) {
+                let [a1, a2, b1, b2] = *z;
+                // Smallest eigenvalue of [[la, lb], [lb, lc]] − a·aᵀ, via its determinant (the
+                // z⁴ terms cancel exactly), and the largest of the high pair.
+                let (p1, p2, off) = (la - a1 * a1, lc - a2 * a2, lb_ - a1 * a2);
+                let det = la * lc - lb_ * lb_ - la * a2 * a2 - lc * a1 * a1 + 2.0 * lb_ * a1 * a2;
+                let rad = (0.25 * (p1 - p2) * (p1 - p2) + off * off).sqrt();
+                // A nearly singular downdate: too much cancellation to trust; score exactly.
+                let lmin = if det > DET_FLOOR * la * lc {
+                    det / (0.5 * (p1 + p2) + rad)
+                } else {
+                    0.0
+                };
+                let (q1, q2, hoff) = (ha - b1 * b1, hc - b2 * b2, hb - b1 * b2);
+                let hmax = 0.5 * (q1 + q2) + (0.25 * (q1 - q2) * (q1 - q2) + hoff * hoff).sqrt();
+                *o = if lmin > 0.0 { hmax / lmin } else { 0.0 };
+            }
+        };
+        if n >= PARALLEL_BOUND {
+            lbs.par_chunks_mut(BOUND_CHUNK)
+                .enumerate()
+                .for_each(|(c, out)| bound_chunk(c * BOUND_CHUNK, out));
+        } else {
+            bound_chunk(0, &mut lbs[..]);
+        }
+        // A first exact score from the most promising candidate sets the cut; the candidates
+        // whose bound does not exceed it are then visited in ascending bound order, each getting
+        // the sharper Ritz bound and, if that does not rule it out either, its exact score,
+        // which tightens the cut for the rest.
+        let pick = |a: (f64, usize, usize), b: (f64, usize, usize)| {
+            if (b.0, b.1) < (a.0, a.1) {
+                b
+            } else {
+                a
+            }
+        };
+        let first = (0..n)
+            .min_by(|&a, &b| lbs[a].total_cmp(&lbs[b]))
+            .unwrap_or(0);
+        let mut z = vec![0.0; m];
+        let mut best = (exact(first, &mut z), ids[first], first);
+        let mut cut = best.0 * (1.0 + BOUND_MARGIN);
+        queue.clear();
+        queue.extend(
+            (0..n)
+                .filter(|&p| {
+                    p != first && lbs[p].partial_cmp(&cut) != Some(std::cmp::Ordering::Greater)
+                })
+                .map(|p| (lbs[p], p)),
+        );
+        // Visit in ascending bound order, a block at a time: partial sorting, and the Ritz
+        // bounds of a block computed in parallel.
+        let by_bound = |a: &(f64, usize), b: &(f64, usize)| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1));
+        let mut start = 0;
+        'visit: while start < queue.len() {
+            let end = (start + RITZ_BLOCK).min(queue.len());
+            if end < queue.len() {
+                queue[start..].select_nth_unstable_by(end - start - 1, by_bound);
+            }
+            queue[start..end].sort_unstable_by(by_bound);
+            if queue[start].0 > cut {
+                break;
+            }
+            let ritz = |&(lb, p): &(f64, usize)| {
+                if lb > cut || ritz_k == 0 {
+                    lb
+                } else {
+                    ritz_bound(&lam, &vt, row(ids[p]), norms[ids[p]], ritz_k)
+                }
+            };
+            if end - start >= 64 && n >= PARALLEL_BOUND {
+                queue[start..end]
+                    .par_iter()
+                    .map(ritz)
+                    .collect_into_vec(&mut sharp);
+            } else {
+                sharp.clear();
+                sharp.extend(queue[start..end].iter().map(ritz));
+            }
+            for (&(lb, p), &r2) in queue[start..end].iter().zip(&sharp) {
+                if lb > cut {
+                    break 'visit;
+                }
+                if r2 > cut {
+                    continue;
+                }
+                best = pick(best, (exact(p, &mut z), ids[p], p));
+                cut = best.0 * (1.0 + BOUND_MARGIN);
+            }
+            start = end;
+        }
+        let (_, i, p) = best;
+        ids.swap_remove(p);
+        proj.swap_remove(p);
+        for c in cols.iter_mut() {
+            c.swap_remove(p);
+        }
+        alive[i] = false;
+        removed.push(i);
+        // Same schedule of rebuilds and downdates as the reference.
+        if ids.len() < 3 * m || removed.len() % 64 == 0 {
+            g = gram(&alive);
+        } else {
+            let r = row(i);
+            for a in 0..m {
+                for b in 0..m {
+                    g[(a, b)] -= r[a] * r[b];
+                }
+            }
+        }
+    }
+    (removed, curve)
+}
+
+/// Relative margin by which a lower bound must exceed the best exact score before a candidate is
+/// skipped: far above the rounding of either (both come from the same λ and V), far below any
+/// difference that matters.
+const BOUND_MARGIN: f64 = 1e-9;
+/// Below this relative size of the 2×2 determinant the closed-form bound is not trusted.
+const DET_FLOOR: f64 = 1e-6;
+/// Eigen-directions at each end of the spectrum that the sharper (Ritz) bound resolves; greedy
+/// elimination clusters the extreme eigenvalues, where the one-direction bound is weak.
+const RITZ_K: usize = 3;
+/// Candidates per block of the ascending-bound visit.
+const RITZ_BLOCK: usize = 256;
+/// Steps between recomputations of the bound basis and the projections on it.
+const REFRESH: usize = 4;
+/// Candidates per block of the bound pass (stack buffers, one rayon task each).
+const BOUND_CHUNK: usize = 1024;
+/// Below this size a step is too short to pay for rayon.
+const PARALLEL_BOUND: usize = 4096;
+
+/// The reference for [`eliminate`]: the same greedy, scoring every candidate exactly at every
+/// step (one secular solve pair per candidate). Kept for tests and the benchmark.
+#[doc(hidden)]
+pub fn eliminate_reference(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
     let n0 = j.len() / m;
     let row = |i: usize| &j[i * m..(i + 1) * m];
     let mut active: Vec<usize> = (0..n0).collect();
@@ -231,6 +520,48 @@ pub fn eliminate(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
     (removed, curve)
 }
 
+/// A lower bound on the score λ'max/λ'min of removing row `r` (‖r‖² = `rr`), sharper than the
+/// Rayleigh one: the k eigen-directions at each end are kept exactly and the rest of z is lumped
+/// into one extra direction on the far pole. With t = ‖r‖² − Σ_{i≤k} zᵢ², the term
+/// Σ_{i>k} zᵢ²/(λᵢ − x) of the secular function is at least t/(λₘ − x) for x < λ₁, so the smallest
+/// root of the lumped (k+1)-term equation lies above λ'min; at the top, Σ_{i≤m−k} zᵢ²/(x − λᵢ) is
+/// at least t'/(x − λ₁), so the largest lumped root lies below λ'max. 0 = no information.
+fn ritz_bound(lam: &[f64], vt: &[f64], r: &[f64], rr: f64, k: usize) -> f64 {
+    let m = lam.len();
+    let dot = |e: usize| -> f64 {
+        vt[e * m..(e + 1) * m]
+            .iter()
+            .zip(r)
+            .map(|(v, x)| v * x)
+            .sum()
+    };
+    let mut l = [0.0; RITZ_K + 1];
+    let mut z = [0.0; RITZ_K + 1];
+    for i in 0..k {
+        l[i] = lam[i];
+        z[i] = dot(i);
+    }
+    let head: f64 = z[..k].iter().map(|v| v * v).sum();
+    l[k] = lam[m - 1];
+    z[k] = (rr - head).max(0.0).sqrt();
+    let zz: f64 = z[..=k].iter().map(|v| v * v).sum();
+    let lo = secular_root(&l[..=k], &z[..=k], l[0] - zz, l[0], 0);
+    l[0] = lam[0];
+    for i in 0..k {
+        l[i + 1] = lam[m - k + i];
+        z[i + 1] = dot(m - k + i);
+    }
+    let tail: f64 = z[1..=k].iter().map(|v| v * v).sum();
+    z[0] = (rr - tail).max(0.0).sqrt();
+    let zz: f64 = z[..=k].iter().map(|v| v * v).sum();
+    let hi = secular_root(&l[..=k], &z[..=k], l[k - 1].max(l[k] - zz), l[k], k);
+    if lo > 0.0 {
+        hi / lo
+    } else {
+        0.0
+    }
+}
+
 fn cond_of(lmin: f64, lmax: f64) -> f64 {
     if lmin > 0.0 {
         (lmax / lmin).sqrt()
@@ -290,11 +621,14 @@ fn secular_root(lam: &[f64], z: &[f64], mut a: f64, mut b: f64, pole: usize) -> 
         } else {
             f64::NAN
         };
-        if !(next > a && next < b) {
-            next = 0.5 * (a + b);
-        }
+        // Converged; test this before the bracket, because the model may land exactly on an
+        // end of the bracket (the root itself, when f(x) rounded to the other sign), and
+        // bisecting from there would only crawl back to it.
         if (next - x).abs() <= 2.0 * f64::EPSILON * scale {
             return next;
+        }
+        if !(next > a && next < b) {
+            next = 0.5 * (a + b);
         }
         x = next;
     }
@@ -397,6 +731,79 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// The bounded search must make the exhaustive search's choices: same removals, and a curve
+    /// no worse (here: bit for bit equal) at every n.
+    fn check_against_reference(j: &[f64], m: usize, what: &str) {
+        let (removed, curve) = eliminate(j, m);
+        let (want_removed, want_curve) = eliminate_reference(j, m);
+        assert_eq!(curve.len(), want_curve.len(), "{what}");
+        for (&(n, c), &(wn, w)) in curve.iter().zip(&want_curve) {
+            assert_eq!(n, wn, "{what}");
+            assert!(
+                c <= w * (1.0 + 1e-9),
+                "{what}: n={n}: {c} > exact greedy {w}"
+            );
+        }
+        assert_eq!(removed, want_removed, "{what}");
+        assert_eq!(curve, want_curve, "{what}");
+    }
+
+    #[test]
+    fn bounded_elimination_equals_exhaustive_greedy_on_random_jacobians() {
+        for seed in 0..4 {
+            check_against_reference(&random_matrix(200, 22, seed), 22, &format!("seed {seed}"));
+        }
+        // Small and degenerate shapes: m = 1, n = m + 1, duplicated rows (exact ties).
+        check_against_reference(&random_matrix(9, 1, 7), 1, "m = 1");
+        check_against_reference(&random_matrix(7, 6, 8), 6, "n = m + 1");
+        let mut dup = random_matrix(40, 5, 9);
+        dup.extend_from_within(0..20 * 5);
+        check_against_reference(&dup, 5, "duplicated rows");
+    }
+
+    #[test]
+    fn bounded_elimination_equals_exhaustive_greedy_on_an_nj130_pool() {
+        use crate::units::{DEG, MM};
+        let robot = crate::robot::load(
+            std::path::Path::new(concat!(
+                env!("CARGO_MANIFEST_DIR"),
+                "/robots/comau_nj130/robot.dh.toml"
+            )),
+            &Default::default(),
+        )
+        .expect("bundled NJ-130");
+        let fixture = nalgebra::Vector3::new(258.0, 1468.0, 708.0) * MM;
+        let map = nalgebra::Vector3::new(60.0, 30.0, 120.0) * MM;
+        let model = MeasurementModel::new(&robot, fixture, map);
+        let cell = crate::ir::Cell {
+            fixture,
+            map,
+            bar_min: 0.30,
+            bar_max: 0.52,
+            floor_z: 0.0,
+        };
+        let cfg = crate::sample::SampleConfig {
+            step: [10.0 * DEG; 6],
+            max_candidates: 300,
+            seed: 1,
+            movable: [true; 6],
+        };
+        let (pool, _) = crate::sample::run(&robot, &model, &cell, &cfg, &crate::sample::NoProgress);
+        let rows: Vec<[f64; N_PARAMS]> = pool
+            .candidates
+            .iter()
+            .map(|c| {
+                let mut r = [0.0; N_PARAMS];
+                model.jacobian_row(&model.nominal, &c.q, &mut r);
+                r
+            })
+            .collect();
+        let ids = crate::model::analyse(&rows, &Default::default()).identifiable;
+        assert_eq!(ids.len(), 22);
+        let (j, _) = scaled_jacobian(&model, &pool, &ids);
+        check_against_reference(&j, ids.len(), "NJ-130 pool of 300");
     }
 
     #[test]
