@@ -73,6 +73,8 @@ pub const RESERVOIR_FACTOR: usize = 4;
 /// pool); smaller groups are left out.
 pub const MAX_SECTIONS: usize = 4;
 pub const MIN_SECTION_POSES: usize = 10;
+/// A section must hold at least this many measurement poses.
+pub const MIN_POSES_PER_SECTION: usize = 3;
 /// Neighbours per pose in the connectivity graph of the pool.
 pub const COMPONENT_NEIGHBOURS: usize = 8;
 /// Rounds of "take unreachable poses out and select again".
@@ -106,6 +108,8 @@ pub enum PipelineError {
     BallsOverlap { bar_mm: [f64; 2], ball_mm: f64 },
     #[error("no valid pose: every pose in the bar shell was rejected ({0}); check the cell, the cones and the harness limits")]
     AllRejected(String),
+    #[error("only {0} valid poses in the cell, too few to identify the robot's parameters (30 or more are needed): refine --step, widen --bar or the cones, or move the fixture")]
+    TooFewPoses(usize),
     #[error("collision model: {0}")]
     Collision(String),
     #[error(transparent)]
@@ -189,7 +193,11 @@ pub fn default_cup_axis(robot: &Robot) -> Vector3<f64> {
     // In DH frame 6, z is the joint-6 axis; the wrist (frame 5's origin) lies behind it.
     let t6 = crate::robot::kinematics::dh_transform(&robot.dh[5], 0.0);
     let wrist_in_6 = t6.inverse().t;
-    let z = if wrist_in_6.z <= 0.0 { Vector3::z() } else { -Vector3::z() };
+    let z = if wrist_in_6.z <= 0.0 {
+        Vector3::z()
+    } else {
+        -Vector3::z()
+    };
     robot.flange.r.transpose() * z
 }
 
@@ -406,11 +414,20 @@ pub fn compile(
         group_size[l] += 1;
     }
     let min_group = MIN_SECTION_POSES.max(candidates.len() / 50);
-    let kept_groups = group_size.iter().take(MAX_SECTIONS).filter(|&&n| n >= min_group).count().max(1);
-    let keep: Vec<usize> = (0..candidates.len()).filter(|&i| labels[i] < kept_groups).collect();
+    let kept_groups = group_size
+        .iter()
+        .take(MAX_SECTIONS)
+        .filter(|&&n| n >= min_group)
+        .count()
+        .max(1);
+    let keep: Vec<usize> = (0..candidates.len())
+        .filter(|&i| labels[i] < kept_groups)
+        .collect();
     let disconnected = candidates.len() - keep.len();
     let group: Vec<usize> = keep.iter().map(|&i| labels[i]).collect();
-    let pool = Pool { candidates: keep.iter().map(|&i| candidates[i]).collect() };
+    let pool = Pool {
+        candidates: keep.iter().map(|&i| candidates[i]).collect(),
+    };
     if disconnected > 0 {
         warnings.push(format!(
             "{disconnected} of {} admitted poses lie in small groups that safe motions do not connect to the rest; left out",
@@ -438,6 +455,9 @@ pub fn compile(
         return Err(PipelineError::AllRejected(why.join(", ")));
     }
 
+    if pool.candidates.len() < N_PARAMS {
+        return Err(PipelineError::TooFewPoses(pool.candidates.len()));
+    }
     // Identifiability over the poses the bar can actually measure: the pool itself.
     let rows: Vec<[f64; N_PARAMS]> = pool
         .candidates
@@ -457,12 +477,41 @@ pub fn compile(
     let mut excluded_unreachable = 0;
     let mut round = 0;
     let (selection, time_unsorted, plan) = loop {
-        let sub = Pool { candidates: usable.iter().map(|&i| pool.candidates[i]).collect() };
-        let selection = select::run(&model, &sub, &identifiability.identifiable, &SelectConfig { poses: opts.poses })?;
+        let sub = Pool {
+            candidates: usable.iter().map(|&i| pool.candidates[i]).collect(),
+        };
+        let selection = select::run(
+            &model,
+            &sub,
+            &identifiability.identifiable,
+            &SelectConfig { poses: opts.poses },
+        )?;
         let chosen: Vec<usize> = selection.indices.iter().map(|&k| usable[k]).collect();
-        let (sections, time_unsorted) = order_sections(&pool, &group, &chosen, kept_groups, &opts.start, &speeds)?;
+        // A section is worth remounting the bar only for a few poses at least: the poses of
+        // smaller ones are replaced like unreachable ones.
+        let lonely: Vec<usize> = chosen
+            .iter()
+            .copied()
+            .filter(|&i| {
+                chosen.iter().filter(|&&j| group[j] == group[i]).count() < MIN_POSES_PER_SECTION
+            })
+            .collect();
+        if !lonely.is_empty()
+            && round < REPAIR_ROUNDS
+            && usable.len() > identifiability.count() + lonely.len()
+        {
+            round += 1;
+            excluded_unreachable += lonely.len();
+            usable.retain(|i| !lonely.contains(i));
+            continue;
+        }
+        let (sections, time_unsorted) =
+            order_sections(&pool, &group, &chosen, kept_groups, &opts.start, &speeds)?;
         let plan = safepath::plan_sections(&ck, &sections, opts.blend, &speeds, opts.seed);
-        if plan.dropped.is_empty() || round == REPAIR_ROUNDS || usable.len() <= identifiability.count() + plan.dropped.len() {
+        if plan.dropped.is_empty()
+            || round == REPAIR_ROUNDS
+            || usable.len() <= identifiability.count() + plan.dropped.len()
+        {
             break (selection, time_unsorted, plan);
         }
         round += 1;
@@ -471,12 +520,22 @@ pub fn compile(
         usable.retain(|&i| !unreachable.contains(&pool.candidates[i].q));
     };
     if excluded_unreachable > 0 {
-        warnings.push(format!("{excluded_unreachable} selected poses could not be reached safely and were replaced"));
+        warnings.push(format!(
+            "{excluded_unreachable} selected poses were replaced: no safe move reached them, or too few shared their section"
+        ));
     }
     for d in &plan.dropped {
-        warnings.push(format!("dropped tour pose {}: no safe move found ({})", d.index + 1, d.violation));
+        warnings.push(format!(
+            "dropped tour pose {}: no safe move found ({})",
+            d.index + 1,
+            d.violation
+        ));
     }
-    let sections = plan.waypoints.iter().filter(|w| w.transit && !w.support).count();
+    let sections = plan
+        .waypoints
+        .iter()
+        .filter(|w| w.transit && !w.support)
+        .count();
     if sections > 1 {
         warnings.push(format!(
             "the program has {sections} sections: the bar is removed and remounted between them (no safe motion joins their poses with the bar in place)"
@@ -484,11 +543,24 @@ pub fn compile(
     }
     // The program carries joint values rounded to its 4 decimals of a degree: time the moves on
     // exactly those values, so the emitted feed never asks an axis for more than its speed.
-    let wq: Vec<[f64; 6]> = plan.waypoints.iter().map(|w| w.q.map(|r| emit::round_deg(to_deg(r)).to_radians())).collect();
-    let move_times: Vec<f64> =
-        std::iter::once(0.0).chain(wq.windows(2).map(|w| order::move_time(&w[0], &w[1], &speeds))).collect();
+    let wq: Vec<[f64; 6]> = plan
+        .waypoints
+        .iter()
+        .map(|w| w.q.map(|r| emit::round_deg(to_deg(r)).to_radians()))
+        .collect();
+    let move_times: Vec<f64> = std::iter::once(0.0)
+        .chain(
+            wq.windows(2)
+                .map(|w| order::move_time(&w[0], &w[1], &speeds)),
+        )
+        .collect();
     let time_sorted: f64 = move_times.iter().sum();
-    let path = Path { poses: wq, move_times, time_unsorted, time_sorted };
+    let path = Path {
+        poses: wq,
+        move_times,
+        time_unsorted,
+        time_sorted,
+    };
 
     let measured = plan.waypoints.iter().filter(|w| !w.support).count();
     let cond = selection
@@ -606,7 +678,9 @@ fn order_sections(
     let all: Vec<[f64; 6]> = chosen.iter().map(|&i| pool.candidates[i].q).collect();
     let identity: Vec<usize> = (0..all.len()).collect();
     let time_unsorted = order::path_time(&all, &identity, speeds);
-    let mut left: Vec<usize> = (0..groups).filter(|g| chosen.iter().any(|&i| group[i] == *g)).collect();
+    let mut left: Vec<usize> = (0..groups)
+        .filter(|g| chosen.iter().any(|&i| group[i] == *g))
+        .collect();
     let mut here = *start;
     let mut sections = Vec::new();
     while !left.is_empty() {
@@ -615,23 +689,42 @@ fn order_sections(
             .iter()
             .enumerate()
             .map(|(gi, &g)| {
-                let d = chosen.iter().filter(|&&i| group[i] == g).map(|&i| order::move_time(&here, &pool.candidates[i].q, speeds)).fold(f64::INFINITY, f64::min);
+                let d = chosen
+                    .iter()
+                    .filter(|&&i| group[i] == g)
+                    .map(|&i| order::move_time(&here, &pool.candidates[i].q, speeds))
+                    .fold(f64::INFINITY, f64::min);
                 (gi, d)
             })
             .fold((0, f64::INFINITY), |b, c| if c.1 < b.1 { c } else { b });
         let g = left.remove(gi);
-        let poses: Vec<[f64; 6]> = chosen.iter().filter(|&&i| group[i] == g).map(|&i| pool.candidates[i].q).collect();
+        let poses: Vec<[f64; 6]> = chosen
+            .iter()
+            .filter(|&&i| group[i] == g)
+            .map(|&i| pool.candidates[i].q)
+            .collect();
         let first = (0..poses.len())
             .map(|k| (k, order::move_time(&here, &poses[k], speeds)))
             .fold((0, f64::INFINITY), |b, c| if c.1 < b.1 { c } else { b })
             .0;
         let tour = order::solve(&poses, first, speeds)?;
-        let ordered: Vec<[f64; 6]> = tour.order.iter().map(|&k| poses[k]).collect();
+        // Plan on exactly the joint values the program text will carry.
+        let ordered: Vec<[f64; 6]> = tour
+            .order
+            .iter()
+            .map(|&k| emit::emitted(&poses[k]))
+            .collect();
         if let Some(last) = ordered.last() {
             here = *last;
         }
-        let support: Vec<[f64; 6]> = (0..pool.candidates.len()).filter(|&i| group[i] == g).map(|i| pool.candidates[i].q).collect();
-        sections.push(safepath::Section { tour: ordered, pool: support });
+        let support: Vec<[f64; 6]> = (0..pool.candidates.len())
+            .filter(|&i| group[i] == g)
+            .map(|i| emit::emitted(&pool.candidates[i].q))
+            .collect();
+        sections.push(safepath::Section {
+            tour: ordered,
+            pool: support,
+        });
     }
     Ok((sections, time_unsorted))
 }

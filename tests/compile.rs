@@ -67,21 +67,37 @@ fn every_shared_robot_compiles_with_a_fixture_in_reach() {
 }
 
 #[test]
-fn a_robot_without_a_tool_warns_about_the_flange_axis() {
+fn a_map_on_the_joint6_axis_compiles_with_a_warning_and_fewer_parameters() {
+    // The MAP 200 mm out along the flange axis of the DH robot: q6 cannot move it.
     let dir = tempdir();
     let out = dir.path().join("p.nc");
-    let r = edbbgen([
-        shared_robot("kuka_kr120_r2500pro").display().to_string(),
-        "--fixture".into(),
-        "1400,400,700".into(),
-        "--step".into(),
-        "20".into(),
-        "-o".into(),
-        out.display().to_string(),
-    ]);
+    let r = compile(&nj130_dh(), &["--tool", "0,0,200", "--step", "20"], &out);
     assert_eq!(r.code, 0, "{}", r.stderr);
-    assert!(r.stderr.contains("flange origin"), "{}", r.stderr);
     assert!(r.stderr.contains("lies on the flange axis"), "{}", r.stderr);
+    let text = std::fs::read_to_string(&out).unwrap();
+    let n: usize = text
+        .split("identifiable parameters: ")
+        .nth(1)
+        .unwrap()
+        .split(';')
+        .next()
+        .unwrap()
+        .parse()
+        .unwrap();
+    assert!(n < 22, "{n}");
+    // A URDF without a declared tool: the MAP is the flange origin, and `model` says so.
+    let m = edbbgen([
+        "model",
+        shared_robot("kuka_kr120_r2500pro").to_str().unwrap(),
+        "--fixture",
+        "1400,400,700",
+    ]);
+    assert_eq!(m.code, 0, "{}", m.stderr);
+    assert!(
+        m.stderr.contains("the MAP is the flange origin"),
+        "{}",
+        m.stderr
+    );
 }
 
 #[test]

@@ -22,6 +22,11 @@ pub fn round_deg(v: f64) -> f64 {
     (v * k).round() / k
 }
 
+/// A joint vector (rad) exactly as the program text will carry it (and `verify` read it back).
+pub fn emitted(q: &[f64; 6]) -> [f64; 6] {
+    q.map(|r| round_deg(crate::units::to_deg(r)) * crate::units::DEG)
+}
+
 /// The inverse-time feed word for a move of `seconds`: 60/t rounded *down* to 4 decimals, so
 /// the move never runs faster than planned.
 pub fn inverse_time_feed(seconds: f64) -> String {

@@ -131,7 +131,7 @@ pub fn load(path: &Path, opts: &LoadOptions) -> Result<Robot, LoadError> {
         .and_then(|e| e.to_str())
         .unwrap_or("")
         .to_ascii_lowercase();
-    let robot = match ext.as_str() {
+    let mut robot = match ext.as_str() {
         "urdf" | "xml" => urdf::from_str(&text, path, opts)?,
         "toml" => dh::from_str(&text, path)?,
         _ => {
@@ -141,6 +141,12 @@ pub fn load(path: &Path, opts: &LoadOptions) -> Result<Robot, LoadError> {
             ))
         }
     };
+    // Speeds from the cell file replace the robot file's (e.g. a URDF without velocities).
+    if let Some(s) = opts.speeds {
+        for (j, v) in robot.joints.iter_mut().zip(s) {
+            j.max_speed = v;
+        }
+    }
     robot.validate(path)?;
     Ok(Robot {
         digest: sha256_hex(text.as_bytes()),

@@ -42,7 +42,10 @@ fn one_line(s: &str) -> String {
 }
 
 fn convert(text: &str, path: &Path, opts: &LoadOptions) -> Result<Robot, String> {
-    let doc = urdf_rs::read_from_string(text).map_err(|e| format!("not a valid URDF: {e}"))?;
+    // urdf-rs refuses a <limit> without a velocity; such a joint is a speed we do not know
+    // (velocity 0), which `Robot::validate` turns into a request for speeds.
+    let patched = with_default_velocity(text);
+    let doc = urdf_rs::read_from_string(&patched).map_err(|e| format!("not a valid URDF: {e}"))?;
     let tree = Tree::new(&doc)?;
     let flange_link = pick_flange(&doc, &tree, opts)?;
     let chain = tree.path_from_root(&doc, flange_link);
@@ -524,6 +527,38 @@ fn resolve_mesh(filename: &str, urdf_dir: &Path, opts: &LoadOptions) -> Result<P
     }
 }
 
+/// Adds `velocity="0"` to every `<limit .../>` element that has no velocity attribute.
+fn with_default_velocity(text: &str) -> std::borrow::Cow<'_, str> {
+    if !text.contains("<limit") {
+        return std::borrow::Cow::Borrowed(text);
+    }
+    let mut out = String::with_capacity(text.len() + 64);
+    let mut rest = text;
+    let mut changed = false;
+    while let Some(i) = rest.find("<limit") {
+        let (head, tail) = rest.split_at(i);
+        out.push_str(head);
+        let end = tail.find('>').map_or(tail.len(), |e| e + 1);
+        let elem = &tail[..end];
+        // "<limit" must be the whole tag name (not e.g. "<limits").
+        let is_limit = elem[6..].starts_with(|c: char| c.is_whitespace() || c == '/' || c == '>');
+        if is_limit && !elem.contains("velocity") {
+            out.push_str("<limit velocity=\"0\"");
+            out.push_str(&elem[6..]);
+            changed = true;
+        } else {
+            out.push_str(elem);
+        }
+        rest = &tail[end..];
+    }
+    out.push_str(rest);
+    if changed {
+        std::borrow::Cow::Owned(out)
+    } else {
+        std::borrow::Cow::Borrowed(text)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -783,8 +818,14 @@ mod tests {
             "{m}"
         );
 
-        let m = error(&arm(6, "").replace("velocity=\"1\"", ""), &o);
-        assert!(m.contains("not a valid URDF"), "{m}");
+        // A <limit> without a velocity is a speed we do not know: loading asks for speeds.
+        let path = Path::new("inline.urdf");
+        let robot = from_str(&arm(6, "").replace("velocity=\"1\"", ""), path, &o).expect("parses");
+        let m = robot.validate(path).unwrap_err().to_string();
+        assert!(
+            m.contains("max speed missing or zero") && m.contains("speeds"),
+            "{m}"
+        );
     }
 
     #[test]

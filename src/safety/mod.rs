@@ -128,7 +128,10 @@ impl<'a> Checker<'a> {
 
     /// The same checks with the bar removed.
     pub fn unmounted(&self) -> Self {
-        Checker { mounted: false, ..*self }
+        Checker {
+            mounted: false,
+            ..*self
+        }
     }
 
     /// The full check of one pose.
@@ -156,6 +159,28 @@ impl<'a> Checker<'a> {
         );
         let map = frames[7].apply(&self.model.nominal.map);
         let cup = frames[7].r * self.cell.tool_axis;
+        if !self.mounted {
+            if !self.cell.cables_admit(q) {
+                let detail = self.describe(Reason::CableLimit, q, &map, &cup);
+                return Err(Violation {
+                    reason: Reason::CableLimit,
+                    detail,
+                });
+            }
+            if let Some(c) = self.scene.violation_unmounted(&frames, self.margin) {
+                let detail = describe_contact(&c, self.margin);
+                return Err(Violation {
+                    reason: Reason::Collision,
+                    detail,
+                });
+            }
+            let length = (map - self.cell.fixture).norm();
+            return Ok(PoseInfo {
+                length,
+                socket: 0.0,
+                cup: 0.0,
+            });
+        }
         if let Err(reason) = self.cell.verdict(q, &map, &cup) {
             return Err(Violation {
                 reason,

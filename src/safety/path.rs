@@ -60,7 +60,12 @@ pub fn plan(
     let mut deferred: Vec<(usize, Violation)> = Vec::new();
     let mut dropped = Vec::new();
     let mut supports = 0;
-    let measure = |q: &[f64; 6]| Waypoint { q: *q, support: false, transit: false, blend: 0.0 };
+    let measure = |q: &[f64; 6]| Waypoint {
+        q: *q,
+        support: false,
+        transit: false,
+        blend: 0.0,
+    };
     // Pass 1: the tour as ordered; a pose that cannot be reached safely (not even through
     // support poses) is deferred, and the tour goes on from where it is.
     for (idx, q) in tour.iter().enumerate() {
@@ -93,7 +98,12 @@ pub fn plan(
                     Some(vias) => {
                         ext.merge(&e);
                         supports += vias.len();
-                        wps.extend(vias.into_iter().map(|v| Waypoint { q: v, support: true, transit: false, blend: 0.0 }));
+                        wps.extend(vias.into_iter().map(|v| Waypoint {
+                            q: v,
+                            support: true,
+                            transit: false,
+                            blend: 0.0,
+                        }));
                         wps.push(measure(q));
                     }
                     None => deferred.push((idx, violation)),
@@ -135,13 +145,20 @@ pub fn plan(
             let out = match b {
                 None => Some(Vec::new()),
                 Some(b) if ck.line(&q, &b, &mut e).is_ok() => Some(Vec::new()),
-                Some(b) if rank < INSERT_WITH_SUPPORT => super::roadmap::connect(ck, &q, &b, pool, speeds, &mut e),
+                Some(b) if rank < INSERT_WITH_SUPPORT => {
+                    super::roadmap::connect(ck, &q, &b, pool, speeds, &mut e)
+                }
                 Some(_) => None,
             };
             let Some(out) = out else { continue };
             ext.merge(&e);
             supports += into.len() + out.len();
-            let support = |v: [f64; 6]| Waypoint { q: v, support: true, transit: false, blend: 0.0 };
+            let support = |v: [f64; 6]| Waypoint {
+                q: v,
+                support: true,
+                transit: false,
+                blend: 0.0,
+            };
             let mut seq: Vec<Waypoint> = into.into_iter().map(support).collect();
             seq.push(measure(&q));
             seq.extend(out.into_iter().map(support));
@@ -201,12 +218,31 @@ pub struct Section {
 
 /// Plans every section (bar mounted) and the transits between them (bar removed). A section
 /// whose transit cannot be made safe is dropped whole.
-pub fn plan_sections(ck: &Checker, sections: &[Section], blend_distance: f64, speeds: &[f64; 6], seed: u64) -> Plan {
+pub fn plan_sections(
+    ck: &Checker,
+    sections: &[Section],
+    blend_distance: f64,
+    speeds: &[f64; 6],
+    seed: u64,
+) -> Plan {
     let free = ck.unmounted();
-    let mut out = Plan { waypoints: Vec::new(), supports: 0, dropped: Vec::new(), exact_stops: 0, extremes: Extremes::default() };
+    let mut out = Plan {
+        waypoints: Vec::new(),
+        supports: 0,
+        dropped: Vec::new(),
+        exact_stops: 0,
+        extremes: Extremes::default(),
+    };
     let mut offset = 0;
     for (k, sec) in sections.iter().enumerate() {
-        let mut p = plan(ck, &sec.tour, &sec.pool, blend_distance, speeds, seed ^ k as u64);
+        let mut p = plan(
+            ck,
+            &sec.tour,
+            &sec.pool,
+            blend_distance,
+            speeds,
+            seed ^ k as u64,
+        );
         for d in &mut p.dropped {
             d.index += offset;
         }
@@ -220,19 +256,38 @@ pub fn plan_sections(ck: &Checker, sections: &[Section], blend_distance: f64, sp
         if let Some(last) = out.waypoints.last().map(|w| w.q) {
             let mut e = Extremes::default();
             if let Err((_, v)) = free.line(&last, &first, &mut e) {
-                let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed ^ 0x7472_616e_7369_74 ^ k as u64);
-                match find_support(&free, &last, &first, &[], speeds, &mut rng, MAX_DEPTH, &mut e) {
+                let mut rng =
+                    rand_chacha::ChaCha8Rng::seed_from_u64(seed ^ 0x0074_7261_6e73_6974 ^ k as u64);
+                match find_support(
+                    &free,
+                    &last,
+                    &first,
+                    &[],
+                    speeds,
+                    &mut rng,
+                    MAX_DEPTH,
+                    &mut e,
+                ) {
                     Some(v) => vias = v,
                     None => {
                         let q = sec.tour[0];
-                        out.dropped.push(Dropped { index: offset - sec.tour.len(), q, violation: v });
+                        out.dropped.push(Dropped {
+                            index: offset - sec.tour.len(),
+                            q,
+                            violation: v,
+                        });
                         continue;
                     }
                 }
             }
         }
         out.supports += vias.len() + p.supports;
-        out.waypoints.extend(vias.into_iter().map(|q| Waypoint { q, support: true, transit: true, blend: 0.0 }));
+        out.waypoints.extend(vias.into_iter().map(|q| Waypoint {
+            q,
+            support: true,
+            transit: true,
+            blend: 0.0,
+        }));
         p.waypoints[0].transit = true;
         out.waypoints.append(&mut p.waypoints);
         out.dropped.append(&mut p.dropped);
@@ -275,6 +330,8 @@ fn find_support(
         let m: [f64; 6] = std::array::from_fn(|i| {
             (mid[i] + rng.random_range(-scale..=scale)).clamp(lo[i], hi[i])
         });
+        // Exactly as the program will carry it.
+        let m = crate::emit::emitted(&m);
         if ck.pose(&m).is_err() {
             continue;
         }

@@ -141,7 +141,10 @@ pub fn components(ck: &Checker, pool: &[[f64; 6]], speeds: &[f64; 6], k: usize) 
     let edges: Vec<Vec<usize>> = (0..n)
         .into_par_iter()
         .map(|i| {
-            let mut near: Vec<(f64, usize)> = (0..n).filter(|&j| j != i).map(|j| (move_time(&pool[i], &pool[j], speeds), j)).collect();
+            let mut near: Vec<(f64, usize)> = (0..n)
+                .filter(|&j| j != i)
+                .map(|j| (move_time(&pool[i], &pool[j], speeds), j))
+                .collect();
             let kk = k.min(near.len());
             if kk == 0 {
                 return Vec::new();
@@ -149,7 +152,11 @@ pub fn components(ck: &Checker, pool: &[[f64; 6]], speeds: &[f64; 6], k: usize) 
             near.select_nth_unstable_by(kk - 1, |x, y| x.0.total_cmp(&y.0).then(x.1.cmp(&y.1)));
             near[..kk]
                 .iter()
-                .filter(|&&(_, j)| [0.25, 0.5, 0.75].iter().all(|&s| ck.pose(&super::lerp(&pool[i], &pool[j], s)).is_ok()))
+                .filter(|&&(_, j)| {
+                    [0.25, 0.5, 0.75]
+                        .iter()
+                        .all(|&s| ck.pose(&super::lerp(&pool[i], &pool[j], s)).is_ok())
+                })
                 .map(|&(_, j)| j)
                 .collect()
         })

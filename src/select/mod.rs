@@ -777,13 +777,7 @@ mod tests {
         let fixture = nalgebra::Vector3::new(258.0, 1468.0, 708.0) * MM;
         let map = nalgebra::Vector3::new(60.0, 30.0, 120.0) * MM;
         let model = MeasurementModel::new(&robot, fixture, map);
-        let cell = crate::ir::Cell {
-            fixture,
-            map,
-            bar_min: 0.30,
-            bar_max: 0.52,
-            floor_z: 0.0,
-        };
+        let cell = crate::ir::Cell::shell_only(fixture, map, 0.30, 0.52, 0.0);
         let cfg = crate::sample::SampleConfig {
             step: [10.0 * DEG; 6],
             max_candidates: 300,

@@ -56,13 +56,25 @@ pub fn simulate(
     opts: &SimOptions,
 ) -> Result<Measured, SimError> {
     let traj = Trajectory::from_program(robot, model, program)?;
-    let (t0, t1) = traj.window;
-    if t1 - t0 < 2.0 / opts.rate {
+    // Sample times: every window with the bar in place, on one clock (gaps between sections).
+    let times: Vec<f64> = traj
+        .windows
+        .iter()
+        .flat_map(|&(a, b)| {
+            let n = ((b - a) * opts.rate).floor() as usize + 1;
+            (0..n).map(move |k| a + k as f64 / opts.rate)
+        })
+        .collect();
+    let (t0, t1) = (
+        traj.windows.first().map_or(0.0, |w| w.0),
+        traj.windows.last().map_or(0.0, |w| w.1),
+    );
+    if times.len() < 3 || t1 - t0 < 2.0 / opts.rate {
         return Err(SimError::Empty(
             "the program records nothing: no motion between the M0 that mounts the bar and the one that removes it".into(),
         ));
     }
-    let n = ((t1 - t0) * opts.rate).floor() as usize + 1;
+    let n = times.len();
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(opts.seed);
     let nominal = model.nominal.to_array();
     let mut truep = nominal;
@@ -86,8 +98,7 @@ pub fn simulate(
             .filter(|th| th.temp_log)
             .map(|_| Vec::with_capacity(n)),
     };
-    for k in 0..n {
-        let ts = t0 + k as f64 / opts.rate;
+    for &ts in &times {
         let t = ts - t0;
         let setpoint = traj.position(ts);
         // Servo lag: the axes follow the logged setpoints with a delay.

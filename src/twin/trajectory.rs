@@ -10,9 +10,10 @@
 //!   controller superposes the two (overlapping blend). The overlap is the time in which the
 //!   MAP is within the blend distance of the corner (straight-line MAP distance along the move),
 //!   at most half of either move. The superposed trajectory stays smooth (C²).
-//! - G4 dwells stand still; an M0 pause ends any blend. The bar is mounted at the first M0 and
-//!   removed at the second: the recording window lies between them (the whole program when it
-//!   has no M0; from the first M0 to the end when it has one).
+//! - G4 dwells stand still; an M0 pause ends any blend. The bar is mounted at the first M0,
+//!   removed at the second, mounted again at the third (programs in sections), and so on: the
+//!   recording windows are the intervals with the bar in place (the whole program when it has
+//!   no M0).
 
 use super::SimError;
 use crate::model::MeasurementModel;
@@ -35,8 +36,8 @@ pub struct Trajectory {
     prefix: Vec<[f64; 6]>,
     /// End times of the segments (non-decreasing).
     ends: Vec<f64>,
-    /// Recording window [start, end] (s, program time).
-    pub window: (f64, f64),
+    /// Recording windows [start, end] (s, program time): the intervals with the bar in place.
+    pub windows: Vec<(f64, f64)>,
 }
 
 fn profile(u: f64) -> f64 {
@@ -143,17 +144,23 @@ impl Trajectory {
         for k in 1..ends.len() {
             ends[k] = ends[k].max(ends[k - 1]);
         }
-        let window = match pauses.as_slice() {
-            [] => (0.0, t_end),
-            [a] => (*a, t_end),
-            [a, b, ..] => (*a, *b),
+        // The bar goes in at the first M0, out at the next, in again at the third (a program in
+        // sections), and so on; without any M0 it is in place for the whole program.
+        let windows: Vec<(f64, f64)> = if pauses.is_empty() {
+            vec![(0.0, t_end)]
+        } else {
+            pauses
+                .chunks(2)
+                .map(|p| (p[0], p.get(1).copied().unwrap_or(t_end)))
+                .filter(|(a, b)| b > a)
+                .collect()
         };
         Ok(Trajectory {
             start,
             segs,
             prefix,
             ends,
-            window,
+            windows,
         })
     }
 

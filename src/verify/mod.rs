@@ -96,14 +96,24 @@ pub fn check_text(ck: &Checker, robot: &Robot, text: &str) -> Result<Summary, Fa
     let mut prev: Option<[f64; 6]> = None;
     for (k, l) in parsed.lines.iter().enumerate() {
         match &l.step {
-            Step::Move { rapid, target, feed, blend } => {
+            Step::Move {
+                rapid,
+                target,
+                feed,
+                blend,
+            } => {
                 let q = target.map(|d| d * DEG);
                 let min_time = prev.map_or(0.0, |p| move_time(&p, &q, &speeds));
                 let duration = match (rapid, feed) {
                     (true, _) => min_time,
                     (false, Some((FeedMode::InverseTime, f))) => 60.0 / f,
                     (false, Some((FeedMode::UnitsPerMinute, f))) => {
-                        let dist: f64 = prev.map_or(0.0, |p| (0..6).map(|i| (target[i] - p[i] / DEG).powi(2)).sum::<f64>().sqrt());
+                        let dist: f64 = prev.map_or(0.0, |p| {
+                            (0..6)
+                                .map(|i| (target[i] - p[i] / DEG).powi(2))
+                                .sum::<f64>()
+                                .sqrt()
+                        });
                         60.0 * dist / f
                     }
                     (false, None) => min_time,
@@ -113,12 +123,27 @@ pub fn check_text(ck: &Checker, robot: &Robot, text: &str) -> Result<Summary, Fa
                         l.line,
                         0.0,
                         Reason::JointSpeed,
-                        format!("move takes {} s but the slowest axis needs {} s at its maximum speed", fmt_fixed(duration, 3), fmt_fixed(min_time, 3)),
+                        format!(
+                            "move takes {} s but the slowest axis needs {} s at its maximum speed",
+                            fmt_fixed(duration, 3),
+                            fmt_fixed(min_time, 3)
+                        ),
                     ));
                 }
-                let flows_on = matches!(parsed.lines.get(k + 1).map(|n| &n.step), Some(Step::Move { .. }));
+                let flows_on = matches!(
+                    parsed.lines.get(k + 1).map(|n| &n.step),
+                    Some(Step::Move { .. })
+                );
                 let support = l.comment.as_deref().is_some_and(|c| c.contains("support"));
-                motions.push(Motion { line: l.line, target: q, duration, blend: blend.unwrap_or(0.0) * 1e-3, support, flows_on, mounted });
+                motions.push(Motion {
+                    line: l.line,
+                    target: q,
+                    duration,
+                    blend: blend.unwrap_or(0.0) * 1e-3,
+                    support,
+                    flows_on,
+                    mounted,
+                });
                 prev = Some(q);
             }
             Step::Pause => {
@@ -131,7 +156,12 @@ pub fn check_text(ck: &Checker, robot: &Robot, text: &str) -> Result<Summary, Fa
         }
     }
     if motions.is_empty() {
-        return Err(fail(0, 0.0, Reason::JointLimit, "the program commands no motion".into()));
+        return Err(fail(
+            0,
+            0.0,
+            Reason::JointLimit,
+            "the program commands no motion".into(),
+        ));
     }
     if mount_at.is_empty() {
         // A program without pauses: the bar is taken as mounted throughout.
@@ -141,7 +171,11 @@ pub fn check_text(ck: &Checker, robot: &Robot, text: &str) -> Result<Summary, Fa
     let free = ck.unmounted();
     let mut ext = Extremes::default();
     let mut time = 0.0;
-    let mut min_clear = Contact { distance: f64::INFINITY, a: String::new(), b: String::new() };
+    let mut min_clear = Contact {
+        distance: f64::INFINITY,
+        a: String::new(),
+        b: String::new(),
+    };
     let mut blends = 0;
     let note_clear = |q: &[f64; 6], min_clear: &mut Contact| {
         let c = ck.clearance(q);
@@ -154,31 +188,63 @@ pub fn check_text(ck: &Checker, robot: &Robot, text: &str) -> Result<Summary, Fa
         let with = if m.mounted { ck } else { &free };
         if j == 0 {
             // The approach starts wherever the robot is: only its target can be checked.
-            with.pose(&m.target).map_err(|v| Failure { line: m.line, time, violation: v })?;
+            with.pose(&m.target).map_err(|v| Failure {
+                line: m.line,
+                time,
+                violation: v,
+            })?;
         } else {
             let a = motions[j - 1].target;
             let mut e = Extremes::default();
             if let Err((s, v)) = with.line(&a, &m.target, &mut e) {
-                return Err(Failure { line: m.line, time: time + s * m.duration, violation: v });
+                return Err(Failure {
+                    line: m.line,
+                    time: time + s * m.duration,
+                    violation: v,
+                });
             }
             ext.merge(&e);
             time += m.duration;
         }
         // Where the bar goes in, the pose must hold it.
         if mount_at.contains(&(j + 1)) {
-            ck.pose(&m.target).map_err(|v| Failure { line: m.line, time, violation: Violation { reason: v.reason, detail: format!("where the bar is mounted: {}", v.detail) } })?;
+            ck.pose(&m.target).map_err(|v| Failure {
+                line: m.line,
+                time,
+                violation: Violation {
+                    reason: v.reason,
+                    detail: format!("where the bar is mounted: {}", v.detail),
+                },
+            })?;
         }
         if m.mounted {
             note_clear(&m.target, &mut min_clear);
         }
         // The corner at the end of this move, blended when the next motion follows directly.
-        if m.mounted && m.blend > 0.0 && m.flows_on && j > 0 && j + 1 < motions.len() && motions[j + 1].mounted {
+        if m.mounted
+            && m.blend > 0.0
+            && m.flows_on
+            && j > 0
+            && j + 1 < motions.len()
+            && motions[j + 1].mounted
+        {
             let (a, b) = (motions[j - 1].target, motions[j + 1].target);
             if let Some(bl) = blend::geometry(ck.model, &a, &m.target, &b, m.blend) {
                 let mut e = Extremes::default();
                 if let Err((_, v)) = crate::safety::path::check_blend(ck, &bl, &mut e) {
-                    let detail = format!("in the {} mm blend at the end of this move: {}", fmt_fixed(to_mm(m.blend), 1), v.detail);
-                    return Err(Failure { line: m.line, time, violation: Violation { reason: v.reason, detail } });
+                    let detail = format!(
+                        "in the {} mm blend at the end of this move: {}",
+                        fmt_fixed(to_mm(m.blend), 1),
+                        v.detail
+                    );
+                    return Err(Failure {
+                        line: m.line,
+                        time,
+                        violation: Violation {
+                            reason: v.reason,
+                            detail,
+                        },
+                    });
                 }
                 ext.merge(&e);
                 note_clear(&bl.point(0.5), &mut min_clear);
@@ -187,7 +253,12 @@ pub fn check_text(ck: &Checker, robot: &Robot, text: &str) -> Result<Summary, Fa
         }
     }
     if min_clear.distance < ck.margin {
-        return Err(fail(0, time, Reason::Collision, describe_contact(&min_clear, ck.margin)));
+        return Err(fail(
+            0,
+            time,
+            Reason::Collision,
+            describe_contact(&min_clear, ck.margin),
+        ));
     }
     Ok(Summary {
         moves: motions.len(),
