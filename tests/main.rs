@@ -4,5 +4,6 @@ mod common;
 
 mod cli_errors;
 mod compile;
+mod linuxcnc;
 mod model_cmd;
 mod snapshots;
