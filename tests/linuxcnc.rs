@@ -1,0 +1,321 @@
+//! LinuxCNC's own G-code interpreter reads every emitted program: `rs274`, the standalone
+//! RS274/NGC interpreter of Debian's `linuxcnc-uspace`, must accept it without a message, and its
+//! canonical machine commands are checked against the program text, independently of edbbgen:
+//! one STRAIGHT_TRAVERSE per G0 and one STRAIGHT_FEED per G1, in order, each ending at the
+//! line's joint values; each G1's feed rate is its length times its inverse-time F (so the move
+//! takes 60/F s, its planned time); the G64 blend tolerance and both M0 pauses arrive.
+//!
+//! A missing `rs274` fails the tests (CI installs it): see [`INSTALL`].
+
+use crate::common::*;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+
+const INSTALL: &str =
+    "apt-get update && apt-get install -y --no-install-recommends linuxcnc-uspace";
+
+/// The interpreter on PATH (or in /usr/bin, where Debian puts it); panics when it is missing.
+fn rs274() -> PathBuf {
+    let on_path = std::env::var_os("PATH")
+        .map(|p| std::env::split_paths(&p).collect::<Vec<_>>())
+        .unwrap_or_default();
+    on_path
+        .into_iter()
+        .chain([PathBuf::from("/usr/bin")])
+        .map(|d| d.join("rs274"))
+        .find(|p| p.is_file())
+        .unwrap_or_else(|| {
+            panic!(
+                "rs274 (LinuxCNC's standalone G-code interpreter) is not installed; \
+                 these tests need it: run `{INSTALL}`"
+            )
+        })
+}
+
+fn config(name: &str) -> PathBuf {
+    root().join("tests/linuxcnc").join(name)
+}
+
+/// Runs rs274 in batch mode on `text` and returns its canonical output (stdout). Fails on a
+/// non-zero exit (with `-n 2` the interpreter stops and exits 1 on its first error) and on any
+/// stderr line but its banner "executing": errors, and a missing INI file, are only reported there.
+fn interpret(label: &str, text: &str) -> String {
+    let dir = tempdir();
+    let program = dir.path().join("program.ngc");
+    std::fs::write(&program, text).unwrap();
+    let (ini, tbl) = (config("edbb.ini"), config("tool.tbl"));
+    assert!(
+        ini.is_file() && tbl.is_file(),
+        "tests/linuxcnc/ is incomplete"
+    );
+    let out = Command::new(rs274())
+        .args(["-g", "-n", "2", "-i"])
+        .arg(&ini)
+        .arg("-t")
+        .arg(&tbl)
+        .arg(&program)
+        // Whatever it writes beside the program (a parameter file) stays in the temp dir.
+        .current_dir(dir.path())
+        .stdin(Stdio::null())
+        .output()
+        .expect("run rs274");
+    let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
+    let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
+    let messages: Vec<&str> = stderr
+        .lines()
+        .filter(|l| !l.trim().is_empty() && l.trim() != "executing")
+        .collect();
+    assert!(
+        out.status.success() && messages.is_empty(),
+        "{label}: rs274 rejected the program (exit {:?}):\n{}\n-- last canonical lines:\n{}",
+        out.status.code(),
+        messages.join("\n"),
+        tail(&stdout, 8)
+    );
+    stdout
+}
+
+fn tail(s: &str, n: usize) -> String {
+    let lines: Vec<&str> = s.lines().collect();
+    lines[lines.len().saturating_sub(n)..].join("\n")
+}
+
+/// One canonical call `NAME(args)` of a line such as `   24 N..... STRAIGHT_FEED(1.0, ...)`.
+fn canon_call(line: &str) -> Option<(&str, &str)> {
+    let open = line.find('(')?;
+    let name = line[..open].split_whitespace().last()?;
+    let args = &line[open + 1..line.rfind(')')?];
+    Some((name, args))
+}
+
+fn numbers(args: &str) -> Vec<f64> {
+    args.split(',')
+        .map(|a| a.trim().parse().unwrap_or(f64::NAN))
+        .collect()
+}
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Kind {
+    Traverse,
+    Feed,
+}
+
+/// A motion line of the program text: kind, joint values (deg) and F (G1 only).
+struct Line {
+    kind: Kind,
+    q: [f64; 6],
+    f: Option<f64>,
+}
+
+/// The program's motion lines, its G64 P value and its M0 count, read from the text.
+fn read_program(text: &str) -> (Vec<Line>, f64, usize) {
+    assert!(
+        text.lines().any(|l| l.starts_with("G21 ")) && !text.contains("G20"),
+        "the program is in mm (G21)"
+    );
+    let poses = program_poses(text);
+    let mut lines = Vec::new();
+    let (mut blend, mut stops) = (f64::NAN, 0);
+    for line in text.lines() {
+        let code = line.split('(').next().unwrap_or("").trim();
+        let word = |letter: char| {
+            code.split_whitespace()
+                .find_map(|w| w.strip_prefix(letter))
+                .map(|v| v.parse::<f64>().expect("number"))
+        };
+        match code.split_whitespace().next() {
+            Some("G0") | Some("G1") => lines.push(Line {
+                kind: if code.starts_with("G0") {
+                    Kind::Traverse
+                } else {
+                    Kind::Feed
+                },
+                q: poses[lines.len()],
+                f: word('F'),
+            }),
+            Some("G64") => blend = word('P').expect("G64 P"),
+            Some("M0") => stops += 1,
+            _ => {}
+        }
+    }
+    assert_eq!(lines.len(), poses.len());
+    (lines, blend, stops)
+}
+
+/// Interprets `text` with rs274 and checks its canonical commands against the program text.
+fn check(label: &str, text: &str) {
+    let (lines, blend, stops) = read_program(text);
+    assert!(
+        lines.len() > 10 && lines[0].kind == Kind::Traverse,
+        "{label}: a G0 approach and the measurement moves"
+    );
+    let canon = interpret(label, text);
+
+    let mut mm_per_unit = 1.0; // canonical lengths are in the interpreter's active units
+    let mut rate = 0.0; // the last SET_FEED_RATE, length units per minute
+    let mut at = [0.0f64; 6]; // the interpreter starts at the origin
+    let mut moves = 0;
+    let (mut program_stops, mut ended, mut tolerance) = (0, false, None);
+    for line in canon.lines() {
+        let Some((name, args)) = canon_call(line) else {
+            continue;
+        };
+        match name {
+            "USE_LENGTH_UNITS" => {
+                mm_per_unit = match args {
+                    "CANON_UNITS_MM" => 1.0,
+                    "CANON_UNITS_INCHES" => 25.4,
+                    "CANON_UNITS_CM" => 10.0,
+                    other => panic!("{label}: unknown units {other}"),
+                }
+            }
+            "SET_FEED_RATE" => rate = numbers(args)[0] * mm_per_unit,
+            "SET_MOTION_CONTROL_MODE" => tolerance = Some(args.to_string()),
+            "PROGRAM_STOP" => program_stops += 1,
+            "PROGRAM_END" => ended = true,
+            "STRAIGHT_TRAVERSE" | "STRAIGHT_FEED" => {
+                let v = numbers(args);
+                assert_eq!(v.len(), 6, "{label}: X Y Z A B C in {line}");
+                let mut q = [0.0; 6];
+                for i in 0..6 {
+                    // X Y Z carry joints 1-3 as lengths; A B C are degrees in any units mode.
+                    q[i] = if i < 3 { v[i] * mm_per_unit } else { v[i] };
+                }
+                let Some(want) = lines.get(moves) else {
+                    panic!("{label}: more canonical moves than motion lines: {line}");
+                };
+                let kind = if name == "STRAIGHT_FEED" {
+                    Kind::Feed
+                } else {
+                    Kind::Traverse
+                };
+                assert_eq!(kind, want.kind, "{label}: motion {} is {name}", moves + 1);
+                for i in 0..6 {
+                    assert!(
+                        (q[i] - want.q[i]).abs() <= 5e-5,
+                        "{label}: motion {} ends at {q:?}, the program says {:?}",
+                        moves + 1,
+                        want.q
+                    );
+                }
+                if kind == Kind::Feed {
+                    // Inverse time (G93): the interpreter turns F (1/min) into a feed rate over
+                    // the move's length: the X Y Z length, or the A B C one for a pure rotation.
+                    let f = want.f.expect("G1 has F");
+                    let d = |r: std::ops::Range<usize>| {
+                        r.map(|i| (q[i] - at[i]).powi(2)).sum::<f64>().sqrt()
+                    };
+                    let length = if d(0..3) > 0.0 { d(0..3) } else { d(3..6) };
+                    if length > 0.0 {
+                        assert!(
+                            (rate - length * f).abs() <= 1e-4 * mm_per_unit + 1e-9 * rate,
+                            "{label}: motion {} runs at {rate} per min over {length}, \
+                             not in 60/F = {} s",
+                            moves + 1,
+                            60.0 / f
+                        );
+                    }
+                }
+                at = q;
+                moves += 1;
+            }
+            "ARC_FEED" | "STRAIGHT_PROBE" | "NURBS_FEED" | "RIGID_TAP" => {
+                panic!("{label}: unexpected motion {line}")
+            }
+            _ => {}
+        }
+    }
+    let count = |k: Kind| lines.iter().filter(|l| l.kind == k).count();
+    assert_eq!(
+        moves,
+        lines.len(),
+        "{label}: {moves} canonical moves for {} G0 and {} G1 lines",
+        count(Kind::Traverse),
+        count(Kind::Feed)
+    );
+    assert_eq!(
+        tolerance
+            .as_deref()
+            .map(|t| t.split(',').map(str::trim).collect::<Vec<_>>()),
+        Some(vec!["CANON_CONTINUOUS", &format!("{blend:.6}")]),
+        "{label}: G64 P{blend} blends (continuous mode within the tolerance)"
+    );
+    assert_eq!(program_stops, stops, "{label}: every M0 pauses the program");
+    assert!(stops >= 2, "{label}: M0 to mount and to remove the bar");
+    assert!(ended, "{label}: the program ends (M2)");
+}
+
+fn compile(robot: &Path, extra: &[&str]) -> String {
+    let dir = tempdir();
+    let out = dir.path().join("p.nc");
+    let mut args = vec![robot.display().to_string()];
+    args.extend(extra.iter().map(|s| s.to_string()));
+    args.extend(["-q".into(), "-o".into(), out.display().to_string()]);
+    let r = edbbgen(&args);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    std::fs::read_to_string(&out).unwrap()
+}
+
+const FAST: &[&str] = &["--step", "20", "--max-candidates", "600"];
+
+#[test]
+fn rs274_accepts_the_nj130_program() {
+    let mut extra = vec!["--fixture", "258,1468,708"];
+    extra.extend(FAST);
+    check("NJ-130", &compile(&nj130_dh(), &extra));
+}
+
+/// The golden NJ-130 program: the insta snapshot less its header (a `---` line, metadata, a
+/// `---` line).
+fn golden() -> String {
+    let snap = std::fs::read_to_string(root().join("snapshots/gcode@nj130_default.snap"))
+        .expect("golden snapshot");
+    let body = snap
+        .strip_prefix("---\n")
+        .and_then(|rest| rest.split_once("\n---\n"))
+        .map(|(_, body)| body)
+        .expect("insta header");
+    let mut text = body.to_string();
+    if !text.ends_with('\n') {
+        text.push('\n');
+    }
+    text
+}
+
+#[test]
+fn rs274_accepts_the_golden_program() {
+    check("golden NJ-130", &golden());
+}
+
+#[test]
+fn rs274_accepts_every_shared_robot_program() {
+    for name in SHARED_ROBOTS {
+        let mut extra = vec!["--fixture", "1400,400,700", "--tool", "60,30,120"];
+        extra.extend(FAST);
+        check(name, &compile(&shared_robot(name), &extra));
+    }
+}
+
+/// The checker itself: what rs274 rejects fails the test, with the interpreter's message.
+#[test]
+fn rs274_rejections_fail_with_the_interpreters_message() {
+    let bad = "G21 G90 G93\nG1 X1 Y0 Z0 A0 B0 C0\nM2\n";
+    let err = std::panic::catch_unwind(|| interpret("bad", bad)).expect_err("rejected");
+    let msg = err.downcast_ref::<String>().cloned().unwrap_or_default();
+    assert!(
+        msg.contains("F word missing with inverse time g1 move"),
+        "{msg}"
+    );
+}
+
+/// The checker itself: the same moves in units-per-minute mode (G94, F as a feed rate) pass the
+/// interpreter but not the inverse-time check.
+#[test]
+fn a_program_without_inverse_time_fails_the_feed_check() {
+    let golden = golden();
+    let text = golden.replacen("\nG93 ", "\nG94 ", 1);
+    assert_ne!(text, golden);
+    let err = std::panic::catch_unwind(|| check("G94", &text)).expect_err("caught");
+    let msg = err.downcast_ref::<String>().cloned().unwrap_or_default();
+    assert!(msg.contains("not in 60/F"), "{msg}");
+}
