@@ -155,7 +155,8 @@ fn check(label: &str, text: &str) {
     let mut rate = 0.0; // the last SET_FEED_RATE, length units per minute
     let mut at = [0.0f64; 6]; // the interpreter starts at the origin
     let mut moves = 0;
-    let (mut program_stops, mut ended, mut tolerance) = (0, false, None);
+    let (mut program_stops, mut ended) = (0, false);
+    let mut modes: Vec<String> = Vec::new();
     for line in canon.lines() {
         let Some((name, args)) = canon_call(line) else {
             continue;
@@ -170,7 +171,9 @@ fn check(label: &str, text: &str) {
                 }
             }
             "SET_FEED_RATE" => rate = numbers(args)[0] * mm_per_unit,
-            "SET_MOTION_CONTROL_MODE" => tolerance = Some(args.to_string()),
+            "SET_MOTION_CONTROL_MODE" => {
+                modes.push(args.split(',').map(str::trim).collect::<Vec<_>>().join(","))
+            }
             "PROGRAM_STOP" => program_stops += 1,
             "PROGRAM_END" => ended = true,
             "STRAIGHT_TRAVERSE" | "STRAIGHT_FEED" => {
@@ -233,11 +236,36 @@ fn check(label: &str, text: &str) {
         count(Kind::Traverse),
         count(Kind::Feed)
     );
+    // The blend modes, in program order, as the text states them: G64 P = continuous within
+    // the tolerance, G61 = exact path.
+    let want: Vec<String> = text
+        .lines()
+        .map(|l| l.split('(').next().unwrap_or("").trim())
+        .flat_map(|code| {
+            let words: Vec<&str> = code.split_whitespace().collect();
+            let mut out = Vec::new();
+            for (k, w) in words.iter().enumerate() {
+                if *w == "G61" {
+                    out.push("CANON_EXACT_PATH".to_string());
+                }
+                if *w == "G64" {
+                    let p: f64 = words
+                        .get(k + 1)
+                        .and_then(|p| p.strip_prefix('P'))
+                        .and_then(|p| p.parse().ok())
+                        .expect("G64 P");
+                    out.push(format!("CANON_CONTINUOUS,{p:.6}"));
+                }
+            }
+            out
+        })
+        .collect();
     assert_eq!(
-        tolerance
-            .as_deref()
-            .map(|t| t.split(',').map(str::trim).collect::<Vec<_>>()),
-        Some(vec!["CANON_CONTINUOUS", &format!("{blend:.6}")]),
+        modes, want,
+        "{label}: the interpreter's motion-control modes"
+    );
+    assert!(
+        modes.contains(&format!("CANON_CONTINUOUS,{blend:.6}")),
         "{label}: G64 P{blend} blends (continuous mode within the tolerance)"
     );
     assert_eq!(program_stops, stops, "{label}: every M0 pauses the program");

@@ -135,18 +135,27 @@ fn find_pose(
     reason: Reason,
     f: impl Fn(&mut rand_chacha::ChaCha8Rng, &[f64; 6]) -> [f64; 6],
 ) -> [f64; 6] {
+    find_pose_any(s, q0, &[reason], f)
+}
+
+fn find_pose_any(
+    s: &Setup,
+    q0: &[f64; 6],
+    reasons: &[Reason],
+    f: impl Fn(&mut rand_chacha::ChaCha8Rng, &[f64; 6]) -> [f64; 6],
+) -> [f64; 6] {
     let ck = Checker::new(&s.robot, &s.model, &s.cell, &s.scene, s.spec.margin);
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(42);
     for _ in 0..20_000 {
         let q = f(&mut rng, q0);
         let mut e = Extremes::default();
         if let Err((_, v)) = ck.line(q0, &q, &mut e) {
-            if v.reason == reason {
+            if reasons.contains(&v.reason) {
                 return q;
             }
         }
     }
-    panic!("no pose found for {reason:?}");
+    panic!("no pose found for {reasons:?}");
 }
 
 fn first_pose(text: &str) -> [f64; 6] {
@@ -183,15 +192,36 @@ fn hand_made_unsafe_programs_fail_verify_naming_the_violation() {
     assert!(v.stderr.contains("line 7"), "{}", v.stderr);
 
     // A cone violation: turn the wrist until the cup faces away from the bar.
-    let turned = find_pose(&s, &q0, Reason::CupCone, |r, q| {
-        let mut x = *q;
-        x[4] += r.random_range(-1.5..1.5);
-        x[3] += r.random_range(-0.3..0.3);
-        x
-    });
-    let v = run_verify(&program(&q0, &[turned], &[]));
+    // A cone violation: the same good program in a cell whose tool cup allows only 10°.
+    let dir = tempdir();
+    let narrow = dir.path().join("narrow.toml");
+    let cell_text = std::fs::read_to_string(nj130_cell()).unwrap();
+    let tool_cone =
+        "axis = [0.0, 0.0, 1.0]      # cup opening along the flange z axis\ncone = 60.0";
+    assert!(
+        cell_text.contains(tool_cone),
+        "the shipped cell's tool section"
+    );
+    std::fs::write(
+        &narrow,
+        cell_text.replace(tool_cone, "axis = [0.0, 0.0, 1.0]\ncone = 10.0"),
+    )
+    .unwrap();
+    let good_path = dir.path().join("good.nc");
+    std::fs::write(&good_path, &good).unwrap();
+    let v = edbbgen([
+        "verify",
+        nj130_dh().to_str().unwrap(),
+        good_path.to_str().unwrap(),
+        "--cell",
+        narrow.to_str().unwrap(),
+    ]);
     assert_eq!(v.code, 1, "{}", v.stderr);
-    assert!(v.stderr.contains("cone"), "{}", v.stderr);
+    assert!(
+        v.stderr.contains("cup_cone") && v.stderr.contains("(cone 10.0 deg)"),
+        "{}",
+        v.stderr
+    );
 
     // A cable-limit violation where the bar is mounted: q4 one turn further (same geometry).
     let mut wound = q0;
