@@ -315,16 +315,8 @@ fn main() {
 
     // Pruning: the full cond(n) curve down to m.
     let ids: Vec<usize> = {
-        let r: Vec<[f64; N_PARAMS]> = pool3400
-            .candidates
-            .iter()
-            .map(|c| {
-                let mut r = [0.0; N_PARAMS];
-                model.jacobian_row(&model.nominal, &c.q, &mut r);
-                r
-            })
-            .collect();
-        edbbgen::model::analyse(&r, &Default::default()).identifiable
+        let qs: Vec<[f64; 6]> = pool3400.candidates.iter().map(|c| c.q).collect();
+        edbbgen::model::analyse(&model.rows(&qs), &Default::default()).identifiable
     };
     let (pool20k, _) = pool(&robot, &model, &cell, 20_000);
     let mut prune = Vec::new();

@@ -459,15 +459,8 @@ pub fn compile(
         return Err(PipelineError::TooFewPoses(pool.candidates.len()));
     }
     // Identifiability over the poses the bar can actually measure: the pool itself.
-    let rows: Vec<[f64; N_PARAMS]> = pool
-        .candidates
-        .iter()
-        .map(|c| {
-            let mut r = [0.0; N_PARAMS];
-            model.jacobian_row(&model.nominal, &c.q, &mut r);
-            r
-        })
-        .collect();
+    let pool_q: Vec<[f64; 6]> = pool.candidates.iter().map(|c| c.q).collect();
+    let rows = model.rows(&pool_q);
     let identifiability = model::analyse(&rows, &IdentifyOptions::default());
     warnings.extend(map_warnings(&model, &identifiability));
 

@@ -152,6 +152,22 @@ impl MeasurementModel {
     }
 }
 
+impl MeasurementModel {
+    /// Identification-Jacobian rows at the nominal parameters for a set of poses, in order
+    /// (computed in parallel; the order of the result is the order of `poses`).
+    pub fn rows(&self, poses: &[[f64; 6]]) -> Vec<[f64; N_PARAMS]> {
+        use rayon::prelude::*;
+        poses
+            .par_iter()
+            .map(|q| {
+                let mut r = [0.0; N_PARAMS];
+                self.jacobian_row(&self.nominal, q, &mut r);
+                r
+            })
+            .collect()
+    }
+}
+
 /// Which joints can move the MAP at all. A joint whose axis passes through the MAP for every
 /// configuration of the joints after it (e.g. joint 6 when the MAP lies on the flange axis)
 /// cannot change L; sampling holds such joints fixed.

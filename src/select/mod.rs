@@ -13,7 +13,7 @@
 //! robot of this size; the RMS scaling makes that explicit and robot-independent).
 
 use crate::ir::{Pool, Selection};
-use crate::model::{MeasurementModel, N_PARAMS};
+use crate::model::MeasurementModel;
 use nalgebra::{DMatrix, SymmetricEigen};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -48,15 +48,8 @@ pub fn scaled_jacobian(
     columns: &[usize],
 ) -> (Vec<f64>, Vec<f64>) {
     let m = columns.len();
-    let rows: Vec<[f64; N_PARAMS]> = pool
-        .candidates
-        .par_iter()
-        .map(|c| {
-            let mut row = [0.0; N_PARAMS];
-            model.jacobian_row(&model.nominal, &c.q, &mut row);
-            row
-        })
-        .collect();
+    let qs: Vec<[f64; 6]> = pool.candidates.iter().map(|c| c.q).collect();
+    let rows = model.rows(&qs);
     let n = rows.len().max(1) as f64;
     let scale: Vec<f64> = columns
         .iter()
@@ -785,15 +778,8 @@ mod tests {
             movable: [true; 6],
         };
         let (pool, _) = crate::sample::run(&robot, &model, &cell, &cfg, &crate::sample::NoProgress);
-        let rows: Vec<[f64; N_PARAMS]> = pool
-            .candidates
-            .iter()
-            .map(|c| {
-                let mut r = [0.0; N_PARAMS];
-                model.jacobian_row(&model.nominal, &c.q, &mut r);
-                r
-            })
-            .collect();
+        let qs: Vec<[f64; 6]> = pool.candidates.iter().map(|c| c.q).collect();
+        let rows = model.rows(&qs);
         let ids = crate::model::analyse(&rows, &Default::default()).identifiable;
         assert_eq!(ids.len(), 22);
         let (j, _) = scaled_jacobian(&model, &pool, &ids);

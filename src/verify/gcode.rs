@@ -1,5 +1,5 @@
 //! RS274/NGC reader for edbbgen's joint-space programs: in = program text; out = the motions it
-//! commands ([`Motion`]), in program order, with the modal state that shapes each one.
+//! commands ([`Line`]s), in program order, with the modal state that shapes each one.
 //!
 //! This reader is deliberately independent of the emitter: `verify` and `simulate` must judge a
 //! program by its text, not by what the compiler meant. It understands the subset of RS274/NGC
