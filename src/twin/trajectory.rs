@@ -18,7 +18,7 @@
 use super::SimError;
 use crate::model::MeasurementModel;
 use crate::robot::Robot;
-use crate::verify::gcode::{FeedMode, Parsed, Step};
+use crate::verify::gcode::{commanded_duration, Parsed, Step};
 use std::f64::consts::TAU;
 
 #[derive(Clone, Debug)]
@@ -86,14 +86,9 @@ impl Trajectory {
                     if eq7 == 0.0 {
                         continue;
                     }
-                    let commanded = match (rapid, feed) {
-                        (false, Some((FeedMode::InverseTime, f))) => 60.0 / f,
-                        (false, Some((FeedMode::UnitsPerMinute, f))) => {
-                            let path = delta.iter().map(|d| d.to_degrees().powi(2)).sum::<f64>();
-                            path.sqrt() / f * 60.0
-                        }
-                        _ => eq7,
-                    };
+                    let from_deg = cur.map(f64::to_degrees);
+                    let to_deg = target.map(f64::to_degrees);
+                    let commanded = commanded_duration(&from_deg, &to_deg, *rapid, *feed, eq7);
                     if !(commanded.is_finite() && commanded > 0.0) {
                         return Err(SimError::Program {
                             line: l.line,

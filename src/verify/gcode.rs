@@ -76,6 +76,29 @@ impl Parsed {
     }
 }
 
+/// The duration (s) a motion line commands for the move `from` → `to` (degrees): G93 takes
+/// 60/F; G94 the joint-space path length (degrees) over F (degrees per minute); G0, and a G1
+/// without a feed, `rapid_time` (the caller's Eq. 7 time at the joints' maximum speeds).
+pub fn commanded_duration(
+    from: &[f64; 6],
+    to: &[f64; 6],
+    rapid: bool,
+    feed: Option<(FeedMode, f64)>,
+    rapid_time: f64,
+) -> f64 {
+    match (rapid, feed) {
+        (false, Some((FeedMode::InverseTime, f))) => 60.0 / f,
+        (false, Some((FeedMode::UnitsPerMinute, f))) => {
+            let path = (0..6)
+                .map(|i| (to[i] - from[i]).powi(2))
+                .sum::<f64>()
+                .sqrt();
+            60.0 * path / f
+        }
+        _ => rapid_time,
+    }
+}
+
 #[derive(Debug, thiserror::Error, PartialEq)]
 #[error("line {line}: {msg}")]
 pub struct ParseError {

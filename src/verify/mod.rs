@@ -16,7 +16,7 @@ use crate::order::move_time;
 use crate::robot::Robot;
 use crate::safety::{blend, describe_contact, Checker, Extremes, Violation};
 use crate::units::{fmt_fixed, to_mm, DEG};
-use gcode::{FeedMode, Step};
+use gcode::Step;
 use serde::{Deserialize, Serialize};
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -104,20 +104,8 @@ pub fn check_text(ck: &Checker, robot: &Robot, text: &str) -> Result<Summary, Fa
             } => {
                 let q = target.map(|d| d * DEG);
                 let min_time = prev.map_or(0.0, |p| move_time(&p, &q, &speeds));
-                let duration = match (rapid, feed) {
-                    (true, _) => min_time,
-                    (false, Some((FeedMode::InverseTime, f))) => 60.0 / f,
-                    (false, Some((FeedMode::UnitsPerMinute, f))) => {
-                        let dist: f64 = prev.map_or(0.0, |p| {
-                            (0..6)
-                                .map(|i| (target[i] - p[i] / DEG).powi(2))
-                                .sum::<f64>()
-                                .sqrt()
-                        });
-                        60.0 * dist / f
-                    }
-                    (false, None) => min_time,
-                };
+                let from = prev.map_or(*target, |p| p.map(|r| r / DEG));
+                let duration = gcode::commanded_duration(&from, target, *rapid, *feed, min_time);
                 if duration < min_time * (1.0 - 1e-6) {
                     return Err(fail(
                         l.line,
