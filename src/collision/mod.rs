@@ -167,6 +167,20 @@ struct Placed<'a> {
     plane: bool,
 }
 
+impl<'a> Placed<'a> {
+    /// The bar capsule (world coordinates) with its bounding radius.
+    fn bar(cap: &'a Capsule, radius: f64) -> Self {
+        Placed {
+            shape: cap,
+            hull: None,
+            iso: Isometry3::identity(),
+            center: nalgebra::center(&cap.segment.a, &cap.segment.b),
+            radius,
+            plane: false,
+        }
+    }
+}
+
 /// A lower bound on the distance between two bounding spheres (or a sphere and the floor).
 #[inline]
 fn gap(ac: &Point3<f64>, ar: f64, ap: bool, bc: &Point3<f64>, br: f64, bp: bool) -> f64 {
@@ -436,14 +450,7 @@ impl Scene {
             }
         }
         let (cap, r) = self.bar(&self.fixture, map_world?)?;
-        let bar = Placed {
-            shape: &cap,
-            hull: None,
-            iso: Isometry3::identity(),
-            center: nalgebra::center(&cap.segment.a, &cap.segment.b),
-            radius: r,
-            plane: false,
-        };
+        let bar = Placed::bar(&cap, r);
         for &b in &self.bar_pairs {
             let bb = &self.bodies[b];
             if let Some(d) = bb.against(poses.of(bb), &bar, margin, Mode::Filter) {
@@ -467,14 +474,7 @@ impl Scene {
             }
         }
         if let Some((cap, r)) = self.bar(&self.fixture, map_world) {
-            let bar = Placed {
-                shape: &cap,
-                hull: None,
-                iso: Isometry3::identity(),
-                center: nalgebra::center(&cap.segment.a, &cap.segment.b),
-                radius: r,
-                plane: false,
-            };
+            let bar = Placed::bar(&cap, r);
             for &b in &self.bar_pairs {
                 let bb = &self.bodies[b];
                 if let Some(d) = bb.against(poses.of(bb), &bar, best, Mode::Min) {
