@@ -32,6 +32,7 @@ pub mod ir;
 pub mod model;
 pub mod order;
 pub mod pipeline;
+pub mod plot;
 pub mod robot;
 pub mod safety;
 pub mod sample;

@@ -372,7 +372,12 @@ fn compile_simulate_diagnose_through_the_cli() {
     assert_eq!(v["named_effects"][1]["joint"], 4);
     assert_eq!(v["unexplained"], false);
     let svg = std::fs::read_to_string(p("r.svg")).expect("svg");
-    assert!(svg.starts_with("<svg") && svg.matches("<polyline").count() == 3);
+    // One residual trace per diagnosis step, drawn in the first palette colour.
+    let traces = svg
+        .lines()
+        .filter(|l| l.starts_with("<polyline") && l.contains("stroke=\"#0072B2\""))
+        .count();
+    assert!(svg.starts_with("<svg") && traces == 3, "{traces} traces");
 
     // The circle test is a program the twin can run too.
     let r = edbbgen([

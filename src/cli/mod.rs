@@ -26,6 +26,8 @@ pub enum Error {
     Pipeline(#[from] pipeline::PipelineError),
     #[error(transparent)]
     Cell(#[from] crate::cell::CellError),
+    #[error(transparent)]
+    Plot(#[from] crate::plot::PlotError),
     #[error("{path}: {msg}")]
     File { path: String, msg: String },
 }

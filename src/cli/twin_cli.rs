@@ -96,7 +96,7 @@ pub fn diagnose(a: &DiagnoseArgs) -> Result<i32, Error> {
         write_atomic(p, &(json + "\n"))?;
     }
     if let Some(p) = &a.plot {
-        write_atomic(p, &crate::diagnose::plot::svg(&d))?;
+        write_atomic(p, &crate::diagnose::plot::svg(&d)?)?;
     }
     print!("{}", d.summary);
     Ok(0)
