@@ -399,9 +399,16 @@ fn write_atomic(path: &Path, text: &str) -> Result<(), Error> {
         Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
         _ => PathBuf::from("."),
     };
-    let mut tmp = tempfile::Builder::new()
-        .prefix(".edbbgen-")
-        .suffix(".tmp")
+    let mut builder = tempfile::Builder::new();
+    builder.prefix(".edbbgen-").suffix(".tmp");
+    // A temp file is private (0600) by default; the output is an ordinary file (0666 less the
+    // user's umask), like one written by any other program.
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        builder.permissions(std::fs::Permissions::from_mode(0o666));
+    }
+    let mut tmp = builder
         .tempfile_in(&dir)
         .map_err(|e| err(format!("cannot write (directory {}): {e}", dir.display())))?;
     tmp.write_all(text.as_bytes())
