@@ -33,6 +33,7 @@ pub mod model;
 pub mod order;
 pub mod pipeline;
 pub mod plot;
+pub mod report;
 pub mod robot;
 pub mod safety;
 pub mod sample;

@@ -7,5 +7,6 @@ mod compile;
 mod diagnose;
 mod linuxcnc;
 mod model_cmd;
+mod report;
 mod safety;
 mod snapshots;

@@ -4,7 +4,7 @@
 use crate::common::*;
 
 /// Every snapshot file must belong to a case here: orphans fail (like `--unreferenced reject`).
-const CASES: &[&str] = &["gcode@nj130_default"];
+const CASES: &[&str] = &["gcode@nj130_default", "html@nj130_default"];
 
 fn assert_golden(name: &str, text: &str) {
     insta::with_settings!({ snapshot_path => "../snapshots", prepend_module_to_snapshot => false, omit_expression => true }, {
@@ -17,6 +17,7 @@ fn nj130_default_program_is_deterministic_and_golden() {
     let dir = tempdir();
     let (one, two) = (dir.path().join("t1.nc"), dir.path().join("t2.nc"));
     let run = |out: &std::path::Path, threads: &str| {
+        let html = out.with_extension("html");
         let r = edbbgen_env(
             [
                 nj130_dh().to_str().unwrap(),
@@ -24,15 +25,21 @@ fn nj130_default_program_is_deterministic_and_golden() {
                 "258,1468,708",
                 "-o",
                 out.to_str().unwrap(),
+                "--html",
+                html.to_str().unwrap(),
             ],
             &[("RAYON_NUM_THREADS", threads)],
         );
         assert_eq!(r.code, 0, "{}", r.stderr);
-        std::fs::read_to_string(out).unwrap()
+        (
+            std::fs::read_to_string(out).unwrap(),
+            std::fs::read_to_string(html).unwrap(),
+        )
     };
-    let a = run(&one, "1");
-    let b = run(&two, "2");
+    let (a, a_html) = run(&one, "1");
+    let (b, b_html) = run(&two, "2");
     assert_eq!(a, b, "byte-identical on 1 and 2 threads");
+    assert_eq!(a_html, b_html, "report byte-identical on 1 and 2 threads");
     let robot = load(&nj130_dh());
     assert_in_shell(
         &robot,
@@ -46,6 +53,7 @@ fn nj130_default_program_is_deterministic_and_golden() {
         "no absolute paths in the program"
     );
     assert_golden("gcode@nj130_default", &a);
+    assert_golden("html@nj130_default", &a_html);
 }
 
 #[test]

@@ -114,6 +114,10 @@ pub struct CompileArgs {
     /// Write the counts of every stage as JSON (schema edbbgen.report/1).
     #[arg(long, value_name = "REPORT.json")]
     pub report: Option<PathBuf>,
+    /// Write a self-contained HTML report (figures of the pool, pose count, trajectories and
+    /// path; the stage counts, safety and identifiability tables).
+    #[arg(long, value_name = "REPORT.html")]
+    pub html: Option<PathBuf>,
 }
 
 #[derive(Args, Debug)]

@@ -28,6 +28,8 @@ pub enum Error {
     Cell(#[from] crate::cell::CellError),
     #[error(transparent)]
     Plot(#[from] crate::plot::PlotError),
+    #[error(transparent)]
+    Report(#[from] crate::report::ReportError),
     #[error("{path}: {msg}")]
     File { path: String, msg: String },
 }
@@ -338,7 +340,17 @@ fn run_compile(a: &CompileArgs) -> Result<i32, Error> {
         );
         return Ok(1);
     }
+    // The page is rendered before anything is written, so a failure leaves no file at all.
+    let html = match &a.html {
+        Some(_) => Some(crate::report::render(&crate::report::compile::page(
+            &robot, &out,
+        )?)?),
+        None => None,
+    };
     write_atomic(output, &out.text)?;
+    if let (Some(path), Some(html)) = (&a.html, &html) {
+        write_atomic(path, html)?;
+    }
     if a.emit.is_none() {
         let h = &out.program.header;
         let v = &out.verified;

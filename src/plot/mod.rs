@@ -67,6 +67,33 @@ pub struct Panel {
     pub y_range: Option<(f64, f64)>,
     /// Same scale on both axes (for drawings of space, e.g. a pose cloud in a plane).
     pub equal_aspect: bool,
+    /// Logarithmic y axis (base 10): the data stay as given; non-positive values are not drawn.
+    pub y_log: bool,
+    /// Where the legend of the labelled series goes.
+    pub legend: Legend,
+}
+
+/// Legend placement. `Outside` draws none in the SVG: the page around the figure shows the
+/// series names with their colours instead (see [`legend_entries`]), for small panels where a
+/// legend would hide the data.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub enum Legend {
+    #[default]
+    UpperRight,
+    LowerRight,
+    Outside,
+}
+
+/// The distinct (label, colour as `#rrggbb`, mark) of a figure's labelled series, in first-seen
+/// order: the legend a page draws for `Legend::Outside` panels.
+pub fn legend_entries(fig: &Figure) -> Vec<(String, String, Mark)> {
+    let mut out: Vec<(String, String, Mark)> = Vec::new();
+    for s in fig.panels.iter().flat_map(|p| &p.series) {
+        if !s.label.is_empty() && !out.iter().any(|e| e.0 == s.label) {
+            out.push((s.label.clone(), colour_hex(s.colour), s.mark));
+        }
+    }
+    out
 }
 
 /// A figure: a title and panels in a grid of `columns` columns, each `panel_px` pixels.
@@ -84,8 +111,11 @@ pub enum PlotError {
     Draw { title: String, message: String },
 }
 
+/// Number of distinct palette colours; colour indices are taken modulo this.
+pub const PALETTE_LEN: usize = 9;
+
 /// Colour-blind-safe palette (Okabe-Ito), then greys. Index modulo its length.
-const PALETTE: [RGBColor; 9] = [
+const PALETTE: [RGBColor; PALETTE_LEN] = [
     RGBColor(0, 114, 178),   // blue
     RGBColor(213, 94, 0),    // vermillion
     RGBColor(0, 158, 115),   // bluish green
@@ -153,7 +183,35 @@ fn fit_range(values: impl Iterator<Item = f64>) -> (f64, f64) {
     (lo - 0.04 * span, hi + 0.04 * span)
 }
 
+/// A log axis only pays when the data span more than this ratio; below it a linear axis reads better.
+const LOG_MIN_RATIO: f64 = 30.0;
+
 fn draw_panel(p: &Panel, area: &DrawingArea<SVGBackend, Shift>) -> Result<(), String> {
+    let positive = p
+        .series
+        .iter()
+        .flat_map(|s| s.points.iter().map(|q| q.1))
+        .filter(|y| y.is_finite() && *y > 0.0);
+    let (lo, hi) = positive.fold((f64::INFINITY, 0.0f64), |(a, b), y| (a.min(y), b.max(y)));
+    if p.y_log && hi > LOG_MIN_RATIO * lo {
+        // Drawn as log10(y) on a linear axis, labelled with y itself.
+        let log = |q: &(f64, f64)| (q.0, if q.1 > 0.0 { q.1.log10() } else { f64::NAN });
+        let mut lp = p.clone();
+        lp.y_log = false;
+        lp.y_range = p.y_range.map(|(a, b)| (a.log10(), b.log10()));
+        for s in &mut lp.series {
+            s.points = s.points.iter().map(log).collect();
+        }
+        return draw_linear(&lp, area, true);
+    }
+    draw_linear(p, area, false)
+}
+
+fn draw_linear(
+    p: &Panel,
+    area: &DrawingArea<SVGBackend, Shift>,
+    y_is_log10: bool,
+) -> Result<(), String> {
     let all = || p.series.iter().flat_map(|s| s.points.iter());
     let mut xr = p.x_range.unwrap_or_else(|| fit_range(all().map(|q| q.0)));
     let mut yr = p.y_range.unwrap_or_else(|| fit_range(all().map(|q| q.1)));
@@ -178,15 +236,24 @@ fn draw_panel(p: &Panel, area: &DrawingArea<SVGBackend, Shift>) -> Result<(), St
         .y_label_area_size(58)
         .build_cartesian_2d(xr.0..xr.1, yr.0..yr.1)
         .map_err(|e| e.to_string())?;
+    let (w_px, h_px) = area.dim_in_pixel();
     chart
         .configure_mesh()
+        .x_labels((w_px as usize / 90).clamp(3, 12))
+        .y_labels((h_px as usize / 45).clamp(3, 12))
         .x_desc(p.x_label.as_str())
         .y_desc(p.y_label.as_str())
         .light_line_style(WHITE.mix(0.0))
         .bold_line_style(BLACK.mix(0.08))
         .label_style(("sans-serif", 11))
         .x_label_formatter(&|v| tick(*v))
-        .y_label_formatter(&|v| tick(*v))
+        .y_label_formatter(&|v| {
+            if y_is_log10 {
+                tick(10f64.powf(*v))
+            } else {
+                tick(*v)
+            }
+        })
         .draw()
         .map_err(|e| e.to_string())?;
     let mut legend = false;
@@ -196,9 +263,10 @@ fn draw_panel(p: &Panel, area: &DrawingArea<SVGBackend, Shift>) -> Result<(), St
         let anno = match s.mark {
             Mark::Line => chart
                 .draw_series(
+                    // More points than pixel columns draw the same picture as their envelope.
                     runs(&s.points)
                         .into_iter()
-                        .map(|run| PathElement::new(run, style)),
+                        .map(|run| PathElement::new(envelope(&run, w_px as usize), style)),
                 )
                 .map_err(|e| e.to_string())?,
             Mark::Segments => chart
@@ -218,7 +286,7 @@ fn draw_panel(p: &Panel, area: &DrawingArea<SVGBackend, Shift>) -> Result<(), St
                 )
                 .map_err(|e| e.to_string())?,
         };
-        if !s.label.is_empty() {
+        if !s.label.is_empty() && p.legend != Legend::Outside {
             legend = true;
             let mark = s.mark;
             anno.label(s.label.as_str()).legend(move |(x, y)| {
@@ -233,7 +301,11 @@ fn draw_panel(p: &Panel, area: &DrawingArea<SVGBackend, Shift>) -> Result<(), St
     if legend {
         chart
             .configure_series_labels()
-            .position(SeriesLabelPosition::UpperRight)
+            .position(if p.legend == Legend::LowerRight {
+                SeriesLabelPosition::LowerRight
+            } else {
+                SeriesLabelPosition::UpperRight
+            })
             .background_style(WHITE.mix(0.85))
             .border_style(BLACK.mix(0.3))
             .label_font(("sans-serif", 11))
