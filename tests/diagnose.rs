@@ -353,6 +353,9 @@ fn compile_simulate_diagnose_through_the_cli() {
         p("r.json").as_os_str(),
         "--plot".as_ref(),
         p("r.svg").as_os_str(),
+        "--html".as_ref(),
+        p("r.html").as_os_str(),
+        "-q".as_ref(),
     ]);
     assert_eq!(r.code, 0, "{}", r.stderr);
     let v: serde_json::Value =
@@ -378,6 +381,11 @@ fn compile_simulate_diagnose_through_the_cli() {
         .filter(|l| l.starts_with("<polyline") && l.contains("stroke=\"#0072B2\""))
         .count();
     assert!(svg.starts_with("<svg") && traces == 3, "{traces} traces");
+    crate::report::assert_page_draws(&p("r.html"), "diagnose", &["fig-length", "fig-residual"]);
+    crate::snapshots::assert_golden(
+        "html@nj130_diagnosis",
+        &std::fs::read_to_string(p("r.html")).expect("html"),
+    );
 
     // The circle test is a program the twin can run too.
     let r = edbbgen([

@@ -4,9 +4,13 @@
 use crate::common::*;
 
 /// Every snapshot file must belong to a case here: orphans fail (like `--unreferenced reject`).
-const CASES: &[&str] = &["gcode@nj130_default", "html@nj130_default"];
+const CASES: &[&str] = &[
+    "gcode@nj130_default",
+    "html@nj130_default",
+    "html@nj130_diagnosis",
+];
 
-fn assert_golden(name: &str, text: &str) {
+pub fn assert_golden(name: &str, text: &str) {
     insta::with_settings!({ snapshot_path => "../snapshots", prepend_module_to_snapshot => false, omit_expression => true }, {
         insta::assert_snapshot!(name, text);
     });

@@ -207,6 +207,12 @@ pub struct DiagnoseArgs {
     /// Write the residual plot (SVG) here.
     #[arg(long, value_name = "REPORT.svg")]
     pub plot: Option<PathBuf>,
+    /// Write a self-contained HTML report here (Figs. 11-12, steps, parameters, verdict).
+    #[arg(long, value_name = "REPORT.html")]
+    pub html: Option<PathBuf>,
+    /// No progress output (diagnose draws none; accepted like on every subcommand).
+    #[arg(short, long)]
+    pub quiet: bool,
 }
 
 #[derive(Args, Debug)]

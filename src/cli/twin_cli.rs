@@ -91,12 +91,38 @@ pub fn diagnose(a: &DiagnoseArgs) -> Result<i32, Error> {
     let model = MeasurementModel::new(&robot, fixture, map);
     let d = crate::diagnose::run(&model, &m, &Default::default())
         .map_err(|e| file_err(&a.measured, e))?;
+    // Everything is rendered before the first file is written: a failure leaves no file.
+    let json = serde_json::to_string_pretty(&d.report).unwrap_or_default() + "\n";
+    let svg = match &a.plot {
+        Some(_) => Some(crate::diagnose::plot::svg(&d)?),
+        None => None,
+    };
+    let html = match &a.html {
+        Some(_) => {
+            let hash = robot::sha256_hex(
+                format!(
+                    "{}\n{}\n{:?}\n{:?}\n",
+                    robot.digest,
+                    robot::sha256_hex(text.as_bytes()),
+                    fixture.as_slice(),
+                    map.as_slice()
+                )
+                .as_bytes(),
+            );
+            let name = format!("{} [{}]", robot.name, robot.source);
+            let page = crate::report::diagnose::page(&m, &d, &name, &hash)?;
+            Some(crate::report::render(&page)?)
+        }
+        None => None,
+    };
     if let Some(p) = &a.json {
-        let json = serde_json::to_string_pretty(&d.report).unwrap_or_default();
-        write_atomic(p, &(json + "\n"))?;
+        write_atomic(p, &json)?;
     }
-    if let Some(p) = &a.plot {
-        write_atomic(p, &crate::diagnose::plot::svg(&d)?)?;
+    if let (Some(p), Some(svg)) = (&a.plot, &svg) {
+        write_atomic(p, svg)?;
+    }
+    if let (Some(p), Some(html)) = (&a.html, &html) {
+        write_atomic(p, html)?;
     }
     print!("{}", d.summary);
     Ok(0)

@@ -9,6 +9,7 @@
 //! was actually drawn.
 
 pub mod compile;
+pub mod diagnose;
 
 use crate::plot::{legend_entries, Figure, Legend, Mark, PlotError};
 use serde::Serialize;
