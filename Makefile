@@ -2,7 +2,7 @@
 CARGO ?= cargo
 NJ130 := robots/comau_nj130/robot.dh.toml
 
-.PHONY: build run test check fmt clippy doc snapshots bench bench-peers bench-diagnose paper ci
+.PHONY: build run test check fmt clippy doc snapshots bench bench-peers bench-diagnose paper ci fuzz
 
 build:
 	$(CARGO) build --release --locked
@@ -53,6 +53,22 @@ bench-peers: build
 	done
 	$(CARGO) run --release --locked --example bench -- --peers target/peers
 	$(PEERS_VENV)/bin/python bench/peers.py target/peers target/bench.json
+
+# Coverage-guided fuzzing of every parser (cargo-fuzz on a nightly toolchain; installed here if
+# missing). FUZZ_SECONDS per target; the corpus grows under fuzz/corpus/, crashes land in
+# fuzz/artifacts/ (each one becomes a regression case in tests/fuzz.rs). Not part of CI: the
+# stable proptest side (tests/fuzz.rs) runs in `make test`.
+FUZZ_SECONDS ?= 600
+FUZZ_TARGETS := dh urdf mesh cell truth measured_csv gcode template
+fuzz:
+	rustup toolchain list | grep -q nightly || rustup toolchain install nightly --profile minimal
+	command -v cargo-fuzz >/dev/null || $(CARGO) install cargo-fuzz --locked
+	$(CARGO) +nightly fuzz build -O
+	for t in $(FUZZ_TARGETS); do \
+	  echo "== $$t"; \
+	  $(CARGO) +nightly fuzz run -O $$t -- -max_total_time=$(FUZZ_SECONDS) -rss_limit_mb=2048 -timeout=10 2>&1 \
+	    | grep -E '^Done|ERROR|SUMMARY|crash-|timeout-|oom-' || exit 1; \
+	done
 
 check: fmt clippy test doc
 

@@ -5,6 +5,7 @@ mod common;
 mod cli_errors;
 mod compile;
 mod diagnose;
+mod fuzz;
 mod linuxcnc;
 mod model_cmd;
 mod report;
