@@ -167,3 +167,64 @@ fn poses_below_parameter_count() {
         "--poses",
     );
 }
+
+#[test]
+fn negative_values_reach_the_value_check() {
+    // A negative number is a value, not an unknown flag: its own check names it.
+    let nj = nj130_dh();
+    let nj = nj.to_str().unwrap();
+    for (flag, value, needle) in [
+        ("--margin", "-1", "--margin: -1 mm must be between"),
+        ("--blend", "-5", "--blend: -5 mm is outside"),
+        ("--step", "-5", "--step: '-5'"),
+        ("--ball", "-25", "--ball"),
+    ] {
+        check_rejected(&[nj, "--fixture", "258,1468,708", flag, value], needle);
+    }
+}
+
+#[test]
+fn negative_coordinates_are_accepted_in_every_form() {
+    let dir = tempdir();
+    let out = dir.path().join("p.nc");
+    let nj = nj130_dh();
+    let common = [
+        "--step",
+        "20",
+        "--max-candidates",
+        "600",
+        "-q",
+        "-o",
+        out.to_str().unwrap(),
+    ];
+    for form in [
+        vec![
+            "--fixture",
+            "-100,1468,708",
+            "--tool",
+            "-60,30,120",
+            "--start",
+            "-10,-5,0,0,0,0",
+        ],
+        vec![
+            "--fixture=-100,1468,708",
+            "--tool=-60,30,120",
+            "--start=-10,-5,0,0,0,0",
+        ],
+    ] {
+        let mut args = vec![nj.to_str().unwrap()];
+        args.extend(form.iter());
+        args.extend(common.iter());
+        let r = edbbgen(&args);
+        assert_eq!(r.code, 0, "{form:?}: {}", r.stderr);
+        let text = std::fs::read_to_string(&out).unwrap();
+        assert!(
+            text.contains("(fixture: -100.000, 1468.000, 708.000 mm"),
+            "{form:?}"
+        );
+        assert!(
+            text.contains("(MAP: -60.000, 30.000, 120.000 mm"),
+            "{form:?}"
+        );
+    }
+}

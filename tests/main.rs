@@ -2,6 +2,7 @@
 
 mod common;
 
+mod cli;
 mod cli_errors;
 mod compile;
 mod diagnose;

@@ -10,7 +10,8 @@ use std::path::PathBuf;
     version,
     about = "Compiles error-sensitive Extended Double Ball Bar (EDBB) measurement programs for 6-axis robots",
     args_conflicts_with_subcommands = true,
-    subcommand_negates_reqs = true
+    subcommand_negates_reqs = true,
+    allow_negative_numbers = true
 )]
 pub struct Cli {
     #[command(subcommand)]
@@ -22,16 +23,45 @@ pub struct Cli {
 #[derive(Subcommand, Debug)]
 pub enum Command {
     /// Identifiability of the 30 model parameters and observability of a rich pose set.
+    #[command(allow_negative_numbers = true)]
     Model(ModelArgs),
     /// Re-read a program and re-check it: poses, moves and blends against every limit.
+    #[command(allow_negative_numbers = true)]
     Verify(VerifyArgs),
     /// Digital twin: run a program on a virtual robot with the errors of TRUTH.toml and write
     /// what the EDBB and the encoders would record (CSV).
+    #[command(allow_negative_numbers = true)]
     Simulate(SimulateArgs),
     /// Compare measured EDBB data with the model: calibrate, name the missing effect, report.
+    #[command(allow_negative_numbers = true)]
     Diagnose(DiagnoseArgs),
     /// The extended circle test after ISO 230-4 as a program (the baseline for comparison).
+    #[command(allow_negative_numbers = true)]
     Circle(CircleArgs),
+    /// Print a shell completion script (bash, zsh, fish, elvish, powershell) on stdout.
+    Completions(CompletionsArgs),
+    /// Print the manual page (roff, `man -l -` reads it) on stdout.
+    Man(ManArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct CompletionsArgs {
+    /// The shell to complete for.
+    #[arg(value_name = "SHELL")]
+    pub shell: clap_complete::Shell,
+    /// Accepted like on every subcommand; this one prints no progress.
+    #[arg(short, long)]
+    pub quiet: bool,
+}
+
+#[derive(Args, Debug)]
+pub struct ManArgs {
+    /// A subcommand's page (`edbbgen-verify(1)`, ...) instead of the compiler's.
+    #[arg(value_name = "SUBCOMMAND")]
+    pub subcommand: Option<String>,
+    /// Accepted like on every subcommand; this one prints no progress.
+    #[arg(short, long)]
+    pub quiet: bool,
 }
 
 /// Robot, cell and instrument: shared by the compiler and `model`.
@@ -185,6 +215,9 @@ pub struct SimulateArgs {
     /// Noise seed.
     #[arg(long, value_name = "N", default_value_t = 1)]
     pub seed: u64,
+    /// No progress output.
+    #[arg(short, long)]
+    pub quiet: bool,
 }
 
 #[derive(Args, Debug)]
@@ -235,4 +268,7 @@ pub struct CircleArgs {
     /// MAP speed along the circle, mm/s.
     #[arg(long, value_name = "MM_S", default_value = "50")]
     pub speed: String,
+    /// No progress output.
+    #[arg(short, long)]
+    pub quiet: bool,
 }

@@ -63,6 +63,38 @@ pub fn run(argv: Vec<std::ffi::OsString>) -> Result<i32, Error> {
         Some(Command::Simulate(a)) => twin_cli::simulate(&a),
         Some(Command::Diagnose(a)) => twin_cli::diagnose(&a),
         Some(Command::Circle(a)) => twin_cli::circle(&a),
+        Some(Command::Completions(a)) => {
+            let mut cmd = <Cli as clap::CommandFactory>::command();
+            clap_complete::generate(a.shell, &mut cmd, "edbbgen", &mut std::io::stdout());
+            Ok(0)
+        }
+        Some(Command::Man(a)) => {
+            let mut cmd = <Cli as clap::CommandFactory>::command();
+            if let Some(name) = &a.subcommand {
+                let names: Vec<String> = cmd
+                    .get_subcommands()
+                    .map(|c| c.get_name().to_string())
+                    .collect();
+                cmd = cmd
+                    .find_subcommand(name)
+                    .cloned()
+                    .ok_or_else(|| {
+                        usage(format!(
+                            "man: unknown subcommand '{name}' (one of: {})",
+                            names.join(", ")
+                        ))
+                    })?
+                    .name(format!("edbbgen-{name}"))
+                    .version(env!("CARGO_PKG_VERSION"));
+            }
+            let mut out = Vec::new();
+            clap_mangen::Man::new(cmd)
+                .render(&mut out)
+                .map_err(|e| usage(format!("man page: {e}")))?;
+            // A closed pipe (`| head`) is the reader's choice, not an error.
+            let _ = std::io::stdout().write_all(&out);
+            Ok(0)
+        }
         None => run_compile(&cli.compile),
     }
 }
