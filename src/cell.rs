@@ -48,6 +48,7 @@
 //! speeds = [110, 100, 110, 180, 180, 260]   # deg/s, for URDFs without joint velocities
 //! [safety]
 //! margin = 10.0                       # minimum clearance between any two bodies (mm)
+//! joint_margin = 1.0                  # distance kept from every joint limit (deg)
 //! ```
 
 use crate::robot::Frame;
@@ -125,9 +126,13 @@ pub struct CellSpec {
     pub link_radius: Option<f64>,
     pub speeds: Option<[f64; 6]>,
     pub margin: f64,
+    /// Distance kept from every joint limit (rad): controllers enforce soft limits and
+    /// overshoot slightly when blending, so no pose or motion may come closer.
+    pub joint_margin: f64,
 }
 
 pub const DEFAULT_CONE_DEG: f64 = 60.0;
+pub const DEFAULT_JOINT_MARGIN_DEG: f64 = 1.0;
 pub const DEFAULT_BAR_DIAMETER_MM: f64 = 30.0;
 pub const DEFAULT_STAND_RADIUS_MM: f64 = 0.0;
 pub const DEFAULT_MARGIN_MM: f64 = 10.0;
@@ -156,6 +161,7 @@ impl Default for CellSpec {
             link_radius: None,
             speeds: None,
             margin: DEFAULT_MARGIN_MM * MM,
+            joint_margin: DEFAULT_JOINT_MARGIN_DEG * DEG,
         }
     }
 }
@@ -250,6 +256,7 @@ struct RobotT {
 #[serde(deny_unknown_fields)]
 struct SafetyT {
     margin: Option<f64>,
+    joint_margin: Option<f64>,
 }
 
 #[derive(Deserialize)]
@@ -411,6 +418,14 @@ pub fn from_str(text: &str, path: &Path) -> Result<CellSpec, CellError> {
     if let Some(s) = f.safety {
         if let Some(m) = s.margin {
             c.margin = positive(m, "safety.margin")?;
+        }
+        if let Some(m) = s.joint_margin {
+            if !(m.is_finite() && (0.0..=30.0).contains(&m)) {
+                return Err(bad(format!(
+                    "safety.joint_margin: {m} deg must be between 0 and 30 deg"
+                )));
+            }
+            c.joint_margin = m * DEG;
         }
     }
     Ok(c)

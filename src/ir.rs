@@ -28,6 +28,9 @@ pub struct Cell {
     pub tool_cone_cos: f64,
     /// Wiring-harness limits (rad) on q4, q6 and q4 + q6.
     pub cables: [Option<[f64; 2]>; 3],
+    /// Distance kept from every joint limit (rad), for poses and motions alike.
+    #[serde(default)]
+    pub joint_margin: f64,
 }
 
 /// Why a pose is not admitted (report keys).
@@ -91,6 +94,7 @@ impl Cell {
             tool_axis: Vector3::z(),
             tool_cone_cos: -1.0,
             cables: [None; 3],
+            joint_margin: 0.0,
         }
     }
 
@@ -218,6 +222,8 @@ pub struct Header {
     pub bar_mm: [f64; 2],
     pub blend_mm: f64,
     pub margin_mm: f64,
+    /// Distance every pose and motion keeps from the joint limits (deg).
+    pub joint_margin_deg: f64,
     pub poses: usize,
     pub supports: usize,
     /// Sections of the program (the bar is remounted between them).

@@ -106,6 +106,15 @@ pub enum PipelineError {
         mm1(bar_mm[0]), mm1(bar_mm[1]), mm1(*ball_mm), mm1(*ball_mm)
     )]
     BallsOverlap { bar_mm: [f64; 2], ball_mm: f64 },
+    #[error(
+        "joint {joint}: its range {}..{} deg leaves nothing inside the {} deg joint margin (lower --joint-margin or [safety] joint_margin)",
+        mm1(range_deg[0]), mm1(range_deg[1]), mm1(*margin_deg)
+    )]
+    JointMargin {
+        joint: String,
+        range_deg: [f64; 2],
+        margin_deg: f64,
+    },
     #[error("no valid pose: every pose in the bar shell was rejected ({0}); check the cell, the cones and the harness limits")]
     AllRejected(String),
     #[error("only {0} valid poses in the cell, too few to identify the robot's parameters (30 or more are needed): refine --step, widen --bar or the cones, or move the fixture")]
@@ -208,6 +217,15 @@ pub fn make_cell(
     map: Vector3<f64>,
     spec: &CellSpec,
 ) -> Result<Cell, PipelineError> {
+    for j in &robot.joints {
+        if j.upper - j.lower < 2.0 * spec.joint_margin {
+            return Err(PipelineError::JointMargin {
+                joint: j.name.clone(),
+                range_deg: [to_deg(j.lower), to_deg(j.upper)],
+                margin_deg: to_deg(spec.joint_margin),
+            });
+        }
+    }
     if spec.bar_max <= spec.ball {
         return Err(PipelineError::BallsOverlap {
             bar_mm: [to_mm(spec.bar_min), to_mm(spec.bar_max)],
@@ -225,6 +243,7 @@ pub fn make_cell(
         tool_axis: spec.tool_axis.unwrap_or_else(|| default_cup_axis(robot)),
         tool_cone_cos: spec.tool_cone.cos(),
         cables: [spec.cable_q4, spec.cable_q6, spec.cable_q4_q6],
+        joint_margin: spec.joint_margin,
     })
 }
 
@@ -387,6 +406,7 @@ pub fn compile(
     progress: &dyn Progress,
 ) -> Result<Compiled, PipelineError> {
     let (map, mut warnings) = resolve_map(robot, opts.cell.map);
+    warnings.extend(robot.notes.iter().cloned());
     let cell = make_cell(robot, opts.fixture, map, &opts.cell)?;
     let model = MeasurementModel::new(robot, opts.fixture, map);
     let (scene, scene_report) = build_scene(robot, &opts.cell, &opts.fixture, &map)?;
@@ -570,6 +590,7 @@ pub fn compile(
         bar_mm: [to_mm(cell.bar_min), to_mm(cell.bar_max)],
         blend_mm: to_mm(opts.blend),
         margin_mm: to_mm(opts.cell.margin),
+        joint_margin_deg: to_deg(opts.cell.joint_margin),
         poses: measured,
         supports: plan.supports,
         sections,

@@ -3,6 +3,25 @@
 pub const MM: f64 = 1e-3;
 pub const DEG: f64 = std::f64::consts::PI / 180.0;
 
+/// Joint values are printed with this many decimals of a degree in every program text.
+pub const DEG_DECIMALS: i32 = 4;
+
+/// The nearest printable joint value (rad) at or inside `[lo, hi]` from `v`: a limit that a
+/// program may reach must survive the rounding of the text ([`DEG_DECIMALS`]).
+pub fn printable_inside(v: f64, lo: f64, hi: f64) -> f64 {
+    let k = 10f64.powi(DEG_DECIMALS);
+    let d = to_deg(v) * k;
+    let r = d.round();
+    let r = if r / k * DEG < lo {
+        r + 1.0
+    } else if r / k * DEG > hi {
+        r - 1.0
+    } else {
+        r
+    };
+    r / k * DEG
+}
+
 pub fn to_mm(m: f64) -> f64 {
     m / MM
 }

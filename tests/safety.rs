@@ -55,7 +55,7 @@ fn compile_and_verify(robot: &Path, cell: &Path, fast: &[&str]) -> String {
 #[test]
 fn every_shipped_cell_compiles_to_a_program_that_verifies() {
     let text = compile_and_verify(&nj130_dh(), &nj130_cell(), &["--step", "15"]);
-    assert!(text.contains("safety margin: 10.0 mm)"));
+    assert!(text.contains("safety margin: 10.0 mm; joint margin: 1.0 deg)"));
     for name in SHARED_ROBOTS {
         compile_and_verify(
             &shared_robot(name),

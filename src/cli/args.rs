@@ -86,6 +86,9 @@ pub struct CellArgs {
     /// Safety margin: minimum clearance between any two bodies, mm [default: 10].
     #[arg(long, value_name = "MM")]
     pub margin: Option<String>,
+    /// Distance kept from every joint limit by poses and motions, deg [default: 1].
+    #[arg(long, value_name = "DEG")]
+    pub joint_margin: Option<String>,
     /// URDF: the link that ends the chain [default: flange, tool0, or the chain's last link].
     #[arg(long, value_name = "LINK")]
     pub flange: Option<String>,

@@ -205,6 +205,15 @@ fn resolve_cell(a: &CellArgs) -> Result<CellSpec, Error> {
         }
         spec.margin = m * MM;
     }
+    if let Some(m) = &a.joint_margin {
+        let m = scalar("--joint-margin", m)?;
+        if !(0.0..=30.0).contains(&m) {
+            return Err(usage(format!(
+                "--joint-margin: {m} deg must be between 0 and 30 deg"
+            )));
+        }
+        spec.joint_margin = m * DEG;
+    }
     Ok(spec)
 }
 
@@ -467,6 +476,19 @@ fn write_atomic(path: &Path, text: &str) -> Result<(), Error> {
 
 // ---- verify -------------------------------------------------------------------------------
 
+/// `verify --json`: the summary, and what the collision check covered (every body, the number
+/// of pairs checked, every excluded pair with its reason), so that nothing is skipped unseen.
+#[derive(serde::Serialize)]
+struct VerifyReport<'a> {
+    schema: &'static str,
+    #[serde(flatten)]
+    summary: &'a crate::verify::Summary,
+    bodies: &'a [String],
+    pairs_checked: usize,
+    excluded_pairs: &'a [crate::collision::ExcludedPair],
+    notes: &'a [String],
+}
+
 fn run_verify(a: &VerifyArgs) -> Result<i32, Error> {
     let spec = resolve_cell(&a.cell)?;
     let text = std::fs::read_to_string(&a.program).map_err(|e| Error::File {
@@ -477,6 +499,12 @@ fn run_verify(a: &VerifyArgs) -> Result<i32, Error> {
         path: a.program.display().to_string(),
         msg: e.to_string(),
     })?;
+    if parsed.targets().next().is_none() {
+        return Err(Error::File {
+            path: a.program.display().to_string(),
+            msg: "the program commands no motion (no G0/G1 line): nothing to verify".into(),
+        });
+    }
     let fixture = resolve_fixture(a.fixture.as_deref(), &spec, parsed.header_value("fixture"))?;
     let robot = load_robot(&a.robot, &a.cell, &spec)?;
     // MAP: flag or cell, else the program header's, else the robot file's.
@@ -490,15 +518,29 @@ fn run_verify(a: &VerifyArgs) -> Result<i32, Error> {
     let (map, _) = pipeline::resolve_map(&robot, spec.map.or(header_map));
     let cell = pipeline::make_cell(&robot, fixture, map, &spec)?;
     let model = MeasurementModel::new(&robot, fixture, map);
-    let (scene, _) = pipeline::build_scene(&robot, &spec, &fixture, &map)?;
+    let (scene, scene_report) = pipeline::build_scene(&robot, &spec, &fixture, &map)?;
     let ck = crate::safety::Checker::new(&robot, &model, &cell, &scene, spec.margin);
     match crate::verify::check_text(&ck, &robot, &text) {
         Ok(s) => {
             if a.json {
-                println!("{}", serde_json::to_string_pretty(&s).unwrap_or_default());
-            } else {
+                let report = VerifyReport {
+                    schema: "edbbgen.verify/1",
+                    summary: &s,
+                    bodies: &scene_report.bodies,
+                    pairs_checked: scene_report.pairs_checked,
+                    excluded_pairs: &scene_report.excluded,
+                    notes: &robot.notes,
+                };
                 println!(
-                    "{}: ok: {} poses, {} support poses, {} moves, {} blends, {} s; min clearance {} mm ({} / {}); bar {}..{} mm; max cone angles {} deg (socket), {} deg (cup)",
+                    "{}",
+                    serde_json::to_string_pretty(&report).unwrap_or_default()
+                );
+            } else {
+                for n in &robot.notes {
+                    eprintln!("edbbgen: warning: {n}");
+                }
+                println!(
+                    "{}: ok: {} poses, {} support poses, {} moves, {} blends, {} s; min clearance {} mm ({} / {}); bar {}..{} mm; max cone angles {} deg (socket), {} deg (cup); {} bodies, {} pairs checked, {} excluded (--json lists them)",
                     a.program.display(),
                     s.poses,
                     s.supports,
@@ -512,6 +554,9 @@ fn run_verify(a: &VerifyArgs) -> Result<i32, Error> {
                     fmt_fixed(to_mm(s.extremes.max_length), 2),
                     fmt_fixed(s.extremes.max_socket_angle / DEG, 1),
                     fmt_fixed(s.extremes.max_cup_angle / DEG, 1),
+                    scene_report.bodies.len(),
+                    scene_report.pairs_checked,
+                    scene_report.excluded.len(),
                 );
             }
             Ok(0)

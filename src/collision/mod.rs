@@ -14,11 +14,14 @@
 //! The price is that concave links (a C-shaped housing) are fattened; the clearance lost is
 //! small next to the safety margin for industrial-arm link shapes.
 //!
-//! **Bodies** live in one of: a DH frame 0..=7 (links, tool, MAP ball, hoses), the world (= the
-//! robot base frame: floor, environment, fixture ball, stand) or the bar (rebuilt per query
-//! between the two balls). Each body is a list of convex parts, each with a bounding sphere.
+//! **Bodies** live in one of: a DH frame 0..=7 (links, tool, MAP ball, hoses), a passive link
+//! (a balancing cylinder or linkage moved by mimic joints, placed from q per query), the world
+//! (= the robot base frame: floor, environment, fixture ball, stand) or the bar (rebuilt per
+//! query between the two balls). Each body is a list of convex parts, each with a bounding
+//! sphere.
 //!
-//! **Pairs** (see [`build`]): robot bodies against each other, except bodies rigid with the same
+//! **Pairs** (see [`build`]): a passive link against everything except the body its joint
+//! connects it to; robot bodies against each other, except bodies rigid with the same
 //! frame (frame 7, the flange, is rigid with frame 6), link i against link i ± 1, and pairs that
 //! are already within the margin at q = 0; robot bodies against world bodies, except the base
 //! (link 0) and the floor; the bar against links, hoses and world bodies, except the tool, the
@@ -31,7 +34,7 @@ mod tests;
 
 use crate::cell::{CellSpec, ShapeKind};
 use crate::robot::kinematics::chain_frames;
-use crate::robot::{Frame, Geometry, Robot};
+use crate::robot::{Frame, Geometry, PassiveLink, PassiveMotion, Robot};
 use hull::Hull;
 use nalgebra::{Isometry3, Point3, Rotation3, Translation3, Unit, UnitQuaternion, Vector3};
 use parry3d_f64::query::gjk::{GJKResult, VoronoiSimplex};
@@ -66,6 +69,8 @@ pub const AUTO_RADIUS_MAX: f64 = 0.150;
 /// The collision world of one cell: immutable and `Sync`, built once, shared by rayon threads.
 pub struct Scene {
     bodies: Vec<Body>,
+    /// The robot's passive links, placed per query from q.
+    passive: Vec<PassiveLink>,
     /// Checked body pairs, by index into `bodies`, in build order.
     pairs: Vec<(usize, usize)>,
     /// Bodies checked against the bar.
@@ -119,12 +124,16 @@ pub enum CollisionError {
 enum Attach {
     /// DH frame 0..=7 of `chain_frames`.
     Frame(usize),
+    /// A passive link (index into `Scene::passive`): its pose follows q through mimic joints.
+    Passive(usize),
     World,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 enum Role {
     Link,
+    /// A link off the chain moved by mimic joints (a balancing cylinder, a linkage).
+    Passive,
     Tool,
     MapBall,
     Hose,
@@ -370,24 +379,36 @@ fn to_iso(f: &Frame) -> Isometry3<f64> {
     )
 }
 
-/// Body poses of one query: the eight chain frames, then the world.
-struct Poses([Isometry3<f64>; 9]);
+/// Body poses of one query: the eight chain frames, the world, and what places the passive
+/// links (computed when a pair needs one: no allocation per query).
+struct Poses<'a> {
+    iso: [Isometry3<f64>; 9],
+    frames: &'a [Frame; 8],
+    q: &'a [f64; 6],
+    passive: &'a [PassiveLink],
+}
 
-impl Poses {
+impl<'a> Poses<'a> {
     #[inline]
-    fn new(frames: &[Frame; 8]) -> Self {
-        let mut p = [Isometry3::identity(); 9];
+    fn new(q: &'a [f64; 6], frames: &'a [Frame; 8], passive: &'a [PassiveLink]) -> Self {
+        let mut iso = [Isometry3::identity(); 9];
         for (k, f) in frames.iter().enumerate() {
-            p[k] = to_iso(f);
+            iso[k] = to_iso(f);
         }
-        Poses(p)
+        Poses {
+            iso,
+            frames,
+            q,
+            passive,
+        }
     }
 
     #[inline]
-    fn of(&self, b: &Body) -> &Isometry3<f64> {
+    fn of(&self, b: &Body) -> Isometry3<f64> {
         match b.attach {
-            Attach::Frame(k) => &self.0[k],
-            Attach::World => &self.0[8],
+            Attach::Frame(k) => self.iso[k],
+            Attach::World => self.iso[8],
+            Attach::Passive(i) => to_iso(&self.passive[i].pose(self.frames, self.q)),
         }
     }
 }
@@ -419,33 +440,40 @@ impl Scene {
     }
 
     /// The first checked pair closer than `margin` (build order), or None: the fast filter.
-    /// `frames` = `chain_frames(q)`; `map_world` = the MAP in the base frame. Allocates only the
-    /// names of the contact it returns.
+    /// `q` = the joint vector, `frames` = `chain_frames(q)`; `map_world` = the MAP in the base
+    /// frame. Allocates only the names of the contact it returns.
     pub fn violation(
         &self,
+        q: &[f64; 6],
         frames: &[Frame; 8],
         map_world: &Vector3<f64>,
         margin: f64,
     ) -> Option<Contact> {
-        self.violation_with(frames, Some(map_world), margin)
+        self.violation_with(q, frames, Some(map_world), margin)
     }
 
     /// As [`Scene::violation`] with the bar removed (between sections of a program, when the
     /// operator has taken the EDBB out). The balls stay in the scene: conservative.
-    pub fn violation_unmounted(&self, frames: &[Frame; 8], margin: f64) -> Option<Contact> {
-        self.violation_with(frames, None, margin)
+    pub fn violation_unmounted(
+        &self,
+        q: &[f64; 6],
+        frames: &[Frame; 8],
+        margin: f64,
+    ) -> Option<Contact> {
+        self.violation_with(q, frames, None, margin)
     }
 
     fn violation_with(
         &self,
+        q: &[f64; 6],
         frames: &[Frame; 8],
         map_world: Option<&Vector3<f64>>,
         margin: f64,
     ) -> Option<Contact> {
-        let poses = Poses::new(frames);
+        let poses = Poses::new(q, frames, &self.passive);
         for &(a, b) in &self.pairs {
             let (ba, bb) = (&self.bodies[a], &self.bodies[b]);
-            if let Some(d) = ba.pair(poses.of(ba), bb, poses.of(bb), margin, Mode::Filter) {
+            if let Some(d) = ba.pair(&poses.of(ba), bb, &poses.of(bb), margin, Mode::Filter) {
                 return Some(self.contact(d, a, Some(b)));
             }
         }
@@ -453,7 +481,7 @@ impl Scene {
         let bar = Placed::bar(&cap, r);
         for &b in &self.bar_pairs {
             let bb = &self.bodies[b];
-            if let Some(d) = bb.against(poses.of(bb), &bar, margin, Mode::Filter) {
+            if let Some(d) = bb.against(&poses.of(bb), &bar, margin, Mode::Filter) {
                 return Some(self.contact(d, b, None));
             }
         }
@@ -462,13 +490,18 @@ impl Scene {
 
     /// The smallest clearance over all checked pairs and the two bodies it is between.
     /// (With no checked pair at all: an infinite distance between two empty names.)
-    pub fn clearance(&self, frames: &[Frame; 8], map_world: &Vector3<f64>) -> Contact {
-        let poses = Poses::new(frames);
+    pub fn clearance(
+        &self,
+        q: &[f64; 6],
+        frames: &[Frame; 8],
+        map_world: &Vector3<f64>,
+    ) -> Contact {
+        let poses = Poses::new(q, frames, &self.passive);
         let mut best = f64::INFINITY;
         let mut who: Option<(usize, Option<usize>)> = None;
         for &(a, b) in &self.pairs {
             let (ba, bb) = (&self.bodies[a], &self.bodies[b]);
-            if let Some(d) = ba.pair(poses.of(ba), bb, poses.of(bb), best, Mode::Min) {
+            if let Some(d) = ba.pair(&poses.of(ba), bb, &poses.of(bb), best, Mode::Min) {
                 best = d;
                 who = Some((a, Some(b)));
             }
@@ -477,7 +510,7 @@ impl Scene {
             let bar = Placed::bar(&cap, r);
             for &b in &self.bar_pairs {
                 let bb = &self.bodies[b];
-                if let Some(d) = bb.against(poses.of(bb), &bar, best, Mode::Min) {
+                if let Some(d) = bb.against(&poses.of(bb), &bar, best, Mode::Min) {
                     best = d;
                     who = Some((b, None));
                 }
@@ -741,10 +774,19 @@ pub fn build(
     let mut bodies: Vec<Body> = Vec::new();
     // Links.
     let mut link_parts: Vec<Vec<Part>> = (0..7).map(|_| Vec::new()).collect();
+    let mut passive_parts: Vec<Vec<Part>> = robot.passive.iter().map(|_| Vec::new()).collect();
     if robot.shapes.is_empty() {
         link_parts = auto_links(robot, cell)?;
     } else {
         for s in &robot.shapes {
+            if let Some(pi) = s.passive {
+                let link = robot.passive.get(pi).ok_or_else(|| CollisionError::Shape {
+                    body: format!("passive link {pi}"),
+                    msg: "no such passive link".into(),
+                })?;
+                passive_parts[pi].push(part(&s.origin, Prim::from(&s.geometry), &link.name)?);
+                continue;
+            }
             if s.frame > 6 {
                 return Err(CollisionError::Shape {
                     body: format!("link {}", s.frame),
@@ -761,6 +803,15 @@ pub fn build(
     for (k, parts) in link_parts.into_iter().enumerate() {
         if !parts.is_empty() {
             bodies.push(body(link_name(k), Attach::Frame(k), Role::Link, parts));
+        }
+    }
+    // Passive links: their own bodies, placed from q.
+    let mut passive_body: Vec<Option<usize>> = vec![None; robot.passive.len()];
+    for (i, parts) in passive_parts.into_iter().enumerate() {
+        if !parts.is_empty() {
+            passive_body[i] = Some(bodies.len());
+            let name = robot.passive[i].name.clone();
+            bodies.push(body(name, Attach::Passive(i), Role::Passive, parts));
         }
     }
     // Tool, MAP ball, hoses.
@@ -857,9 +908,9 @@ pub fn build(
 
     // Pairs.
     let home = chain_frames(&robot.base, &robot.dh, &robot.flange, &[0.0; 6]);
-    let home_poses = Poses::new(&home);
+    let home_poses = Poses::new(&[0.0; 6], &home, &robot.passive);
     let exact = |a: &Body, b: &Body| -> Result<f64, CollisionError> {
-        let (ia, ib) = (home_poses.of(a), home_poses.of(b));
+        let (ia, ib) = (&home_poses.of(a), &home_poses.of(b));
         let mut best = f64::INFINITY;
         for pa in &a.parts {
             for pb in &b.parts {
@@ -877,9 +928,27 @@ pub fn build(
         }
         Ok(best)
     };
+    // Bodies rigid with the same frame share a key; each passive link has a key of its own.
     let frame_of = |b: &Body| match b.attach {
         Attach::Frame(k) => k.min(6),
+        Attach::Passive(i) => usize::MAX - 1 - i,
         Attach::World => usize::MAX,
+    };
+    // The body a passive link is joined to by its joint: its nearest passive ancestor with a
+    // body, else the link rigid with its anchor frame.
+    let joined = |a: &Body, b: &Body| -> Option<String> {
+        let Attach::Passive(i) = a.attach else {
+            return None;
+        };
+        let link = &robot.passive[i];
+        let parent_is_b = match link.parent.and_then(|p| passive_body[p]) {
+            Some(pb) => std::ptr::eq(&bodies[pb], b),
+            None => b.role == Role::Link && b.attach == Attach::Frame(link.frame),
+        };
+        parent_is_b.then(|| {
+            let joint = link.steps.last().map_or("", |s| s.name.as_str());
+            format!("connected by joint {joint}")
+        })
     };
     let mut pairs = Vec::new();
     let mut excluded = Vec::new();
@@ -901,6 +970,10 @@ pub fn build(
             }
             if a.role == Role::Link && b.role == Role::Link && fa.abs_diff(fb) == 1 {
                 exclude(a, b, "adjacent links".into());
+                continue;
+            }
+            if let Some(reason) = joined(a, b).or_else(|| joined(b, a)) {
+                exclude(a, b, reason);
                 continue;
             }
             let d = exact(a, b)?;
@@ -972,7 +1045,7 @@ pub fn build(
         }
         let ib = home_poses.of(b);
         for p in &b.parts {
-            let x = p.place(ib);
+            let x = p.place(&ib);
             if query::distance(&Isometry3::identity(), &probe, &x.iso, x.shape).is_err() {
                 return Err(CollisionError::Unsupported {
                     a: BAR.into(),
@@ -990,14 +1063,56 @@ pub fn build(
         _ => 0.0,
     });
     let mut sweep = [0.0; 6];
+    let (lo, hi) = robot.limits();
     for b in &bodies[..n_robot] {
-        let Attach::Frame(f) = b.attach else { continue };
-        for i in 1..=6 {
-            if f >= i {
-                let reach: f64 =
-                    legs[i..=f].iter().sum::<f64>() + b.center.coords.norm() + b.radius;
-                sweep[i - 1] = f64::max(sweep[i - 1], reach);
+        match b.attach {
+            Attach::Frame(f) => {
+                for i in 1..=f.min(6) {
+                    let reach: f64 =
+                        legs[i..=f].iter().sum::<f64>() + b.center.coords.norm() + b.radius;
+                    sweep[i - 1] = f64::max(sweep[i - 1], reach);
+                }
             }
+            Attach::Passive(pi) => {
+                // d[m]: a bound on the distance from the frame before step m to any point of
+                // the body, over every q (prismatic steps add their largest travel).
+                let link = &robot.passive[pi];
+                let travel = |st: &crate::robot::PassiveStep| -> f64 {
+                    if st.motion != PassiveMotion::Prismatic {
+                        return 0.0;
+                    }
+                    let range = st.joint.map_or(0.0, |k| lo[k].abs().max(hi[k].abs()));
+                    st.multiplier.abs() * range + st.offset.abs()
+                };
+                let n = link.steps.len();
+                let mut d = vec![0.0; n + 1];
+                d[n] = b.center.coords.norm() + b.radius;
+                for m in (0..n).rev() {
+                    d[m] = link.steps[m].origin.t.norm() + travel(&link.steps[m]) + d[m + 1];
+                }
+                let k = link.frame.min(6);
+                for i in 1..=6 {
+                    let mut reach = if i <= k {
+                        legs[i..=k].iter().sum::<f64>() + d[0]
+                    } else {
+                        0.0
+                    };
+                    // Steps this joint drives: a mimic turns the rest of the link about its
+                    // own axis (|multiplier| × radius) or slides it (|multiplier| m per rad).
+                    for (m, st) in link.steps.iter().enumerate() {
+                        if st.joint == Some(i - 1) {
+                            reach += st.multiplier.abs()
+                                * match st.motion {
+                                    PassiveMotion::Revolute => d[m + 1],
+                                    PassiveMotion::Prismatic => 1.0,
+                                    PassiveMotion::Fixed => 0.0,
+                                };
+                        }
+                    }
+                    sweep[i - 1] = f64::max(sweep[i - 1], reach);
+                }
+            }
+            Attach::World => {}
         }
     }
 
@@ -1009,6 +1124,7 @@ pub fn build(
     Ok((
         Scene {
             bodies,
+            passive: robot.passive.clone(),
             pairs,
             bar_pairs,
             fixture: *fixture,

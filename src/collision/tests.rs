@@ -88,6 +88,7 @@ fn world_scene(shapes: Vec<(&str, Frame, Prim)>, floor_z: Option<f64>) -> Scene 
         .collect();
     Scene {
         bodies,
+        passive: Vec::new(),
         pairs,
         bar_pairs: Vec::new(),
         fixture: Vector3::zeros(),
@@ -98,14 +99,16 @@ fn world_scene(shapes: Vec<(&str, Frame, Prim)>, floor_z: Option<f64>) -> Scene 
 }
 
 fn check_clearance(s: &Scene, want: f64, a: &str, b: &str) {
-    let c = s.clearance(&[Frame::IDENTITY; 8], &Vector3::zeros());
+    let c = s.clearance(&[0.0; 6], &[Frame::IDENTITY; 8], &Vector3::zeros());
     assert!((c.distance - want).abs() < 1e-9, "{c:?}, want {want}");
     assert_eq!((c.a.as_str(), c.b.as_str()), (a, b));
     // The filter agrees with the clearance on both sides of it.
     let id = [Frame::IDENTITY; 8];
-    assert!(s.violation(&id, &Vector3::zeros(), want - 1e-6).is_none());
+    assert!(s
+        .violation(&[0.0; 6], &id, &Vector3::zeros(), want - 1e-6)
+        .is_none());
     let v = s
-        .violation(&id, &Vector3::zeros(), want + 1e-6)
+        .violation(&[0.0; 6], &id, &Vector3::zeros(), want + 1e-6)
         .expect("violation");
     assert!((v.distance - want).abs() < 1e-9, "{v:?}");
 }
@@ -175,7 +178,7 @@ fn every_robot_builds_and_is_clear_at_home_and_lists_adjacent_links() {
         let (s, rep) = scene(&r, &cell);
         let home = frames(&r, &[0.0; 6]);
         let map = home[7].apply(&map_of(&r));
-        let c = s.clearance(&home, &map);
+        let c = s.clearance(&[0.0; 6], &home, &map);
         eprintln!(
             "{file}: {} bodies, {} pairs checked, {} excluded; home clearance {:.1} mm ({} / {})",
             rep.bodies.len(),
@@ -189,7 +192,7 @@ fn every_robot_builds_and_is_clear_at_home_and_lists_adjacent_links() {
             eprintln!("    {} / {}: {}", e.a, e.b, e.reason);
         }
         assert!(
-            s.violation(&home, &map, cell.margin).is_none(),
+            s.violation(&[0.0; 6], &home, &map, cell.margin).is_none(),
             "{file}: {c:?}"
         );
         assert!(c.distance >= cell.margin, "{file}: {c:?}");
@@ -231,7 +234,7 @@ fn folding_the_arm_is_a_violation_naming_the_bodies() {
                 q[4] = 0.5 * r.joints[4].upper;
                 let f = frames(&r, &q);
                 let map = f[7].apply(&map_of(&r));
-                if let Some(c) = s.violation(&f, &map, cell.margin) {
+                if let Some(c) = s.violation(&q, &f, &map, cell.margin) {
                     let fold = |n: &str| n != BAR && n != FIXTURE_BALL;
                     if fold(&c.a) && fold(&c.b) {
                         hit = Some((q, c));
@@ -246,7 +249,7 @@ fn folding_the_arm_is_a_violation_naming_the_bodies() {
         assert!(rep.bodies.contains(&c.a) && rep.bodies.contains(&c.b));
         // The clearance finds the same pose unsafe.
         let f = frames(&r, &q);
-        assert!(s.clearance(&f, &f[7].apply(&map_of(&r))).distance <= cell.margin);
+        assert!(s.clearance(&q, &f, &f[7].apply(&map_of(&r))).distance <= cell.margin);
     }
     // The auto-capsule NJ-130 with the upper arm leant fully forward: lowering the forearm puts
     // the wrist into the floor.
@@ -254,9 +257,10 @@ fn folding_the_arm_is_a_violation_naming_the_bodies() {
     let (s, _) = scene(&r, &cell);
     let floor_hit = (0..=40).find_map(|j| {
         let q3 = r.joints[2].lower + (r.joints[2].upper - r.joints[2].lower) * j as f64 / 40.0;
-        let f = frames(&r, &[0.0, r.joints[1].upper, q3, 0.0, 0.0, 0.0]);
+        let q = [0.0, r.joints[1].upper, q3, 0.0, 0.0, 0.0];
+        let f = frames(&r, &q);
         eprintln!("q3 = {q3:.2}: wrist at z = {:.3}", f[5].t.z);
-        s.violation(&f, &f[7].apply(&map_of(&r)), cell.margin)
+        s.violation(&q, &f, &f[7].apply(&map_of(&r)), cell.margin)
             .filter(|c| c.b == FLOOR)
     });
     let c = floor_hit.expect("the wrist reaches the floor");
@@ -283,12 +287,12 @@ fn a_box_on_the_map_path_and_a_box_across_the_bar() {
     assert!(rep.bodies.contains(&"crate".to_string()));
     let home = frames(&r, &[0.0; 6]);
     let map0 = home[7].apply(&map_of(&r));
-    assert!(s.violation(&home, &map0, cell.margin).is_none());
+    assert!(s.violation(&[0.0; 6], &home, &map0, cell.margin).is_none());
     let c = s
-        .violation(&f1, &map1, cell.margin)
+        .violation(&q1, &f1, &map1, cell.margin)
         .expect("the MAP is in the crate");
     assert!(c.a == "crate" || c.b == "crate", "{c:?}");
-    assert!(s.clearance(&f1, &map1).distance < 0.0);
+    assert!(s.clearance(&q1, &f1, &map1).distance < 0.0);
 
     // A small box halfway along the bar at the home pose: only the bar reaches it.
     let mut cell = CellSpec::default();
@@ -297,11 +301,11 @@ fn a_box_on_the_map_path_and_a_box_across_the_bar() {
         .push(env_box("post", 0.5 * (map0 + fixture), 0.04));
     let (s, _) = scene(&r, &cell);
     let c = s
-        .violation(&home, &map0, cell.margin)
+        .violation(&[0.0; 6], &home, &map0, cell.margin)
         .expect("the bar hits the post");
     assert_eq!((c.a.as_str(), c.b.as_str()), ("post", BAR), "{c:?}");
     assert!(c.distance < 0.0);
-    let c = s.clearance(&home, &map0);
+    let c = s.clearance(&[0.0; 6], &home, &map0);
     assert_eq!((c.a.as_str(), c.b.as_str()), ("post", BAR));
     // Moved off the bar by more than its radius + the margin: clear.
     let mut cell = CellSpec::default();
@@ -311,7 +315,7 @@ fn a_box_on_the_map_path_and_a_box_across_the_bar() {
         0.04,
     ));
     let (s, _) = scene(&r, &cell);
-    assert!(s.violation(&home, &map0, cell.margin).is_none());
+    assert!(s.violation(&[0.0; 6], &home, &map0, cell.margin).is_none());
 }
 
 /// Points on the surface of a part (its frame), for the sweep bound.
@@ -389,7 +393,11 @@ fn sweep_radius_bounds_the_motion_of_every_body_point() {
             let dq: [f64; 6] = std::array::from_fn(|_| rng.random_range(-0.02..0.02));
             let q2: [f64; 6] = std::array::from_fn(|i| q[i] + dq[i]);
             let bound: f64 = (0..6).map(|i| sweep[i] * dq[i].abs()).sum();
-            let (fa, fb) = (Poses::new(&frames(&r, &q)), Poses::new(&frames(&r, &q2)));
+            let (ffa, ffb) = (frames(&r, &q), frames(&r, &q2));
+            let (fa, fb) = (
+                Poses::new(&q, &ffa, &r.passive),
+                Poses::new(&q2, &ffb, &r.passive),
+            );
             for b in s.bodies.iter().filter(|b| b.attach != Attach::World) {
                 for p in &b.parts {
                     for x in sample_points(p) {
@@ -425,7 +433,7 @@ fn results_do_not_depend_on_the_thread_count() {
                     .map(|q| {
                         let f = frames(&r, q);
                         let m = f[7].apply(&map_of(&r));
-                        (s.clearance(&f, &m), s.violation(&f, &m, 0.01))
+                        (s.clearance(q, &f, &m), s.violation(q, &f, &m, 0.01))
                     })
                     .collect()
             })
@@ -452,6 +460,7 @@ fn mesh_files_ascii_stl_obj_and_a_clear_error_for_dae() {
         let h = part.shape.as_convex_polyhedron().expect("hull");
         assert_eq!(h.points().len(), 4, "{}", p.display());
         let s = Scene {
+            passive: Vec::new(),
             bodies: vec![
                 body("tet".into(), Attach::World, Role::Environment, vec![part]),
                 body(
@@ -473,7 +482,7 @@ fn mesh_files_ascii_stl_obj_and_a_clear_error_for_dae() {
             ball_radius: 0.0,
             sweep: [0.0; 6],
         };
-        let c = s.clearance(&[Frame::IDENTITY; 8], &Vector3::zeros());
+        let c = s.clearance(&[0.0; 6], &[Frame::IDENTITY; 8], &Vector3::zeros());
         assert!((c.distance - 0.5).abs() < 1e-9, "{c:?}");
     }
     let dae = dir.path().join("link.dae");
@@ -518,7 +527,7 @@ fn speed_of_the_filter() {
         for q in &qs {
             let f = frames(&r, q);
             hits += s
-                .violation(&f, &f[7].apply(&map_of(&r)), cell.margin)
+                .violation(q, &f, &f[7].apply(&map_of(&r)), cell.margin)
                 .is_some() as usize;
         }
         let filter = qs.len() as f64 / t.elapsed().as_secs_f64();
@@ -526,7 +535,7 @@ fn speed_of_the_filter() {
         let mut sum = 0.0;
         for q in &qs[..500] {
             let f = frames(&r, q);
-            sum += s.clearance(&f, &f[7].apply(&map_of(&r))).distance;
+            sum += s.clearance(q, &f, &f[7].apply(&map_of(&r))).distance;
         }
         let clear = 500.0 / t.elapsed().as_secs_f64();
         eprintln!(

@@ -428,6 +428,17 @@ fn accumulate(model: &MeasurementModel, d: &Data, s: &State, cols: &[Col], folds
 
 /// Least squares from normal equations on the columns `sel`: (x, N⁺ diagonal, rank).
 fn solve(n: &DMatrix<f64>, b: &DVector<f64>, sel: &[usize]) -> (DVector<f64>, DVector<f64>, usize) {
+    solve_damped(n, b, sel, 0.0)
+}
+
+/// [`solve`] with Levenberg-Marquardt damping `lambda` on the column-scaled normal equations
+/// (every eigenvalue l becomes l + lambda): 0 is the Gauss-Newton step.
+fn solve_damped(
+    n: &DMatrix<f64>,
+    b: &DVector<f64>,
+    sel: &[usize],
+    lambda: f64,
+) -> (DVector<f64>, DVector<f64>, usize) {
     let k = sel.len();
     let scale: Vec<f64> = sel
         .iter()
@@ -453,7 +464,7 @@ fn solve(n: &DMatrix<f64>, b: &DVector<f64>, sel: &[usize]) -> (DVector<f64>, DV
         if l > tol {
             rank += 1;
             let v = eig.eigenvectors.column(e);
-            x += v * (v.dot(&bs) / l);
+            x += v * (v.dot(&bs) / (l + lambda));
             for a in 0..k {
                 var[a] += v[a] * v[a] / l;
             }
@@ -601,15 +612,32 @@ fn refit(model: &MeasurementModel, d: &Data, s: &mut State, geo: &[usize]) -> St
     let cols = model_cols(d, s, geo);
     let sel: Vec<usize> = (0..cols.len()).collect();
     let mut st = accumulate(model, d, s, &cols, 1);
-    for _ in 0..6 {
-        let (x, _, _) = solve(&st.n[0], &st.b[0], &sel);
+    // Levenberg-Marquardt: Gauss-Newton while the model is nearly linear over the step; where
+    // it is not (large deflections, a geometry still moving by millimetres, nearly collinear
+    // effect columns whose full step overshoots) the damping shortens and turns the step
+    // toward steepest descent until it descends.
+    let mut lambda = 0.0;
+    for _ in 0..30 {
         let before = st.rr[0];
-        let mut trial = s.clone();
-        add_step(&mut trial, &cols, &x);
-        let st2 = accumulate(model, d, &trial, &cols, 1);
-        if st2.rr[0] > before * (1.0 + 1e-9) {
-            break;
+        let mut accepted = None;
+        for _ in 0..8 {
+            let (x, _, _) = solve_damped(&st.n[0], &st.b[0], &sel, lambda);
+            let mut trial = s.clone();
+            add_step(&mut trial, &cols, &x);
+            let st2 = accumulate(model, d, &trial, &cols, 1);
+            if st2.rr[0] <= before * (1.0 + 1e-9) {
+                accepted = Some((trial, st2));
+                lambda *= 0.1;
+                if lambda < 1e-9 {
+                    lambda = 0.0;
+                }
+                break;
+            }
+            lambda = if lambda == 0.0 { 1e-6 } else { lambda * 10.0 };
         }
+        let Some((trial, st2)) = accepted else {
+            break;
+        };
         *s = trial;
         let done = st2.rr[0] > before * (1.0 - 1e-6);
         st = st2;

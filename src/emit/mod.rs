@@ -13,8 +13,7 @@ pub fn dialect(name: &str) -> Option<&'static str> {
     DIALECTS.iter().find(|(n, _)| *n == name).map(|(_, t)| *t)
 }
 
-/// Joint values are emitted with this many decimals (degrees).
-pub const DEG_DECIMALS: i32 = 4;
+pub use crate::units::DEG_DECIMALS;
 
 /// A joint value (degrees) as the program will carry it.
 pub fn round_deg(v: f64) -> f64 {

@@ -116,6 +116,8 @@ pub fn from_str(text: &str, path: &Path) -> Result<Robot, LoadError> {
         joints,
         tool: spec.tool.map(|t| Vector3::from(t) * lscale),
         shapes: Vec::new(),
+        passive: Vec::new(),
+        notes: Vec::new(),
         masses: Vec::new(),
         digest: String::new(),
     })

@@ -33,15 +33,96 @@ pub struct Joint {
     pub max_speed: f64,
 }
 
-/// A collision primitive attached to a DH frame (0 = base frame, i = after joint i).
-/// Used by later stages; the URDF and DH loaders fill it where the file has geometry.
+/// A collision primitive attached to a DH frame (0 = base frame, i = after joint i), or to a
+/// passive link. Used by later stages; the URDF and DH loaders fill it where the file has
+/// geometry.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct LinkShape {
-    /// DH frame the shape is rigidly attached to: 0 = robot base, i = moves with joint i.
+    /// DH frame the shape (or its passive link's chain) is attached to: 0 = robot base,
+    /// i = moves with joint i.
     pub frame: usize,
-    /// Pose of the shape in that frame.
+    /// Pose of the shape in that frame, or in its passive link's frame.
     pub origin: Frame,
     pub geometry: Geometry,
+    /// Index into [`Robot::passive`] when the shape belongs to a passive link.
+    #[serde(default)]
+    pub passive: Option<usize>,
+}
+
+/// A link that hangs off the 6-joint chain through joints the controller does not drive
+/// itself: mimic joints (a balancing cylinder and its piston, a parallelogram linkage, a gas
+/// spring) and, held at a fixed value, undriven joints. Its pose is a function of q:
+/// DH frame `frame` · step 1 · step 2 · …
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PassiveLink {
+    /// The URDF link name (the body's name in reports).
+    pub name: String,
+    /// DH frame of the rigid ancestor the chain of steps starts from.
+    pub frame: usize,
+    /// The nearest ancestor that is itself a passive link (index into [`Robot::passive`]);
+    /// None: the rigid ancestor (DH frame `frame`). The two are joined by a joint.
+    pub parent: Option<usize>,
+    pub steps: Vec<PassiveStep>,
+}
+
+/// One joint between a rigid ancestor (or a passive link) and a passive link:
+/// `origin` · motion(value), value = `multiplier` · q\[`joint`\] + `offset` (rad or m).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PassiveStep {
+    /// The URDF joint.
+    pub name: String,
+    /// The joint's origin in its parent's frame (the first step: in DH frame `frame`).
+    pub origin: Frame,
+    pub motion: PassiveMotion,
+    /// Unit axis in the joint frame (ignored for `Fixed`).
+    pub axis: Vector3<f64>,
+    /// The chain joint (0-based) the value follows; `None` = held at `offset`.
+    pub joint: Option<usize>,
+    pub multiplier: f64,
+    pub offset: f64,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum PassiveMotion {
+    Fixed,
+    Revolute,
+    Prismatic,
+}
+
+impl PassiveStep {
+    /// The joint value at q (rad or m).
+    #[inline]
+    pub fn value(&self, q: &[f64; 6]) -> f64 {
+        match self.joint {
+            Some(k) => self.multiplier * q[k] + self.offset,
+            None => self.offset,
+        }
+    }
+
+    /// origin · motion(value at q).
+    #[inline]
+    pub fn transform(&self, q: &[f64; 6]) -> Frame {
+        match self.motion {
+            PassiveMotion::Fixed => self.origin,
+            PassiveMotion::Revolute => self.origin.mul(&Frame::new(
+                axis_angle(&self.axis, self.value(q)),
+                Vector3::zeros(),
+            )),
+            PassiveMotion::Prismatic => self
+                .origin
+                .mul(&Frame::translation(self.axis * self.value(q))),
+        }
+    }
+}
+
+impl PassiveLink {
+    /// The link's frame in the robot base frame, from the chain frames of q (allocation-free).
+    #[inline]
+    pub fn pose(&self, frames: &[Frame; 8], q: &[f64; 6]) -> Frame {
+        self.steps
+            .iter()
+            .fold(frames[self.frame], |f, s| f.mul(&s.transform(q)))
+    }
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -80,6 +161,12 @@ pub struct Robot {
     /// when the robot file declares one.
     pub tool: Option<Vector3<f64>>,
     pub shapes: Vec<LinkShape>,
+    /// Links off the chain that move with it (mimic linkages), for the collision scene.
+    #[serde(default)]
+    pub passive: Vec<PassiveLink>,
+    /// What the loader assumed that a user must know (e.g. an undriven joint held at a value).
+    #[serde(default)]
+    pub notes: Vec<String>,
     /// Link masses from the URDF inertials, by frame; empty when the file has none.
     #[serde(default)]
     pub masses: Vec<PointMass>,

@@ -8,7 +8,10 @@
 //! DH z axis), and for every q, `FK_urdf(q) = base · Π dh_transform(dh[i], q[i]) · flange`.
 
 use super::kinematics::dh_transform;
-use super::{Dh, Frame, Geometry, Joint, LinkShape, LoadError, LoadOptions, Robot};
+use super::{
+    Dh, Frame, Geometry, Joint, LinkShape, LoadError, LoadOptions, PassiveLink, PassiveMotion,
+    PassiveStep, Robot,
+};
 use nalgebra::{Matrix3, Vector3};
 use std::collections::HashMap;
 use std::f64::consts::TAU;
@@ -158,25 +161,121 @@ fn convert(text: &str, path: &Path, opts: &LoadOptions) -> Result<Robot, String>
         }
     });
 
-    // Collision geometry of every link rigid with a DH frame, in document order, then by frame.
-    // Links behind a moving joint off the chain (passive mimic linkages) have no place in the
-    // 6-joint model and are skipped.
+    // Links behind a moving joint off the chain (a balancing cylinder, a parallelogram
+    // linkage): each gets the chain of joints from its nearest rigid ancestor, so that its pose
+    // is known for every q and its geometry joins the collision scene.
+    let mut notes = Vec::new();
+    let mut passive: Vec<PassiveLink> = Vec::new();
+    let mut passive_of: Vec<Option<usize>> = vec![None; n_links];
+    let mut drives = Drives::new(&doc, &joint_number);
+    let moving: Vec<usize> = (0..n_links)
+        .filter(|&l| group[l].is_none() && !doc.links[l].collision.is_empty())
+        .collect();
+    for (i, &l) in moving.iter().enumerate() {
+        passive_of[l] = Some(i);
+    }
+    for &l in &moving {
+        let link = &doc.links[l];
+        // Joints from the rigid ancestor down to l.
+        let mut path_joints = Vec::new();
+        let mut a = l;
+        while group[a].is_none() {
+            let j = tree.parent_joint[a].ok_or("unreachable: the root is rigid")?;
+            path_joints.push(j);
+            a = tree.link_of[doc.joints[j].parent.link.as_str()];
+        }
+        path_joints.reverse();
+        let k = group[a].ok_or("unreachable: a rigid ancestor")?;
+        let mut steps = Vec::with_capacity(path_joints.len());
+        for (n, &j) in path_joints.iter().enumerate() {
+            let joint = &doc.joints[j];
+            let mut origin = origin_frame(&joint.origin.xyz, &joint.origin.rpy)
+                .ok_or_else(|| format!("joint {}: origin is not finite", joint.name))?;
+            if n == 0 {
+                origin = frames[k].inverse().mul(&pose0[a]).mul(&origin);
+            }
+            let motion = match joint.joint_type {
+                JointType::Fixed => PassiveMotion::Fixed,
+                JointType::Revolute | JointType::Continuous => PassiveMotion::Revolute,
+                JointType::Prismatic => PassiveMotion::Prismatic,
+                ref t => {
+                    return Err(format!(
+                        "joint {} ({}) moves link {} with more than one degree of freedom; edbbgen cannot place it (make it fixed, revolute or prismatic)",
+                        joint.name,
+                        type_name(t),
+                        joint.child.link
+                    ))
+                }
+            };
+            let axis = V3::from(joint.axis.xyz.0);
+            let norm = axis.norm();
+            if motion != PassiveMotion::Fixed && !(norm.is_finite() && norm > 1e-12) {
+                return Err(format!("joint {}: axis is zero or not finite", joint.name));
+            }
+            let (source, multiplier, offset) = if motion == PassiveMotion::Fixed {
+                (None, 0.0, 0.0)
+            } else {
+                drives.of(j)?
+            };
+            steps.push(PassiveStep {
+                name: joint.name.clone(),
+                origin,
+                motion,
+                axis: if motion == PassiveMotion::Fixed {
+                    V3::z()
+                } else {
+                    axis / norm
+                },
+                joint: source,
+                multiplier,
+                offset,
+            });
+        }
+        // The nearest ancestor with a body of its own.
+        let mut parent = None;
+        let mut up = tree.link_of[doc.joints[path_joints[path_joints.len() - 1]]
+            .parent
+            .link
+            .as_str()];
+        while group[up].is_none() {
+            if let Some(pi) = passive_of[up] {
+                parent = Some(pi);
+                break;
+            }
+            let j = tree.parent_joint[up].ok_or("unreachable: the root is rigid")?;
+            up = tree.link_of[doc.joints[j].parent.link.as_str()];
+        }
+        passive.push(PassiveLink {
+            name: link.name.clone(),
+            frame: k,
+            parent,
+            steps,
+        });
+    }
+    notes.extend(drives.notes);
+
+    // Collision geometry of every link, in document order, then by frame: links rigid with a
+    // DH frame in that frame, passive links in their own.
     let urdf_dir = path.parent().unwrap_or(Path::new(""));
     let mut shapes = Vec::new();
     for (l, link) in doc.links.iter().enumerate() {
-        let Some(k) = group[l] else { continue };
-        let to_dh = frames[k].inverse().mul(&pose0[l]);
+        let (k, to_link, pi) = match (group[l], passive_of[l]) {
+            (Some(k), _) => (k, frames[k].inverse().mul(&pose0[l]), None),
+            (None, Some(pi)) => (passive[pi].frame, Frame::IDENTITY, Some(pi)),
+            (None, None) => continue,
+        };
         for c in &link.collision {
             let origin = origin_frame(&c.origin.xyz, &c.origin.rpy)
                 .ok_or_else(|| format!("link {}: collision origin is not finite", link.name))?;
             shapes.push(LinkShape {
                 frame: k,
-                origin: to_dh.mul(&origin),
+                origin: to_link.mul(&origin),
                 geometry: geometry(&c.geometry, &link.name, urdf_dir, opts)?,
+                passive: pi,
             });
         }
     }
-    shapes.sort_by_key(|s| s.frame);
+    shapes.sort_by_key(|s| (s.passive.is_some(), s.frame));
 
     // Inertials of the same links, as point masses at their centres of mass in DH frames.
     let mut masses = Vec::new();
@@ -219,9 +318,109 @@ fn convert(text: &str, path: &Path, opts: &LoadOptions) -> Result<Robot, String>
         joints,
         tool,
         shapes,
+        passive,
+        notes,
         masses,
         digest: String::new(),
     })
+}
+
+/// What drives each joint off the chain: a chain joint through a (possibly nested) mimic, or
+/// nothing (held at a value, with a note).
+struct Drives<'a> {
+    doc: &'a urdf_rs::Robot,
+    chain: &'a HashMap<usize, usize>,
+    by_name: HashMap<&'a str, usize>,
+    notes: Vec<String>,
+}
+
+impl<'a> Drives<'a> {
+    fn new(doc: &'a urdf_rs::Robot, chain: &'a HashMap<usize, usize>) -> Self {
+        let by_name = doc
+            .joints
+            .iter()
+            .enumerate()
+            .map(|(j, joint)| (joint.name.as_str(), j))
+            .collect();
+        Drives {
+            doc,
+            chain,
+            by_name,
+            notes: Vec::new(),
+        }
+    }
+
+    /// (chain joint, multiplier, offset) with value = multiplier · q[joint] + offset, following
+    /// mimic tags through any number of levels. Cycles and unknown names are errors. A joint
+    /// that is neither on the chain nor a mimic is held at 0 (or its nearest limit) and noted.
+    fn of(&mut self, j: usize) -> Result<(Option<usize>, f64, f64), String> {
+        let mut seen = vec![j];
+        let (mut mult, mut off) = (1.0, 0.0);
+        let mut cur = j;
+        loop {
+            if let Some(&k) = self.chain.get(&cur) {
+                return Ok((Some(k), mult, off));
+            }
+            let joint = &self.doc.joints[cur];
+            match &joint.mimic {
+                Some(m) => {
+                    let (mm, mo) = (m.multiplier.unwrap_or(1.0), m.offset.unwrap_or(0.0));
+                    if !(mm.is_finite() && mo.is_finite()) {
+                        return Err(format!(
+                            "joint {}: mimic multiplier/offset is not finite",
+                            joint.name
+                        ));
+                    }
+                    // value(cur) = mm · value(src) + mo
+                    off += mult * mo;
+                    mult *= mm;
+                    let src = *self.by_name.get(m.joint.as_str()).ok_or_else(|| {
+                        format!(
+                            "joint {} mimics joint {}, which is not defined",
+                            joint.name, m.joint
+                        )
+                    })?;
+                    if seen.contains(&src) {
+                        let names: Vec<&str> = seen
+                            .iter()
+                            .chain([&src])
+                            .map(|&x| self.doc.joints[x].name.as_str())
+                            .collect();
+                        return Err(format!(
+                            "mimic joints form a cycle ({})",
+                            names.join(" -> ")
+                        ));
+                    }
+                    if self.doc.joints[src].joint_type == JointType::Fixed {
+                        return Err(format!(
+                            "joint {} mimics joint {}, which is fixed",
+                            joint.name, m.joint
+                        ));
+                    }
+                    seen.push(src);
+                    cur = src;
+                }
+                None => {
+                    // Undriven: no controller moves it, no mimic ties it to one that does.
+                    let (lo, hi) = (joint.limit.lower, joint.limit.upper);
+                    let held = if lo <= hi { 0.0f64.clamp(lo, hi) } else { 0.0 };
+                    let unit = if joint.joint_type == JointType::Prismatic {
+                        format!("{} mm", crate::units::fmt_fixed(held * 1e3, 1))
+                    } else {
+                        format!("{} deg", crate::units::fmt_fixed(held.to_degrees(), 1))
+                    };
+                    let note = format!(
+                        "joint {} is off the chain and neither driven nor a mimic: link {} is held at {unit}",
+                        joint.name, joint.child.link
+                    );
+                    if !self.notes.contains(&note) {
+                        self.notes.push(note);
+                    }
+                    return Ok((None, 0.0, off + mult * held));
+                }
+            }
+        }
+    }
 }
 
 fn type_name(t: &JointType) -> &'static str {
@@ -592,6 +791,11 @@ mod tests {
                     let qj = *q.get(j.name.as_str())?; // None: off the chain
                     t = t.mul(&Frame::new(axis_angle(&axis, qj), V3::zeros()));
                 }
+                JointType::Prismatic => {
+                    let axis = V3::from(j.axis.xyz.0).normalize();
+                    let qj = *q.get(j.name.as_str())?;
+                    t = t.mul(&Frame::translation(axis * qj));
+                }
                 _ => return None,
             }
         }
@@ -647,6 +851,24 @@ mod tests {
             crate::robot::kinematics::chain_frames(&robot.base, &robot.dh, &robot.flange, q);
         let mut used = vec![false; robot.shapes.len()];
         let dir = Path::new(file).parent().unwrap();
+        // Mimic joints take their values from their sources (the URDF rule, computed here).
+        let mut by_name = by_name.clone();
+        while let Some(j) = doc.joints.iter().find(|j| {
+            !by_name.contains_key(j.name.as_str())
+                && j.mimic
+                    .as_ref()
+                    .is_some_and(|m| by_name.contains_key(m.joint.as_str()))
+        }) {
+            let m = j.mimic.as_ref().unwrap();
+            let v =
+                m.multiplier.unwrap_or(1.0) * by_name[m.joint.as_str()] + m.offset.unwrap_or(0.0);
+            by_name.insert(j.name.as_str(), v);
+        }
+        let by_name = &by_name;
+        let placed = |s: &LinkShape| match s.passive {
+            Some(pi) => robot.passive[pi].pose(&frames, q).mul(&s.origin),
+            None => frames[s.frame].mul(&s.origin),
+        };
         for link in &doc.links {
             let Some(at) = urdf_fk(doc, &link.name, by_name) else {
                 continue;
@@ -654,7 +876,7 @@ mod tests {
             for c in &link.collision {
                 let want = at.mul(&Frame::from_xyz_rpy(c.origin.xyz.0, c.origin.rpy.0));
                 let found = robot.shapes.iter().enumerate().position(|(i, s)| {
-                    let (p, r) = diff(&want, &frames[s.frame].mul(&s.origin));
+                    let (p, r) = diff(&want, &placed(s));
                     let same = match (&s.geometry, &c.geometry) {
                         (Geometry::Mesh { path, .. }, urdf_rs::Geometry::Mesh { filename, .. }) => {
                             *path == dir.join(filename)
@@ -693,7 +915,7 @@ mod tests {
     }
 
     #[test]
-    fn shared_robots_keep_names_limits_and_skip_off_chain_links() {
+    fn shared_robots_keep_names_limits_and_place_passive_links() {
         let abb = load(
             Path::new(&format!("{SHARED}/abb_irb6700_200_260/robot.urdf")),
             &LoadOptions::default(),
@@ -708,8 +930,29 @@ mod tests {
         );
         assert!((abb.joints[1].lower - -1.13446).abs() < 1e-5);
         assert!((abb.joints[3].max_speed - 3.31613).abs() < 1e-5);
-        // 9 collision meshes, two of them on the passive cylinder and piston.
-        assert_eq!(abb.shapes.len(), 7);
+        // 9 collision meshes, two of them on the passive cylinder and piston (mimics of
+        // joint_2: ×−0.25 revolute, ×0.15 prismatic).
+        assert_eq!(abb.shapes.len(), 9);
+        let passive: Vec<(&str, usize, Option<usize>)> = abb
+            .passive
+            .iter()
+            .map(|p| {
+                (
+                    p.name.as_str(),
+                    p.frame,
+                    p.steps.last().and_then(|s| s.joint),
+                )
+            })
+            .collect();
+        assert_eq!(passive, [("cylinder", 1, Some(1)), ("piston", 1, Some(1))]);
+        assert_eq!(
+            abb.passive[1].parent,
+            Some(0),
+            "the piston hangs on the cylinder"
+        );
+        assert!((abb.passive[0].steps[0].multiplier + 0.25).abs() < 1e-15);
+        assert!((abb.passive[1].steps[1].multiplier - 0.15).abs() < 1e-15);
+        assert!(abb.notes.is_empty(), "{:?}", abb.notes);
         assert!(abb.tool.is_none());
         let p = abb.fk(&[0.0; 6]).t;
         assert!((p - V3::new(1.6625, 0.0, 2.105)).norm() < 1e-9);
@@ -762,6 +1005,103 @@ mod tests {
         };
         assert!(!msg.contains('\n'), "{msg}");
         msg
+    }
+
+    /// A 6R arm with passive links: `p1` on l2 turns with j3 (mimic ×0.5 + 0.1), `p2` on p1
+    /// slides with p1's joint (a mimic of a mimic: ×2 + 0.01), `p3` on l1 hangs on a joint
+    /// nothing drives.
+    fn passive_arm(p1_mimic: &str, p2_mimic: &str) -> String {
+        let shape = "<collision><origin xyz=\"0.02 0.01 0.03\" rpy=\"0.1 0.2 0.3\"/><geometry><box size=\"0.05 0.05 0.05\"/></geometry></collision>";
+        arm(
+            6,
+            &format!(
+                "<link name=\"p1\">{shape}</link><link name=\"p2\">{shape}</link><link name=\"p3\">{shape}</link>\
+                 <joint name=\"pj1\" type=\"revolute\"><parent link=\"l2\"/><child link=\"p1\"/><origin xyz=\"0.05 0 0.1\" rpy=\"0.3 0 0\"/>\
+                 <axis xyz=\"0 1 0\"/><limit lower=\"-3\" upper=\"3\" velocity=\"1\" effort=\"0\"/>{p1_mimic}</joint>\
+                 <joint name=\"pj2\" type=\"prismatic\"><parent link=\"p1\"/><child link=\"p2\"/><origin xyz=\"0 0.02 0\"/>\
+                 <axis xyz=\"1 0 0\"/><limit lower=\"-1\" upper=\"1\" velocity=\"1\" effort=\"0\"/>{p2_mimic}</joint>\
+                 <joint name=\"free\" type=\"revolute\"><parent link=\"l1\"/><child link=\"p3\"/><origin xyz=\"0 0 0.05\"/>\
+                 <axis xyz=\"0 0 1\"/><limit lower=\"0.2\" upper=\"1\" velocity=\"1\" effort=\"0\"/></joint>"
+            ),
+        )
+    }
+
+    #[test]
+    fn passive_links_follow_nested_mimics_and_undriven_joints_are_held_and_noted() {
+        let text = passive_arm(
+            "<mimic joint=\"j3\" multiplier=\"0.5\" offset=\"0.1\"/>",
+            "<mimic joint=\"pj1\" multiplier=\"2\" offset=\"0.01\"/>",
+        );
+        let path = Path::new("passive.urdf");
+        let o = LoadOptions {
+            flange_link: Some("l6".into()),
+            ..LoadOptions::default()
+        };
+        let robot = from_str(&text, path, &o).expect("loads");
+        let doc = urdf_rs::read_from_string(&text).unwrap();
+        let names: Vec<&str> = robot.passive.iter().map(|p| p.name.as_str()).collect();
+        assert_eq!(names, ["p1", "p2", "p3"]);
+        assert_eq!(robot.passive[1].parent, Some(0), "p2 hangs on p1");
+        assert_eq!(robot.passive[0].parent, None);
+        // `free` has limits 0.2..1: held at 0.2 rad, and said so.
+        assert!(
+            robot
+                .notes
+                .iter()
+                .any(|n| n.contains("joint free") && n.contains("held at 11.5 deg")),
+            "{:?}",
+            robot.notes
+        );
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        for _ in 0..200 {
+            let q = random_q(&robot, &mut rng);
+            let frames =
+                crate::robot::kinematics::chain_frames(&robot.base, &robot.dh, &robot.flange, &q);
+            // Independent: every joint value by name, the mimic arithmetic done here.
+            let mut by_name: HashMap<&str, f64> = robot
+                .joints
+                .iter()
+                .zip(q)
+                .map(|(j, v)| (j.name.as_str(), v))
+                .collect();
+            let pj1 = 0.5 * q[2] + 0.1;
+            by_name.insert("pj1", pj1);
+            by_name.insert("pj2", 2.0 * pj1 + 0.01);
+            by_name.insert("free", 0.2);
+            for s in robot.shapes.iter().filter(|s| s.passive.is_some()) {
+                let link = &robot.passive[s.passive.unwrap()];
+                let got = link.pose(&frames, &q).mul(&s.origin);
+                let c = &doc
+                    .links
+                    .iter()
+                    .find(|l| l.name == link.name)
+                    .unwrap()
+                    .collision[0];
+                let want = urdf_fk(&doc, &link.name, &by_name)
+                    .unwrap()
+                    .mul(&Frame::from_xyz_rpy(c.origin.xyz.0, c.origin.rpy.0));
+                let (dp, dr) = diff(&got, &want);
+                assert!(dp < 1e-12 && dr < 1e-12, "{}: {dp:e} m, {dr:e}", link.name);
+            }
+        }
+    }
+
+    #[test]
+    fn mimic_cycles_and_unknown_sources_are_errors() {
+        let o = LoadOptions {
+            flange_link: Some("l6".into()),
+            ..LoadOptions::default()
+        };
+        let m = error(
+            &passive_arm("<mimic joint=\"pj2\"/>", "<mimic joint=\"pj1\"/>"),
+            &o,
+        );
+        assert!(m.contains("mimic joints form a cycle (pj"), "{m}");
+        let m = error(&passive_arm("<mimic joint=\"nope\"/>", ""), &o);
+        assert!(
+            m.contains("joint pj1 mimics joint nope, which is not defined"),
+            "{m}"
+        );
     }
 
     #[test]

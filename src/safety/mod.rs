@@ -112,7 +112,12 @@ impl<'a> Checker<'a> {
         scene: &'a Scene,
         margin: f64,
     ) -> Self {
-        let (lo, hi) = robot.limits();
+        // Poses and motions keep the cell's joint margin from every limit.
+        let (mut lo, mut hi) = robot.limits();
+        for i in 0..6 {
+            lo[i] += cell.joint_margin;
+            hi[i] -= cell.joint_margin;
+        }
         Checker {
             robot,
             model,
@@ -124,6 +129,12 @@ impl<'a> Checker<'a> {
             lo,
             hi,
         }
+    }
+
+    /// The joint range every pose and motion must keep: the robot's limits less the cell's
+    /// joint margin.
+    pub fn limits(&self) -> ([f64; 6], [f64; 6]) {
+        (self.lo, self.hi)
     }
 
     /// The same checks with the bar removed.
@@ -141,12 +152,15 @@ impl<'a> Checker<'a> {
                 return Err(Violation {
                     reason: Reason::JointLimit,
                     detail: format!(
-                        "joint {} ({}) at {} deg outside {}..{} deg",
+                        "joint {} ({}) at {} deg outside {}..{} deg (limits {}..{} deg less the {} deg joint margin)",
                         i + 1,
                         self.robot.joints[i].name,
                         deg(q[i]),
                         deg(self.lo[i]),
-                        deg(self.hi[i])
+                        deg(self.hi[i]),
+                        deg(self.robot.joints[i].lower),
+                        deg(self.robot.joints[i].upper),
+                        deg(self.cell.joint_margin)
                     ),
                 });
             }
@@ -167,7 +181,7 @@ impl<'a> Checker<'a> {
                     detail,
                 });
             }
-            if let Some(c) = self.scene.violation_unmounted(&frames, self.margin) {
+            if let Some(c) = self.scene.violation_unmounted(q, &frames, self.margin) {
                 let detail = describe_contact(&c, self.margin);
                 return Err(Violation {
                     reason: Reason::Collision,
@@ -187,7 +201,7 @@ impl<'a> Checker<'a> {
                 detail: self.describe(reason, q, &map, &cup),
             });
         }
-        if let Some(c) = self.scene.violation(&frames, &map, self.margin) {
+        if let Some(c) = self.scene.violation(q, &frames, &map, self.margin) {
             return Err(Violation {
                 reason: Reason::Collision,
                 detail: describe_contact(&c, self.margin),
@@ -211,7 +225,7 @@ impl<'a> Checker<'a> {
             q,
         );
         let map = frames[7].apply(&self.model.nominal.map);
-        self.scene.clearance(&frames, &map)
+        self.scene.clearance(q, &frames, &map)
     }
 
     fn describe(

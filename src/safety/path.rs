@@ -322,7 +322,7 @@ fn find_support(
             return Some(vias);
         }
     }
-    let (lo, hi) = ck.robot.limits();
+    let (lo, hi) = ck.limits();
     for attempt in 0..PERTURB_TRIES {
         // Growing perturbations around the midpoint, mostly in the arm joints.
         let scale = 0.15 + 0.6 * attempt as f64 / PERTURB_TRIES as f64;

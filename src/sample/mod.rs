@@ -43,11 +43,15 @@ pub struct SampleConfig {
 /// How one joint was enumerated.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct JointGrid {
-    /// Grid values are `k · step` for k in `k_lo..=k_hi` (or the single `held` value).
+    /// Grid values are `k · step` for k in `k_lo..=k_hi` (or the single `held` value), with
+    /// the ends of a bounded range (the limits less the joint margin) in front and behind
+    /// when they lie off the grid.
     pub step: f64,
     pub k_lo: i64,
     pub k_hi: i64,
     pub held: Option<f64>,
+    #[serde(default)]
+    pub ends: [Option<f64>; 2],
     /// Why the enumerated range is what it is.
     pub note: String,
 }
@@ -58,6 +62,7 @@ impl JointGrid {
             1
         } else {
             (self.k_hi - self.k_lo + 1).max(0) as u64
+                + self.ends.iter().filter(|e| e.is_some()).count() as u64
         }
     }
 
@@ -67,9 +72,18 @@ impl JointGrid {
 
     #[inline]
     pub fn value(&self, j: u64) -> f64 {
-        match self.held {
-            Some(v) => v,
-            None => (self.k_lo + j as i64) as f64 * self.step,
+        if let Some(v) = self.held {
+            return v;
+        }
+        let j = match self.ends[0] {
+            Some(v) if j == 0 => return v,
+            Some(_) => j - 1,
+            None => j,
+        };
+        let k = self.k_lo + j as i64;
+        match self.ends[1] {
+            Some(v) if k > self.k_hi => v,
+            _ => k as f64 * self.step,
         }
     }
 
@@ -110,7 +124,11 @@ pub struct NoProgress;
 impl Progress for NoProgress {}
 
 /// The grid of one joint: one turn for ranges ≥ 360°, the held value for immobile joints.
-pub fn joint_grid(lo: f64, hi: f64, step: f64, movable: bool) -> JointGrid {
+/// With `ends`, a bounded range also gets its two ends (`lo`, `hi`) where they lie more than a
+/// quarter step off the grid: the extremes of a joint's range are the poses that separate some
+/// parameters best (a 10° grid would otherwise lose up to 10° at each end, e.g. to the joint
+/// margin).
+pub fn joint_grid(lo: f64, hi: f64, step: f64, movable: bool, ends: bool) -> JointGrid {
     if !movable {
         let v = 0.0f64.clamp(lo, hi);
         return JointGrid {
@@ -118,6 +136,7 @@ pub fn joint_grid(lo: f64, hi: f64, step: f64, movable: bool) -> JointGrid {
             k_lo: 0,
             k_hi: 0,
             held: Some(v),
+            ends: [None; 2],
             note: "held: cannot move the MAP".into(),
         };
     }
@@ -135,17 +154,33 @@ pub fn joint_grid(lo: f64, hi: f64, step: f64, movable: bool) -> JointGrid {
             k_lo,
             k_hi,
             held: None,
+            ends: [None; 2],
             note: "one turn of a range >= 360 deg (poses repeat)".into(),
         }
     } else {
         let k_lo = (lo / step - tol).ceil() as i64;
         let k_hi = (hi / step + tol).floor() as i64;
+        let off = |v: f64, k: i64| ends && (v - k as f64 * step).abs() > 0.25 * step;
+        // As the program will print them, still inside [lo, hi].
+        let (plo, phi) = (
+            crate::units::printable_inside(lo, lo, hi),
+            crate::units::printable_inside(hi, lo, hi),
+        );
+        let ends = [
+            off(plo, k_lo).then_some(plo),
+            (off(phi, k_hi) && phi > plo).then_some(phi),
+        ];
         JointGrid {
             step,
             k_lo,
             k_hi,
             held: None,
-            note: "full joint range".into(),
+            ends,
+            note: if ends.iter().any(|e| e.is_some()) {
+                "full joint range less the joint margin, with its ends".into()
+            } else {
+                "full joint range less the joint margin".into()
+            },
         }
     }
 }
@@ -158,9 +193,12 @@ pub fn run(
     cfg: &SampleConfig,
     progress: &dyn Progress,
 ) -> (Pool, SampleReport) {
+    // Measurement poses keep the joint margin from every limit.
     let (lo, hi) = robot.limits();
+    let m = cell.joint_margin;
     let mut grids: Vec<JointGrid> = (0..6)
-        .map(|i| joint_grid(lo[i], hi[i], cfg.step[i], cfg.movable[i]))
+        // Joint 1 is solved in closed form over the plain grid (no ends).
+        .map(|i| joint_grid(lo[i] + m, hi[i] - m, cfg.step[i], cfg.movable[i], i > 0))
         .collect();
     if cfg.movable[0] {
         grids[0].note =
@@ -738,15 +776,42 @@ mod tests {
 
     #[test]
     fn one_turn_windows_and_held_joints() {
-        let g = joint_grid(-2.0 * TAU / 2.0 * 2.0, TAU, 10.0 * DEG, true); // −360..360
+        let g = joint_grid(-2.0 * TAU / 2.0 * 2.0, TAU, 10.0 * DEG, true, true); // −360..360
         assert_eq!(g.len(), 36);
         assert!((g.first() + PI).abs() < 1e-12 && (g.last() - 170.0 * DEG).abs() < 1e-12);
-        let g = joint_grid(-185.0 * DEG, 185.0 * DEG, 10.0 * DEG, true);
+        let g = joint_grid(-185.0 * DEG, 185.0 * DEG, 10.0 * DEG, true, true);
         assert_eq!(g.len(), 36);
-        let g = joint_grid(-60.0 * DEG, 85.0 * DEG, 10.0 * DEG, true);
+        let g = joint_grid(-60.0 * DEG, 85.0 * DEG, 10.0 * DEG, true, false);
         assert_eq!((g.first() / DEG).round() as i64, -60);
         assert_eq!((g.last() / DEG).round() as i64, 80);
-        let g = joint_grid(0.2, 1.0, 0.1, false);
+        // With ends: −59 (off the grid by 9°) and 84 (4°) join −50..80; 1.5° off is on it.
+        let g = joint_grid(-59.0 * DEG, 84.0 * DEG, 10.0 * DEG, true, true);
+        let v: Vec<i64> = (0..g.len())
+            .map(|j| (g.value(j) / DEG).round() as i64)
+            .collect();
+        assert_eq!(
+            v,
+            [-59, -50, -40, -30, -20, -10, 0, 10, 20, 30, 40, 50, 60, 70, 80, 84]
+        );
+        let g = joint_grid(-61.5 * DEG, 81.5 * DEG, 10.0 * DEG, true, true);
+        let v: Vec<i64> = (0..g.len())
+            .map(|j| (g.value(j) / DEG).round() as i64)
+            .collect();
+        assert_eq!((v[0], v[v.len() - 1], v.len()), (-60, 80, 15));
+        // Ends are printable values inside the range: 1/3 deg margins print as ±x.xxx3.
+        let g = joint_grid(
+            (-60.0 + 1.0 / 3.0) * DEG,
+            (85.0 - 1.0 / 3.0) * DEG,
+            10.0 * DEG,
+            true,
+            true,
+        );
+        let (a, b) = (g.first() / DEG, g.last() / DEG);
+        assert!(
+            (a - -59.6666).abs() < 1e-9 && (b - 84.6666).abs() < 1e-9,
+            "{a} {b}"
+        );
+        let g = joint_grid(0.2, 1.0, 0.1, false, true);
         assert_eq!((g.len(), g.value(0)), (1, 0.2));
     }
 }
