@@ -23,6 +23,7 @@
 // Joint loops index several arrays by joint number; `for i in 0..6` says that best.
 #![allow(clippy::needless_range_loop)]
 
+pub mod calibrate;
 pub mod cell;
 pub mod cli;
 pub mod collision;
