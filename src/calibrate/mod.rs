@@ -30,8 +30,8 @@ pub mod predict;
 
 use crate::diagnose::fit::{self, accumulate, model_cols, score, structural};
 use crate::diagnose::{
-    self, effect_report, geometry_report, noise_variance, DiagnoseOptions, EffectReport, Estimate,
-    Fitted, Param, Problem, Run,
+    self, effect_report, geometry_report, noise_variance, Basis, DiagnoseOptions, EffectReport,
+    Estimate, Fitted, Param, Problem, Run,
 };
 use crate::model::{MeasurementModel, Params, Status, N_PARAMS};
 use crate::robot::Robot;
@@ -318,7 +318,7 @@ pub fn run(
             )));
         }
     }
-    let problem = Problem::new(model, runs);
+    let problem = Problem::new(model, runs).with_masses(&robot.masses);
     let nruns = problem.runs();
     let (status, structural_free) = structural(&problem, opts.fixture_free, true);
     let mut warnings = Vec::new();
@@ -327,11 +327,21 @@ pub fn run(
     let (effects, effects_mode, diagnosis, diagnosis_estimate) = match &opts.effects {
         Effects::Auto => {
             let sel = diagnose::select(&problem, &structural_free, &DiagnoseOptions::default());
-            let e: Vec<Effect> = sel.estimate.effects.iter().map(|(e, _)| *e).collect();
+            let e: Vec<(Effect, Basis)> = sel
+                .estimate
+                .effects
+                .iter()
+                .map(|t| (t.effect, t.basis))
+                .collect();
             (e, "auto", Some(sel.diagnosis), Some(sel.estimate))
         }
         Effects::None => (Vec::new(), "none", None, None),
-        Effects::List(v) => (v.clone(), "list", None, None),
+        Effects::List(v) => (
+            v.iter().map(|e| (*e, Basis::Standard)).collect(),
+            "list",
+            None,
+            None,
+        ),
     };
     if let Some(d) = &diagnosis {
         if d.report.unexplained {
@@ -352,8 +362,8 @@ pub fn run(
             if !effects.is_empty() {
                 fit::refit(&problem, &mut est, &free);
             }
-            for e in &effects {
-                est.add_effect(*e, problem.thermal_terms);
+            for (e, basis) in &effects {
+                est.add_effect(*e, *basis, problem.thermal_terms);
             }
             est
         }
@@ -401,9 +411,16 @@ pub fn run(
     let effect_reports: Vec<EffectReport> = est
         .effects
         .iter()
-        .map(|(e, c)| {
-            let r = effect_report(*e, c, &var[k..k + c.len()], problem.m.temp.is_some());
-            k += c.len();
+        .map(|t| {
+            let n = t.coef.len();
+            let r = effect_report(
+                t.effect,
+                t.basis,
+                &t.coef,
+                &var[k..k + n],
+                problem.m.temp.is_some(),
+            );
+            k += n;
             r
         })
         .collect();
@@ -677,7 +694,8 @@ fn confounding(
     let full = rms_with(&all);
     let mut start = g;
     let mut best: Option<(Effect, f64)> = None;
-    for (e, c) in &est.effects {
+    for t in &est.effects {
+        let (e, c) = (&t.effect, &t.coef);
         let range = start..start + c.len();
         start += c.len();
         let keep: Vec<usize> = all.iter().copied().filter(|k| !range.contains(k)).collect();

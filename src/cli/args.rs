@@ -331,7 +331,7 @@ pub struct CalibrateArgs {
     pub fixture_free: bool,
     /// Standard uncertainty of a length and an angle before calibration, mm,deg: what a
     /// parameter's calibrated uncertainty is judged against [default: 1,0.05].
-    #[arg(long, value_name = "MM,DEG")]
+    #[arg(long, value_name = "MM,DEG", allow_hyphen_values = true)]
     pub prior: Option<String>,
     /// URDF: the link that ends the chain [default: flange, tool0, or the chain's last link].
     #[arg(long, value_name = "LINK")]

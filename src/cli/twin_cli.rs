@@ -89,8 +89,11 @@ pub fn diagnose(a: &DiagnoseArgs) -> Result<i32, Error> {
     let text = read(&a.measured, "measured data")?;
     let m = twin::parse_csv(&text, N_PARAMS + 2).map_err(|e| file_err(&a.measured, e))?;
     let model = MeasurementModel::new(&robot, fixture, map);
-    let d = crate::diagnose::run(&model, &m, &Default::default())
-        .map_err(|e| file_err(&a.measured, e))?;
+    let opts = crate::diagnose::DiagnoseOptions {
+        masses: robot.masses.clone(),
+        ..Default::default()
+    };
+    let d = crate::diagnose::run(&model, &m, &opts).map_err(|e| file_err(&a.measured, e))?;
     // Everything is rendered before the first file is written: a failure leaves no file.
     let json = serde_json::to_string_pretty(&d.report).unwrap_or_default() + "\n";
     let svg = match &a.plot {

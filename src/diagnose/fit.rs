@@ -15,7 +15,8 @@
 
 use crate::model::{self, MeasurementModel, Params, A, D, FIX, N_PARAMS, THETA};
 use crate::robot::kinematics::chain_frames;
-use crate::twin::effects::{Effect, G, MOTION_DEADBAND};
+use crate::robot::PointMass;
+use crate::twin::effects::{gravity_torques, Effect, G, MOTION_DEADBAND};
 use crate::twin::Measured;
 use nalgebra::{DMatrix, DVector, SymmetricEigen, Vector3};
 use rayon::prelude::*;
@@ -63,6 +64,25 @@ impl Param {
     }
 }
 
+/// How an effect enters the fit. Joint compliance has two forms: with the link masses known
+/// (the robot file's inertials) the gravity torque of each joint is known and one compliance
+/// per joint remains; without, a general basis (mass and first moments of every link after
+/// the joint) times each joint's compliance. The selection tries both; BIC prefers the small
+/// one when the masses are right.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Basis {
+    Standard,
+    KnownMasses,
+}
+
+/// One effect of the model and its coefficients.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Term {
+    pub effect: Effect,
+    pub basis: Basis,
+    pub coef: Vec<f64>,
+}
+
 /// The current estimate: shared geometry, one fixture per run, and the coefficients of the
 /// effects in the model.
 #[derive(Clone, Debug, PartialEq)]
@@ -70,7 +90,7 @@ pub struct Estimate {
     /// Eq. 6 vector; its fixture entries are run 1's (see `fixtures`).
     pub p: [f64; N_PARAMS],
     pub fixtures: Vec<Vector3<f64>>,
-    pub effects: Vec<(Effect, Vec<f64>)>,
+    pub effects: Vec<Term>,
 }
 
 impl Estimate {
@@ -99,16 +119,20 @@ impl Estimate {
         }
     }
 
-    pub fn add_effect(&mut self, e: Effect, thermal_terms: usize) {
-        let n = effect_cols(e, thermal_terms).len();
-        self.effects.push((e, vec![0.0; n]));
+    pub fn add_effect(&mut self, effect: Effect, basis: Basis, thermal_terms: usize) {
+        let n = effect_cols(effect, basis, thermal_terms).len();
+        self.effects.push(Term {
+            effect,
+            basis,
+            coef: vec![0.0; n],
+        });
     }
 
     fn tau(&self) -> f64 {
         self.effects
             .iter()
-            .find(|(e, _)| *e == Effect::ServoLag)
-            .map_or(0.0, |(_, c)| c[0])
+            .find(|t| t.effect == Effect::ServoLag)
+            .map_or(0.0, |t| t.coef[0])
     }
 }
 
@@ -124,10 +148,15 @@ pub(crate) enum Col {
     Thermal(usize),
     /// joint j, frame i, component 0 = mass at the origin, 1..3 = first moment along x, y, z.
     Comp(usize, usize, usize),
+    /// joint j's compliance times its gravity torque from the known masses.
+    CompKnown(usize),
 }
 
-pub(crate) fn effect_cols(e: Effect, thermal_terms: usize) -> Vec<Col> {
+pub(crate) fn effect_cols(e: Effect, basis: Basis, thermal_terms: usize) -> Vec<Col> {
     match e {
+        Effect::JointCompliance if basis == Basis::KnownMasses => {
+            (0..6).map(Col::CompKnown).collect()
+        }
         Effect::Geometric => Vec::new(),
         Effect::CyclicError(j) => (1..=3)
             .flat_map(|h| [Col::Cyc(j, h, false), Col::Cyc(j, h, true)])
@@ -144,8 +173,8 @@ pub(crate) fn effect_cols(e: Effect, thermal_terms: usize) -> Vec<Col> {
 /// The columns of a model: the free geometry, then every effect's coefficients in order.
 pub(crate) fn model_cols(problem: &Problem, est: &Estimate, free: &[Param]) -> Vec<Col> {
     let mut cols: Vec<Col> = free.iter().map(|&q| Col::Geo(q)).collect();
-    for (e, _) in &est.effects {
-        cols.extend(effect_cols(*e, problem.thermal_terms));
+    for t in &est.effects {
+        cols.extend(effect_cols(t.effect, t.basis, problem.thermal_terms));
     }
     cols
 }
@@ -167,6 +196,8 @@ pub struct Problem {
     /// Thermal time functions per row (temp rise, or t, t², t³ normalised per run).
     therm: Vec<[f64; 3]>,
     pub thermal_terms: usize,
+    /// The robot's link masses (its file's inertials), when it has them.
+    pub masses: Vec<PointMass>,
 }
 
 /// Quintic (6-point) Lagrange interpolation of the recorded angles at time t: servo lags are
@@ -292,7 +323,14 @@ impl Problem {
             dir,
             therm,
             thermal_terms: if with_temp { 1 } else { 3 },
+            masses: Vec::new(),
         }
+    }
+
+    /// The robot's link masses, for the known-mass form of joint compliance.
+    pub fn with_masses(mut self, masses: &[PointMass]) -> Self {
+        self.masses = masses.to_vec();
+        self
     }
 
     pub fn rows(&self) -> usize {
@@ -325,20 +363,32 @@ impl Problem {
         let mut p = est.params(self.run[k]).to_array();
         let mut q = q0;
         let mut frames = None;
-        for (e, c) in &est.effects {
-            match e {
+        for t in &est.effects {
+            let c = &t.coef;
+            match t.effect {
                 Effect::CyclicError(j) => {
                     for h in 0..3 {
-                        let (sn, cs) = ((h + 1) as f64 * q0[*j]).sin_cos();
-                        q[*j] += c[2 * h] * cs + c[2 * h + 1] * sn;
+                        let (sn, cs) = ((h + 1) as f64 * q0[j]).sin_cos();
+                        q[j] += c[2 * h] * cs + c[2 * h + 1] * sn;
                     }
                 }
-                Effect::Backlash(j) => q[*j] -= 0.5 * c[0] * self.dir[k][*j],
+                Effect::Backlash(j) => q[j] -= 0.5 * c[0] * self.dir[k][j],
                 Effect::ThermalDrift => {
                     let f: f64 = (0..c.len()).map(|h| c[h] * self.therm[k][h]).sum();
                     for i in 0..6 {
                         p[A + i] *= 1.0 + f;
                         p[D + i] *= 1.0 + f;
+                    }
+                }
+                Effect::JointCompliance if t.basis == Basis::KnownMasses => {
+                    let tau = gravity_torques(
+                        &self.model,
+                        &Params::from_array(&est.p),
+                        &q0,
+                        &self.masses,
+                    );
+                    for j in 0..6 {
+                        q[j] += c[j] * tau[j];
                     }
                 }
                 Effect::JointCompliance => {
@@ -350,7 +400,8 @@ impl Problem {
                             &q0,
                         )
                     });
-                    for (n, col) in effect_cols(Effect::JointCompliance, 0).iter().enumerate() {
+                    let cols = effect_cols(Effect::JointCompliance, Basis::Standard, 0);
+                    for (n, col) in cols.iter().enumerate() {
                         if let Col::Comp(j, i, comp) = col {
                             q[*j] += c[n] * gravity_basis(fr, *j, *i, *comp);
                         }
@@ -370,6 +421,8 @@ impl Problem {
         let needs_frames = cols.iter().any(|c| matches!(c, Col::Comp(..)));
         let fr =
             needs_frames.then(|| chain_frames(&self.model.base, &p.dh, &self.model.flange, &q));
+        let needs_torques = cols.iter().any(|c| matches!(c, Col::CompKnown(..)));
+        let torques = needs_torques.then(|| gravity_torques(&self.model, &p, &q, &self.masses));
         let tau = est.tau();
         let qd = if tau != 0.0 {
             self.interp_run(k, &self.qdot, self.m.t[k] - tau)
@@ -401,6 +454,10 @@ impl Problem {
                 }
                 Col::Comp(jj, i, comp) => match &fr {
                     Some(fr) => j[THETA + jj] * gravity_basis(fr, jj, i, comp),
+                    None => 0.0,
+                },
+                Col::CompKnown(jj) => match &torques {
+                    Some(tau) => j[THETA + jj] * tau[jj],
                     None => 0.0,
                 },
             };
@@ -702,8 +759,8 @@ fn add_step(est: &mut Estimate, cols: &[Col], x: &DVector<f64>) {
         }
         k += 1;
     }
-    for (_, coef) in est.effects.iter_mut() {
-        for v in coef.iter_mut() {
+    for t in est.effects.iter_mut() {
+        for v in t.coef.iter_mut() {
             *v += x[k];
             k += 1;
         }

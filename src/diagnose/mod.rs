@@ -14,7 +14,7 @@
 pub mod fit;
 pub mod plot;
 
-pub use fit::{Estimate, Fitted, Param, Problem, Run};
+pub use fit::{Basis, Estimate, Fitted, Param, Problem, Run, Term};
 
 use crate::model::{MeasurementModel, N_PARAMS};
 use crate::twin::effects::Effect;
@@ -30,6 +30,9 @@ pub struct DiagnoseOptions {
     pub folds: usize,
     /// At most this many effects after the geometry.
     pub max_effects: usize,
+    /// The robot's link masses (its file's inertials; empty when it has none): joint
+    /// compliance is then also tried with the gravity torques they give.
+    pub masses: Vec<crate::robot::PointMass>,
 }
 
 impl Default for DiagnoseOptions {
@@ -37,6 +40,7 @@ impl Default for DiagnoseOptions {
         DiagnoseOptions {
             folds: 8,
             max_effects: 3,
+            masses: Vec::new(),
         }
     }
 }
@@ -139,7 +143,13 @@ pub fn noise_variance(residual: &[f64], coefficients: usize) -> (f64, f64, f64) 
 
 /// An effect's parameters in report units, with standard uncertainties from the diagonal of
 /// the coefficient covariance `var` (same order as the coefficients).
-pub fn effect_report(e: Effect, coef: &[f64], var: &[f64], temp_log: bool) -> EffectReport {
+pub fn effect_report(
+    e: Effect,
+    basis: Basis,
+    coef: &[f64],
+    var: &[f64],
+    temp_log: bool,
+) -> EffectReport {
     let sd = |k: usize| var.get(k).map_or(0.0, |v| v.max(0.0).sqrt());
     let mut params = serde_json::Map::new();
     let mut std = serde_json::Map::new();
@@ -172,8 +182,27 @@ pub fn effect_report(e: Effect, coef: &[f64], var: &[f64], temp_log: bool) -> Ef
             params.insert(key.into(), v.into());
             std.insert(key.into(), s.into());
         }
+        Effect::JointCompliance if basis == Basis::KnownMasses => {
+            // Compliance c = 1/k per joint; a stiffness only where c is clearly positive.
+            let k: Vec<Option<f64>> = (0..6)
+                .map(|j| (coef[j] > 3.0 * sd(j)).then(|| round(1.0 / coef[j], 0)))
+                .collect();
+            let ks: Vec<Option<f64>> = (0..6)
+                .map(|j| (coef[j] > 3.0 * sd(j)).then(|| round(sd(j) / (coef[j] * coef[j]), 0)))
+                .collect();
+            params.insert("masses".into(), "robot file inertials".into());
+            params.insert(
+                "stiffness_nm_per_rad".into(),
+                serde_json::to_value(k).unwrap_or_default(),
+            );
+            std.insert(
+                "stiffness_nm_per_rad".into(),
+                serde_json::to_value(ks).unwrap_or_default(),
+            );
+        }
         Effect::JointCompliance => {
             let used = coef.iter().filter(|c| **c != 0.0).count();
+            params.insert("masses".into(), "unknown: general gravity basis".into());
             params.insert("basis_terms".into(), used.into());
         }
         Effect::Geometric => {}
@@ -222,9 +251,16 @@ pub fn model_report(problem: &Problem, est: &Estimate, fitted: &Fitted) -> Model
     let effects = est
         .effects
         .iter()
-        .map(|(e, c)| {
-            let r = effect_report(*e, c, &var[k..k + c.len()], problem.m.temp.is_some());
-            k += c.len();
+        .map(|t| {
+            let n = t.coef.len();
+            let r = effect_report(
+                t.effect,
+                t.basis,
+                &t.coef,
+                &var[k..k + n],
+                problem.m.temp.is_some(),
+            );
+            k += n;
             r
         })
         .collect();
@@ -295,15 +331,20 @@ fn round(v: f64, d: i32) -> f64 {
 
 // ---- the loop -----------------------------------------------------------------------------
 
-/// The candidates tried after the geometry.
-fn candidates() -> Vec<Effect> {
-    let mut c = vec![
-        Effect::JointCompliance,
-        Effect::ThermalDrift,
-        Effect::ServoLag,
-    ];
-    c.extend((0..6).map(Effect::CyclicError));
-    c.extend((0..6).map(Effect::Backlash));
+/// The candidates tried after the geometry (joint compliance with known masses too, when the
+/// robot file gives them).
+fn candidates(masses_known: bool) -> Vec<(Effect, Basis)> {
+    let mut c = Vec::new();
+    if masses_known {
+        c.push((Effect::JointCompliance, Basis::KnownMasses));
+    }
+    c.extend([
+        (Effect::JointCompliance, Basis::Standard),
+        (Effect::ThermalDrift, Basis::Standard),
+        (Effect::ServoLag, Basis::Standard),
+    ]);
+    c.extend((0..6).map(|j| (Effect::CyclicError(j), Basis::Standard)));
+    c.extend((0..6).map(|j| (Effect::Backlash(j), Basis::Standard)));
     c
 }
 
@@ -335,7 +376,8 @@ pub fn run(
             measured: m,
             fixture: model.nominal.fix,
         }],
-    );
+    )
+    .with_masses(&opts.masses);
     let (_, free) = fit::structural(&problem, true, true);
     Ok(select(&problem, &free, opts).diagnosis)
 }
@@ -389,19 +431,19 @@ pub fn select(problem: &Problem, free: &[Param], opts: &DiagnoseOptions) -> Sele
         let base_cols = model_cols(problem, &s, free);
         let mut cols = base_cols.clone();
         let mut groups = Vec::new();
-        for e in candidates() {
-            if s.effects.iter().any(|(a, _)| *a == e) {
+        for (e, basis) in candidates(!problem.masses.is_empty()) {
+            if s.effects.iter().any(|t| t.effect == e) {
                 continue;
             }
-            let ec = effect_cols(e, problem.thermal_terms);
-            groups.push((e, cols.len()..cols.len() + ec.len()));
+            let ec = effect_cols(e, basis, problem.thermal_terms);
+            groups.push(((e, basis), cols.len()..cols.len() + ec.len()));
             cols.extend(ec);
         }
         let st = accumulate(problem, &s, &cols, folds);
         let base_sel: Vec<usize> = (0..base_cols.len()).collect();
         let (rss0, _, bic0, cv0) = score(&st, &base_sel);
         let excess = (rss0 - n * noise * noise).max(0.0);
-        let scored: Vec<(Effect, f64, f64, f64)> = groups
+        let scored: Vec<((Effect, Basis), f64, f64, f64)> = groups
             .par_iter()
             .map(|(e, range)| {
                 let sel: Vec<usize> = base_sel.iter().copied().chain(range.clone()).collect();
@@ -415,14 +457,35 @@ pub fn select(problem: &Problem, free: &[Param], opts: &DiagnoseOptions) -> Sele
                 *bic < bic0 - 10.0 && *cv < 0.95 * cv0 && rss0 - rss >= 0.6 * excess
             })
             .min_by(|a, b| a.2.total_cmp(&b.2));
-        let Some(&(e, _, bic, cv)) = best else {
+        let Some(&((e, basis), _, _, cv)) = best else {
             break;
         };
-        s.add_effect(e, problem.thermal_terms);
-        let st = fit::refit_stats(problem, &mut s, free);
+        // The linearised score judged the forms at a geometry that still absorbs the effect;
+        // an effect with two forms (joint compliance with and without known masses) is
+        // refitted in both and the better BIC kept, so the small model wins where it is right.
+        let forms: Vec<Basis> = if e == Effect::JointCompliance && !problem.masses.is_empty() {
+            vec![Basis::KnownMasses, Basis::Standard]
+        } else {
+            vec![basis]
+        };
+        let mut chosen: Option<(Estimate, fit::Stats, f64, Basis)> = None;
+        for b in forms {
+            let mut trial = s.clone();
+            trial.add_effect(e, b, problem.thermal_terms);
+            let st = fit::refit_stats(problem, &mut trial, free);
+            let k = model_cols(problem, &trial, free).len() as f64;
+            let bic = n * (st.rr[0] / n).max(1e-300).ln() + k * n.ln();
+            if chosen.as_ref().is_none_or(|c| bic < c.2 - 10.0) {
+                chosen = Some((trial, st, bic, b));
+            }
+        }
+        let Some((trial, st, bic, basis)) = chosen else {
+            break;
+        };
+        s = trial;
         residual = st.residual.clone();
-        let coef = s.effects.last().map(|x| x.1.clone()).unwrap_or_default();
-        let step = effect_report(e, &coef, &[], m.temp.is_some());
+        let coef = s.effects.last().map(|x| x.coef.clone()).unwrap_or_default();
+        let step = effect_report(e, basis, &coef, &[], m.temp.is_some());
         let label = match e.joint() {
             Some(j) => format!("+{} (joint {j})", e.name()),
             None => format!("+{}", e.name()),

@@ -948,7 +948,7 @@ fn edit_urdf(
             Event::Eof => break,
             Event::Comment(c) => {
                 let body = String::from_utf8_lossy(&c);
-                if body.trim_start().starts_with(CALIBRATION_MARK) {
+                if old_comment.is_none() && body.trim_start().starts_with(CALIBRATION_MARK) {
                     old_comment = Some((before, after));
                 }
             }
@@ -1025,7 +1025,7 @@ fn edit_urdf(
             at,
             at,
             format!(
-                "  <!-- {CALIBRATION_MARK}: the EDBB measurement application point (tool ball centre), fixed to the flange -->\n  <link name=\"{MAP_LINK}\"/>\n  <joint name=\"{MAP_LINK}_joint\" type=\"fixed\">\n    <parent link=\"{flange}\"/>\n    <child link=\"{MAP_LINK}\"/>\n    {}\n  </joint>\n",
+                "  <!-- edbbgen: the EDBB measurement application point (tool ball centre), fixed to the flange -->\n  <link name=\"{MAP_LINK}\"/>\n  <joint name=\"{MAP_LINK}_joint\" type=\"fixed\">\n    <parent link=\"{flange}\"/>\n    <child link=\"{MAP_LINK}\"/>\n    {}\n  </joint>\n",
                 origin_xml(&Frame::translation(m))
             ),
         ));
