@@ -8,7 +8,7 @@
 
 use edbbgen::calibrate::{self, predict, CalibrateOptions};
 use edbbgen::diagnose::Run;
-use edbbgen::model::{MeasurementModel, Params, A, ALPHA, D, N_PARAMS, THETA};
+use edbbgen::model::{MeasurementModel, Params, A, ALPHA, D, THETA};
 use edbbgen::robot::Robot;
 use edbbgen::twin::truth::Compliance;
 use edbbgen::twin::{self, SimOptions, Truth};
@@ -122,8 +122,8 @@ fn main() {
             });
         }
         let mut tp = model.nominal.to_array();
-        for k in 0..N_PARAMS {
-            tp[k] += truth.geometric[k];
+        for (v, g) in tp.iter_mut().zip(&truth.geometric) {
+            *v += g;
         }
         let tp = Params::from_array(&tp);
         let truep: Vec<_> = space.iter().map(|q| model.map_position(&tp, q)).collect();
