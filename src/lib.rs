@@ -29,6 +29,7 @@ pub mod cli;
 pub mod collision;
 pub mod diagnose;
 pub mod emit;
+pub mod files;
 pub mod ir;
 pub mod model;
 pub mod order;

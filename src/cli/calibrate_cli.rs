@@ -151,8 +151,7 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
         package_paths: a.package_path.clone(),
         speeds: None,
     };
-    let robot_text = std::fs::read_to_string(&a.robot)
-        .map_err(|e| file_err(&a.robot, format!("cannot read: {e}")))?;
+    let robot_text = super::read_input(&a.robot, "robot", crate::files::Kind::Robot)?;
     let robot = robot::load(&a.robot, &load_opts)?;
     let map = match &a.tool {
         Some(s) => xyz_mm("--tool", s)?,
@@ -160,8 +159,7 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
     };
     let mut data: Vec<(Measured, String)> = Vec::with_capacity(runs_n);
     for path in &a.measured {
-        let text = std::fs::read_to_string(path)
-            .map_err(|e| file_err(path, format!("cannot read measured data: {e}")))?;
+        let text = super::read_input(path, "measured data", crate::files::Kind::Measured)?;
         let m = twin::parse_csv(&text, calibrate::MIN_ROWS).map_err(|e| file_err(path, e))?;
         data.push((m, robot::sha256_hex(text.as_bytes())));
     }

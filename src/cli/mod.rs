@@ -305,10 +305,7 @@ fn run_compile(a: &CompileArgs) -> Result<i32, Error> {
         return Err(usage("--max-candidates: must be at least 30"));
     }
     let template = match &a.template {
-        Some(p) => std::fs::read_to_string(p).map_err(|e| Error::File {
-            path: p.display().to_string(),
-            msg: format!("cannot read template: {e}"),
-        })?,
+        Some(p) => read_input(p, "template", crate::files::Kind::Config)?,
         None => crate::emit::dialect(&a.dialect)
             .ok_or_else(|| {
                 let names: Vec<&str> = crate::emit::DIALECTS.iter().map(|d| d.0).collect();
@@ -463,6 +460,17 @@ fn emit_stage(c: &pipeline::Compiled, stage: &str) -> String {
 }
 
 /// Writes the whole file or nothing: a temp file beside the target, then rename.
+/// An input file's text, within the limit of its kind (see [`crate::files`]).
+fn read_input(path: &Path, what: &str, kind: crate::files::Kind) -> Result<String, Error> {
+    crate::files::read_text(path, kind).map_err(|e| Error::File {
+        path: path.display().to_string(),
+        msg: match e {
+            crate::files::ReadError::Io(e) => format!("cannot read {what}: {e}"),
+            other => other.to_string(),
+        },
+    })
+}
+
 fn write_atomic(path: &Path, text: &str) -> Result<(), Error> {
     write_all_atomic(&[(path, text)])
 }
@@ -525,10 +533,7 @@ struct VerifyReport<'a> {
 
 fn run_verify(a: &VerifyArgs) -> Result<i32, Error> {
     let spec = resolve_cell(&a.cell)?;
-    let text = std::fs::read_to_string(&a.program).map_err(|e| Error::File {
-        path: a.program.display().to_string(),
-        msg: format!("cannot read: {e}"),
-    })?;
+    let text = read_input(&a.program, "program", crate::files::Kind::Program)?;
     let parsed = crate::verify::gcode::parse(&text).map_err(|e| Error::File {
         path: a.program.display().to_string(),
         msg: e.to_string(),
