@@ -10,6 +10,7 @@ mod cli_errors;
 mod compile;
 mod diagnose;
 mod fuzz;
+mod ldbb;
 mod linuxcnc;
 mod model_cmd;
 mod passive;

@@ -10,6 +10,7 @@
 
 pub mod compile;
 pub mod diagnose;
+pub mod ldbb;
 
 use crate::plot::{legend_entries, Figure, Legend, Mark, PlotError};
 use serde::Serialize;
