@@ -547,3 +547,367 @@ fn analysis_recovers_data_made_by_an_independent_forward_model() {
         }
     }
 }
+
+// ---- the program, the report, bad input ---------------------------------------------------
+
+/// A short test for programs: two loads, one circle each, 30° of lead-in and lead-out.
+fn short_setup(dir: &Path) -> PathBuf {
+    let p = dir.join("short.toml");
+    let text = setup_text("clockwise seen from +z", 720, "125.0, 250.0", 1)
+        .replace("overshoot_deg = 180.0", "overshoot_deg = 30.0");
+    std::fs::write(&p, text).unwrap();
+    p
+}
+
+fn ldbb_circle(setup: &Path, out: &Path, extra: &[&str]) -> Run {
+    let mut args: Vec<String> = vec![
+        "ldbb-circle".into(),
+        abb().display().to_string(),
+        "--setup".into(),
+        setup.display().to_string(),
+        "-o".into(),
+        out.display().to_string(),
+        "-q".into(),
+    ];
+    args.extend(extra.iter().map(|s| s.to_string()));
+    edbbgen(&args)
+}
+
+#[test]
+fn ldbb_circle_program_is_verified_read_back_golden_and_interpreted() {
+    let dir = tempdir();
+    let setup = short_setup(dir.path());
+    let out = dir.path().join("ldbb.nc");
+    let r = ldbb_circle(&setup, &out, &["--step", "5"]);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    let text = std::fs::read_to_string(&out).unwrap();
+    let again = dir.path().join("again.nc");
+    assert_eq!(ldbb_circle(&setup, &again, &["--step", "5"]).code, 0);
+    assert_eq!(
+        text,
+        std::fs::read_to_string(&again).unwrap(),
+        "byte-identical"
+    );
+    assert!(!text.contains("/work") && !text.contains(env!("CARGO_MANIFEST_DIR")));
+    crate::snapshots::assert_golden("gcode@ldbb_circle", &text);
+
+    // Read back independently: every target on the circle with the setup's tool orientation.
+    let robot = edbbgen::robot::load(
+        &abb(),
+        &edbbgen::robot::LoadOptions {
+            flange_link: Some("tool0".into()),
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    let poses = program_poses(&text);
+    let table = Vector3::new(1.35, -0.125, 1.205805826);
+    let want = Matrix3::new(-1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, -1.0);
+    let mut travel = 0.0;
+    let mut last: Option<f64> = None;
+    for q in &poses {
+        let q = q.map(|d| d.to_radians());
+        let f = robot.fk(&q);
+        let p = f.apply(&Vector3::new(0.0, 0.0, 0.15));
+        // 1e-4° of rounding moves the ball by up to ~4 µm on this arm.
+        assert!(
+            ((p - table).norm() - 0.132582521).abs() < 1e-5,
+            "bar length at {q:?}"
+        );
+        assert!(
+            (p.z - 1.25).abs() < 1e-5
+                && ((p.xy() - Vector3::new(1.35, -0.125, 0.0).xy()).norm() - 0.125).abs() < 1e-5
+        );
+        assert!((f.r - want).abs().max() < 1e-5, "tool orientation");
+        // Clockwise seen from +z: the angle of P(θ) = c + R[cos θ, −sin θ] grows clockwise.
+        let theta = (-(p.y + 0.125)).atan2(p.x - 1.35);
+        if let Some(l) = last {
+            let d = (theta - l).rem_euclid(std::f64::consts::TAU);
+            assert!(d < 0.1 || d > 6.2, "steps of 5°");
+            if d < 0.1 {
+                travel += d;
+            }
+        }
+        last = Some(theta);
+    }
+    // Per load: 30° lead-in, one circle, 30° lead-out.
+    assert!(
+        (travel.to_degrees() - 2.0 * 420.0).abs() < 1e-3,
+        "{}",
+        travel.to_degrees()
+    );
+    assert_eq!(
+        text.matches("\nM0 (").count(),
+        4,
+        "mount + load, release, load, remove"
+    );
+    assert!(text.contains("set the load to 125 N") && text.contains("set the load to 250 N"));
+
+    // `verify` on its own, with the cell the program was checked in.
+    let v = edbbgen([
+        "verify",
+        abb().to_str().unwrap(),
+        out.to_str().unwrap(),
+        "--flange",
+        "tool0",
+        "--cell",
+        root().join("examples/ldbb/cell.toml").to_str().unwrap(),
+        "-q",
+    ]);
+    assert_eq!(v.code, 0, "{}{}", v.stdout, v.stderr);
+    // LinuxCNC's interpreter reads it as written.
+    crate::linuxcnc::check("ldbb-circle", &text);
+
+    // The default step: the path keeps the bar within a few µm of its length.
+    let fine = dir.path().join("fine.nc");
+    let r = ldbb_circle(&setup, &fine, &[]);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    let text = std::fs::read_to_string(&fine).unwrap();
+    let dev: f64 = text
+        .lines()
+        .find_map(|l| l.split("by at most ").nth(1))
+        .and_then(|s| s.split(' ').next())
+        .and_then(|s| s.parse().ok())
+        .expect("the header states the path's deviation");
+    assert!(dev < 5.0, "{dev} um");
+}
+
+#[test]
+fn report_json_is_golden_and_the_html_draws_in_a_browser() {
+    let dir = tempdir();
+    let setup = dir.path().join("setup.toml");
+    std::fs::write(
+        &setup,
+        setup_text(
+            "clockwise seen from +z",
+            720,
+            "125.0, 250.0, 375.0, 500.0, 625.0",
+            2,
+        ),
+    )
+    .unwrap();
+    let truth = dir.path().join("truth.toml");
+    std::fs::write(&truth, TRUTH).unwrap();
+    let (loaded, lt) = (dir.path().join("loaded.csv"), dir.path().join("lt.csv"));
+    let r = edbbgen([
+        "simulate-ldbb",
+        "--setup",
+        setup.to_str().unwrap(),
+        "--truth",
+        truth.to_str().unwrap(),
+        "-o",
+        loaded.to_str().unwrap(),
+        "--reference",
+        lt.to_str().unwrap(),
+        "-q",
+    ]);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    let (page, svg) = (dir.path().join("ldbb.html"), dir.path().join("ldbb.svg"));
+    let report = analyse(
+        dir.path(),
+        &loaded,
+        &setup,
+        &[
+            "--reference",
+            lt.to_str().unwrap(),
+            "--grid-step",
+            "10",
+            "--html",
+            page.to_str().unwrap(),
+            "--plot",
+            svg.to_str().unwrap(),
+        ],
+    );
+    // DESIGN.md's keys first, in its order (top-level keys of the pretty JSON text).
+    let json = std::fs::read_to_string(dir.path().join("report.json")).unwrap();
+    let keys: Vec<&str> = json
+        .lines()
+        .filter(|l| l.starts_with("  \"") && !l.starts_with("   "))
+        .filter_map(|l| l.trim().strip_prefix('"')?.split('"').next())
+        .collect();
+    assert_eq!(
+        keys[..7],
+        [
+            "schema",
+            "compliance",
+            "sine_fit",
+            "kinematic_error",
+            "stiffness_nm_per_rad",
+            "linearity_spread_um",
+            "reference"
+        ]
+    );
+    assert_eq!(report["schema"], "edbbgen.ldbb/1");
+    assert!(
+        report["reference"]["mean_abs_difference_um"]
+            .as_f64()
+            .unwrap()
+            < 40.0
+    );
+    crate::snapshots::assert_golden("json@ldbb_simulated", &json);
+    assert!(std::fs::read_to_string(&svg).unwrap().starts_with("<svg"));
+    crate::report::assert_page_draws(
+        &page,
+        "ldbb",
+        &[
+            "fig-raw",
+            "fig-deflection",
+            "fig-compliance",
+            "fig-compensated",
+            "fig-average",
+            "fig-kinematic",
+        ],
+    );
+}
+
+/// Exit 2, one line naming `needle`, and no report written.
+fn rejected(args: &[String], needle: &str) {
+    let r = edbbgen(args);
+    assert_eq!(r.code, 2, "{args:?}: {}", r.stderr);
+    let lines: Vec<&str> = r.stderr.lines().collect();
+    assert_eq!(lines.len(), 1, "one line: {}", r.stderr);
+    assert!(
+        lines[0].starts_with("edbbgen: error: ") && lines[0].contains(needle),
+        "'{}' should name '{needle}'",
+        lines[0]
+    );
+}
+
+#[test]
+fn bad_input_is_one_line_naming_file_and_place() {
+    let dir = tempdir();
+    let d = dir.path();
+    let setup = d.join("setup.toml");
+    let text = setup_text("clockwise seen from +z", 360, "125.0, 250.0, 375.0", 2);
+    std::fs::write(&setup, &text).unwrap();
+    let truth = d.join("truth.toml");
+    std::fs::write(&truth, TRUTH).unwrap();
+    let loaded = d.join("loaded.csv");
+    let s = |p: &Path| p.display().to_string();
+    let r = edbbgen([
+        "simulate-ldbb",
+        "--setup",
+        &s(&setup),
+        "--truth",
+        &s(&truth),
+        "-o",
+        &s(&loaded),
+        "-q",
+    ]);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    let csv = std::fs::read_to_string(&loaded).unwrap();
+    let json = d.join("r.json");
+    let run = |data: &Path, setup: &Path| -> Vec<String> {
+        vec![
+            "ldbb".into(),
+            s(data),
+            "--setup".into(),
+            s(setup),
+            "--json".into(),
+            s(&json),
+            "-q".into(),
+        ]
+    };
+    let write = |name: &str, text: &str| -> PathBuf {
+        let p = d.join(name);
+        std::fs::write(&p, text).unwrap();
+        p
+    };
+    // Wrong header.
+    let p = write("header.csv", &csv.replacen("load_n", "load", 1));
+    rejected(&run(&p, &setup), "header.csv: line 1, column 2 (load_n)");
+    // A load with one repeat missing.
+    let p = write(
+        "missing.csv",
+        &csv.lines()
+            .filter(|l| !l.starts_with("2,375.000,"))
+            .collect::<Vec<_>>()
+            .join("\n"),
+    );
+    rejected(
+        &run(&p, &setup),
+        "missing.csv: load 375 N: run(s) 2 missing",
+    );
+    // Angles not covering the circle.
+    let p = write(
+        "hole.csv",
+        &csv.lines()
+            .filter(|l| {
+                let c: Vec<&str> = l.split(',').collect();
+                !(c[0] == "1"
+                    && c[1] == "250.000"
+                    && c[2].parse::<f64>().is_ok_and(|a| (40.0..55.0).contains(&a)))
+            })
+            .collect::<Vec<_>>()
+            .join("\n"),
+    );
+    rejected(
+        &run(&p, &setup),
+        "hole.csv: load 250 N, run 1: the angles do not cover the circle",
+    );
+    // A load the setup does not list, a bad number.
+    let p = write("load.csv", &csv.replacen("\n1,125.000,", "\n1,130.000,", 1));
+    rejected(
+        &run(&p, &setup),
+        "load.csv: line 2, column 2 (load_n): load 130 N is not one of the setup's loads",
+    );
+    let p = write("nan.csv", &csv.replacen("\n1,125.000,", "\n1,x,", 1));
+    rejected(
+        &run(&p, &setup),
+        "nan.csv: line 2, column 2 (load_n): 'x' is not a number",
+    );
+    // A setup key typo, a setup without its tool for the robot.
+    let bad = write("typo.toml", &text.replace("bar_length_mm", "bar_lenght_mm"));
+    rejected(&run(&loaded, &bad), "typo.toml: line");
+    let bad = write(
+        "notool.toml",
+        &text.replace("map_offset_mm = [0.0, 0.0, 150.0]\n", ""),
+    );
+    rejected(&run(&loaded, &bad), "notool.toml: [tool] map_offset_mm");
+    // Options and the reference.
+    let mut args = run(&loaded, &setup);
+    args.extend(["--grid-step".into(), "7".into()]);
+    rejected(&args, "--grid-step");
+    let lt = write("lt.csv", "angle,error_um\n0,1\n");
+    let mut args = run(&loaded, &setup);
+    args.extend(["--reference".into(), s(&lt)]);
+    rejected(&args, "lt.csv: line 1, column 1 (angle_deg)");
+    assert!(!json.exists(), "no report on bad input");
+    // The simulator's truth and the program's reach.
+    let t = write(
+        "t.toml",
+        &TRUTH.replace("stiffness_nm_per_rad", "stifness_nm_per_rad"),
+    );
+    rejected(
+        &[
+            "simulate-ldbb",
+            "--setup",
+            &s(&setup),
+            "--truth",
+            &s(&t),
+            "-o",
+            &s(&d.join("x.csv")),
+        ]
+        .map(String::from),
+        "t.toml: line",
+    );
+    let far = write(
+        "far.toml",
+        &text.replace("[1350.0, -125.0, 1250.0]", "[4350.0, -125.0, 1250.0]"),
+    );
+    let out = d.join("far.nc");
+    let r = ldbb_circle(&far, &out, &[]);
+    assert_eq!(r.code, 2, "{}", r.stderr);
+    assert!(
+        r.stderr.contains("far.toml: the circle is out of reach"),
+        "{}",
+        r.stderr
+    );
+    assert!(!out.exists());
+    let leftovers: Vec<_> = std::fs::read_dir(d)
+        .unwrap()
+        .filter_map(|e| e.ok())
+        .filter(|e| e.file_name().to_string_lossy().starts_with(".edbbgen-"))
+        .collect();
+    assert!(leftovers.is_empty(), "no temp files left behind");
+}

@@ -272,7 +272,6 @@ pub fn compile(
     }
     let run_time = per_load as f64 * chord / setup.circle.speed;
     let total: f64 = moves.iter().map(|m| m.time_s).sum();
-    let (lo, hi) = robot.limits();
     let dir = match setup.circle.direction {
         super::setup::Direction::Clockwise => "clockwise",
         super::setup::Direction::Counterclockwise => "counterclockwise",
@@ -305,9 +304,10 @@ pub fn compile(
         ),
         format!("tool orientation [rows of base_R_end]: {}, {}, {}", row(0), row(1), row(2)),
         format!(
-            "loads: {} N ascending, {} measured circle(s) each between {} deg of lead-in and of lead-out; {} s per load at speed",
+            "loads: {} N ascending; per load {} measured circle{} between {} deg of lead-in and of lead-out, {} s at speed",
             setup.loads.iter().map(|f| load_text(*f)).collect::<Vec<_>>().join(", "),
             setup.repeats,
+            if setup.repeats == 1 { "" } else { "s" },
             fmt_fixed(over as f64 * step / DEG, 1),
             fmt_fixed(run_time, 1)
         ),
@@ -319,7 +319,6 @@ pub fn compile(
         ),
         format!("estimated time: {} s of motion; pauses not included", fmt_fixed(total, 1)),
     ];
-    let _ = (lo, hi);
     let header = Header {
         title: "LDBB loaded circle test".into(),
         instrument: "LDBB".into(),
