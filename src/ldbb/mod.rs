@@ -346,12 +346,18 @@ pub fn run(
     reference: Option<&Reference>,
     opts: &Options,
 ) -> Result<Analysis, LdbbError> {
-    let nodes = (TAU / opts.grid_step).round() as usize;
-    if !(opts.grid_step > 0.0) || nodes < 12 || (nodes as f64 * opts.grid_step - TAU).abs() > 1e-9 {
-        return Err(LdbbError::Options(format!(
+    let bad_step = || {
+        LdbbError::Options(format!(
             "--grid-step: {} deg must divide 360 deg into at least 12 steps",
             opts.grid_step / DEG
-        )));
+        ))
+    };
+    if !opts.grid_step.is_finite() || opts.grid_step <= 0.0 {
+        return Err(bad_step());
+    }
+    let nodes = (TAU / opts.grid_step).round() as usize;
+    if nodes < 12 || (nodes as f64 * opts.grid_step - TAU).abs() > 1e-9 {
+        return Err(bad_step());
     }
     let angles: Vec<f64> = (0..nodes).map(|k| k as f64 * TAU / nodes as f64).collect();
     let loads = setup.loads.clone();
@@ -923,6 +929,45 @@ mod tests {
             a.report.linearity_spread_um
         );
         assert!(a.stiffness.is_none() && a.report.stiffness_nm_per_rad == vec![None; 6]);
+    }
+
+    #[test]
+    fn the_nonlinear_sine_on_request_and_from_the_papers_guess() {
+        let mut setup = setup::tests_support::paper_setup();
+        setup.robot = None;
+        let (loaded, _) = synthetic(&setup.loads, 3, None);
+        let opts = |sine, start| Options {
+            sine,
+            start,
+            ..Options::default()
+        };
+        let a = run(
+            &loaded,
+            &setup,
+            None,
+            None,
+            &opts(SineModel::Nonlinear, SineStart::Linear),
+        )
+        .unwrap();
+        let n = a.sine_nonlinear.clone().unwrap();
+        assert_eq!(a.report.sine_fit.model, SineModel::Nonlinear);
+        assert_eq!(a.report.sine_fit.b, r(n.b, 5));
+        assert!((a.kinematic[10] - (a.average[10] - n.eval(a.angles[10]))).abs() < 1e-15);
+        // The paper's guess (a = 0.8 mm, φ = 22.5°) reaches the same minimum here.
+        let p = run(
+            &loaded,
+            &setup,
+            None,
+            None,
+            &opts(SineModel::Nonlinear, SineStart::Paper),
+        )
+        .unwrap();
+        let m = p.sine_nonlinear.unwrap();
+        assert!(
+            (m.a - n.a).abs() < 1e-9 && (m.b - n.b).abs() < 1e-6,
+            "{m:?} {n:?}"
+        );
+        assert_eq!(p.report.sine_fits.nonlinear_start, SineStart::Paper);
     }
 
     #[test]

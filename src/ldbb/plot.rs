@@ -64,7 +64,7 @@ pub fn raw(a: &Analysis) -> Panel {
         .map(|j| Series::line(load_label(a.loads[j]), j, curve(&a.angles, &a.mean[j], UM)))
         .collect();
     panel(
-        "(a) measured deflection, mean of the repeats",
+        "Fig. 13 (a): measured deflection, mean of the repeats",
         "deflection [µm]",
         s,
     )
@@ -82,7 +82,7 @@ pub fn deflections(a: &Analysis) -> Panel {
         })
         .collect();
     panel(
-        "(b) load-induced deflection (Eq. 8) at the apparent loads",
+        "Fig. 13 (b): load-induced deflection (Eq. 8) at the apparent loads",
         "Δx [µm]",
         s,
     )
@@ -101,7 +101,7 @@ pub fn compensated(a: &Analysis) -> Panel {
         .collect();
     panel(
         &format!(
-            "(a) compliance-compensated trajectories (linearity spread {:.1} µm)",
+            "Fig. 14 (a): compliance-compensated trajectories (linearity spread {:.1} µm)",
             a.report.linearity_spread_um
         ),
         "deflection at zero load [µm]",
@@ -137,7 +137,7 @@ pub fn average(a: &Analysis) -> Panel {
         }
     }
     panel(
-        "(b) averaged compensated trajectory and the centring sine (Eq. 9)",
+        "Fig. 14 (b): averaged compensated trajectory and the centring sine (Eq. 9)",
         "deflection [µm]",
         s,
     )
@@ -164,10 +164,10 @@ pub fn kinematic(a: &Analysis) -> Panel {
     }
     let title = match &a.report.reference {
         Some(r) => format!(
-            "kinematic error along the bar (RMS {:.1} µm; mean |difference| to the reference {:.1} µm)",
+            "Fig. 15: kinematic error along the bar (RMS {:.1} µm; mean |difference| to the reference {:.1} µm)",
             a.report.kinematic_error_rms_um, r.mean_abs_difference_um
         ),
-        None => format!("kinematic error along the bar (RMS {:.1} µm)", a.report.kinematic_error_rms_um),
+        None => format!("Fig. 15: kinematic error along the bar (RMS {:.1} µm)", a.report.kinematic_error_rms_um),
     };
     panel(&title, "error [µm]", s)
 }

@@ -160,6 +160,8 @@ pub fn identify(
         cov += &g * g.transpose();
     }
     // Load dependence: half the difference of the lower and the upper loads' solutions.
+    // The load dependence counts as shown only where it stands out of the other uncertainty.
+    let before: Vec<f64> = (0..p).map(|k| cov[(k, k)].max(0.0).sqrt()).collect();
     let mut level_change = vec![0.0; p];
     if let Some((lo, hi)) = levels {
         let d: Vec<f64> = lo.iter().zip(hi).map(|(a, b)| 0.5 * (b - a)).collect();
@@ -204,7 +206,7 @@ pub fn identify(
             )
         };
         let change = level_change[k] / norms[j] / x[k].abs();
-        if change.abs() > REL_LIMIT {
+        if change.abs() > REL_LIMIT && level_change[k].abs() > 3.0 * before[k] {
             with += &format!(
                 "; from the upper half of the loads it comes out {:+.0} % against the lower half (the compliance is not linear in the load)",
                 change * 100.0
@@ -254,7 +256,8 @@ pub fn identify(
                 if !(value > 0.0 && std / value <= REL_LIMIT) {
                     continue;
                 }
-                let keep: Vec<usize> = (0..m).filter(|&i| w[i].abs() >= 0.01).collect();
+                // Every weight stays: a small weight on a soft joint still counts.
+                let keep: Vec<usize> = (0..m).collect();
                 out.combinations.push(Combination {
                     joints: keep.iter().map(|&i| active[undetermined[i]] + 1).collect(),
                     weights: keep.iter().map(|&i| w[i]).collect(),
