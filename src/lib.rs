@@ -25,11 +25,13 @@
 // Joint loops index several arrays by joint number; `for i in 0..6` says that best.
 #![allow(clippy::needless_range_loop)]
 
+pub mod calibrate;
 pub mod cell;
 pub mod cli;
 pub mod collision;
 pub mod diagnose;
 pub mod emit;
+pub mod files;
 pub mod ir;
 pub mod ldbb;
 pub mod model;

@@ -5,6 +5,7 @@
 
 mod common;
 
+mod calibrate;
 mod cli;
 mod cli_errors;
 mod compile;

@@ -5,6 +5,7 @@ use crate::common::*;
 
 /// Every snapshot file must belong to a case here: orphans fail (like `--unreferenced reject`).
 const CASES: &[&str] = &[
+    "calibrated@nj130",
     "gcode@ldbb_circle",
     "gcode@nj130_default",
     "html@nj130_default",

@@ -3,18 +3,16 @@
 //! merge cleanly with others.
 
 use super::args::{LdbbArgs, LdbbCircleArgs, SimulateLdbbArgs};
-use super::{resolve_template, scalar, usage, write_atomic, Error};
+use super::{read_input, resolve_template, scalar, usage, write_atomic, Error};
+use crate::files::Kind;
 use crate::ldbb::setup::Setup;
 use crate::ldbb::{self, data, program, sim};
 use crate::robot::{self, Robot};
 use crate::units::{fmt_fixed, DEG, MM};
 use std::path::{Path, PathBuf};
 
-fn read(path: &Path, what: &str) -> Result<String, Error> {
-    std::fs::read_to_string(path).map_err(|e| Error::File {
-        path: path.display().to_string(),
-        msg: format!("cannot read {what}: {e}"),
-    })
+fn read(path: &Path, what: &str, kind: Kind) -> Result<String, Error> {
+    read_input(path, what, kind)
 }
 
 fn file_err(path: &Path, msg: impl std::fmt::Display) -> Error {
@@ -25,7 +23,7 @@ fn file_err(path: &Path, msg: impl std::fmt::Display) -> Error {
 }
 
 fn load_setup(path: &Path) -> Result<(Setup, String), Error> {
-    let text = read(path, "setup")?;
+    let text = read(path, "setup", Kind::Config)?;
     let dir = path.parent().map(Path::to_path_buf).unwrap_or_default();
     let setup = Setup::from_toml(&text, &dir).map_err(|e| file_err(path, e))?;
     Ok((setup, text))
@@ -86,11 +84,11 @@ pub fn ldbb(a: &LdbbArgs) -> Result<i32, Error> {
         },
     };
     let (setup, setup_text) = load_setup(&a.setup)?;
-    let text = read(&a.loaded, "loaded circle data")?;
+    let text = read(&a.loaded, "loaded circle data", Kind::Measured)?;
     let loaded = data::parse_loaded(&text).map_err(|e| file_err(&a.loaded, e))?;
     let (reference, ref_text) = match &a.reference {
         Some(p) => {
-            let t = read(p, "reference")?;
+            let t = read(p, "reference", Kind::Measured)?;
             (
                 Some(data::parse_reference(&t).map_err(|e| file_err(p, e))?),
                 t,
@@ -183,7 +181,7 @@ pub fn circle(a: &LdbbCircleArgs) -> Result<i32, Error> {
         None => None,
     };
     let cell_text = match &a.cell {
-        Some(p) => read(p, "cell")?,
+        Some(p) => read(p, "cell", Kind::Config)?,
         None => String::new(),
     };
     let mut spec = program::cell(&setup, base, &opts).map_err(|e| file_err(&a.setup, e))?;
@@ -250,7 +248,7 @@ pub fn circle(a: &LdbbCircleArgs) -> Result<i32, Error> {
 pub fn simulate(a: &SimulateLdbbArgs) -> Result<i32, Error> {
     let (setup, _) = load_setup(&a.setup)?;
     setup.tool().map_err(|e| file_err(&a.setup, e))?;
-    let truth_text = read(&a.truth, "truth")?;
+    let truth_text = read(&a.truth, "truth", Kind::Config)?;
     let truth = sim::Truth::from_toml(&truth_text).map_err(|e| file_err(&a.truth, e))?;
     let robot = load_robot(a.robot.as_deref(), &setup, &a.setup, &a.package_path)?
         .ok_or_else(|| usage("--robot: required (or give robot = \"...\" in the setup)"))?;

@@ -341,6 +341,10 @@ pub fn compile(
         time_s: total,
         inputs_sha256: inputs_sha256.to_string(),
         joint_names: robot.joints.iter().map(|j| j.name.clone()).collect(),
+        // The LDBB circle identifies no geometry: no calibration prediction (not rendered).
+        predicted_std_um: 0.0,
+        bar_noise_um: 0.0,
+        bar_rate_hz: 0.0,
     };
     let program = Program { header, moves };
     let text = crate::emit::render(template, &program).map_err(ProgramError::Template)?;
