@@ -214,6 +214,15 @@ pub struct Program {
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Header {
+    /// The program's first line: what it is ("EDBB error-sensitive measurement program").
+    #[serde(default = "edbb_title")]
+    pub title: String,
+    /// The instrument the pauses mount and remove ("EDBB", "LDBB").
+    #[serde(default = "edbb_instrument")]
+    pub instrument: String,
+    /// Further header lines a program kind adds (each one comment line), after the standard ones.
+    #[serde(default)]
+    pub notes: Vec<String>,
     pub tool_version: String,
     pub robot: String,
     pub robot_file: String,
@@ -258,4 +267,23 @@ pub struct Move {
     pub time_s: f64,
     /// Predicted bar length at the target (mm).
     pub length_mm: f64,
+    /// The annotation of the move's line when not empty (else pose, length and time).
+    #[serde(default)]
+    pub note: String,
+    /// A transit's instruction at the pause after it, when not empty (else: mount the bar).
+    #[serde(default)]
+    pub pause: String,
+    /// A transit's instruction at the pause before it, when not empty (else: remove the bar).
+    #[serde(default)]
+    pub pause_before: String,
+}
+
+pub const EDBB_TITLE: &str = "EDBB error-sensitive measurement program";
+
+fn edbb_title() -> String {
+    EDBB_TITLE.to_string()
+}
+
+fn edbb_instrument() -> String {
+    "EDBB".to_string()
 }

@@ -17,6 +17,8 @@
 //! - [`twin`]: the digital twin (truth model, effects library, program timing, simulation) and
 //!   the ISO 230-4 circle test; [`diagnose`]: measured vs simulated, calibration, effect
 //!   selection, report.
+//! - [`ldbb`]: the loaded double ball bar (Sections 2.2, 3.2, 4.2): compliance along the bar,
+//!   Eq. 8 and 9, the kinematic remainder, joint stiffness; its circle program and simulator.
 //!
 //! Internally everything is SI (m, rad, s); millimetres and degrees exist only at the edges.
 
@@ -31,6 +33,7 @@ pub mod diagnose;
 pub mod emit;
 pub mod files;
 pub mod ir;
+pub mod ldbb;
 pub mod model;
 pub mod order;
 pub mod pipeline;

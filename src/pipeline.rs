@@ -633,6 +633,9 @@ pub fn compile(
         .find(|c| c.0 == selection.indices.len())
         .map_or(f64::NAN, |c| c.1);
     let header = Header {
+        title: crate::ir::EDBB_TITLE.to_string(),
+        instrument: "EDBB".to_string(),
+        notes: Vec::new(),
         tool_version: env!("CARGO_PKG_VERSION").to_string(),
         robot: robot.name.clone(),
         robot_file: robot.source.clone(),
@@ -672,6 +675,9 @@ pub fn compile(
                 blend_mm: to_mm(w.blend),
                 time_s: t,
                 length_mm: to_mm(model.length(&model.nominal, &w.q)),
+                note: String::new(),
+                pause: String::new(),
+                pause_before: String::new(),
             }
         })
         .collect();

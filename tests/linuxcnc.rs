@@ -143,7 +143,7 @@ fn read_program(text: &str) -> (Vec<Line>, f64, usize) {
 }
 
 /// Interprets `text` with rs274 and checks its canonical commands against the program text.
-fn check(label: &str, text: &str) {
+pub fn check(label: &str, text: &str) {
     let (lines, blend, stops) = read_program(text);
     assert!(
         lines.len() > 10 && lines[0].kind == Kind::Traverse,

@@ -11,6 +11,7 @@ mod cli_errors;
 mod compile;
 mod diagnose;
 mod fuzz;
+mod ldbb;
 mod linuxcnc;
 mod model_cmd;
 mod passive;

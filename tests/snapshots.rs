@@ -6,9 +6,11 @@ use crate::common::*;
 /// Every snapshot file must belong to a case here: orphans fail (like `--unreferenced reject`).
 const CASES: &[&str] = &[
     "calibrated@nj130",
+    "gcode@ldbb_circle",
     "gcode@nj130_default",
     "html@nj130_default",
     "html@nj130_diagnosis",
+    "json@ldbb_simulated",
 ];
 
 pub fn assert_golden(name: &str, text: &str) {

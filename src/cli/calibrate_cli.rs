@@ -149,7 +149,7 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
     let load_opts = LoadOptions {
         flange_link: a.flange.clone(),
         package_paths: a.package_path.clone(),
-        speeds: None,
+        ..LoadOptions::default()
     };
     let robot_text = super::read_input(&a.robot, "robot", crate::files::Kind::Robot)?;
     let robot = robot::load(&a.robot, &load_opts)?;

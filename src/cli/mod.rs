@@ -3,6 +3,7 @@
 
 pub mod args;
 mod calibrate_cli;
+mod ldbb_cli;
 mod twin_cli;
 
 use crate::cell::CellSpec;
@@ -64,6 +65,9 @@ pub fn run(argv: Vec<std::ffi::OsString>) -> Result<i32, Error> {
         Some(Command::Simulate(a)) => twin_cli::simulate(&a),
         Some(Command::Diagnose(a)) => twin_cli::diagnose(&a),
         Some(Command::Circle(a)) => twin_cli::circle(&a),
+        Some(Command::Ldbb(a)) => ldbb_cli::ldbb(&a),
+        Some(Command::LdbbCircle(a)) => ldbb_cli::circle(&a),
+        Some(Command::SimulateLdbb(a)) => ldbb_cli::simulate(&a),
         Some(Command::Calibrate(a)) => calibrate_cli::calibrate(&a),
         Some(Command::Completions(a)) => {
             let mut cmd = <Cli as clap::CommandFactory>::command();
@@ -170,6 +174,7 @@ fn load_robot(path: &Path, cell: &CellArgs, spec: &CellSpec) -> Result<Robot, Er
         flange_link: cell.flange.clone(),
         package_paths: cell.package_path.clone(),
         speeds: spec.speeds,
+        ..LoadOptions::default()
     };
     Ok(robot::load(path, &opts)?)
 }
@@ -283,6 +288,22 @@ impl crate::sample::Progress for Bar {
 
 // ---- the compiler -------------------------------------------------------------------------
 
+/// The output template: a user's file (`--template`) or a bundled dialect (`--dialect`).
+fn resolve_template(dialect: &str, file: Option<&Path>) -> Result<String, Error> {
+    match file {
+        Some(p) => read_input(p, "template", crate::files::Kind::Config),
+        None => crate::emit::dialect(dialect)
+            .map(str::to_string)
+            .ok_or_else(|| {
+                let names: Vec<&str> = crate::emit::DIALECTS.iter().map(|d| d.0).collect();
+                usage(format!(
+                    "--dialect: unknown dialect '{dialect}' (available: {})",
+                    names.join(", ")
+                ))
+            }),
+    }
+}
+
 fn run_compile(a: &CompileArgs) -> Result<i32, Error> {
     // Required by clap; the Options only exist because subcommands negate the requirement.
     let (Some(robot_path), Some(output)) = (&a.robot, &a.output) else {
@@ -304,19 +325,7 @@ fn run_compile(a: &CompileArgs) -> Result<i32, Error> {
     if a.max_candidates < 30 {
         return Err(usage("--max-candidates: must be at least 30"));
     }
-    let template = match &a.template {
-        Some(p) => read_input(p, "template", crate::files::Kind::Config)?,
-        None => crate::emit::dialect(&a.dialect)
-            .ok_or_else(|| {
-                let names: Vec<&str> = crate::emit::DIALECTS.iter().map(|d| d.0).collect();
-                usage(format!(
-                    "--dialect: unknown dialect '{}' (available: {})",
-                    a.dialect,
-                    names.join(", ")
-                ))
-            })?
-            .to_string(),
-    };
+    let template = resolve_template(&a.dialect, a.template.as_deref())?;
     if let Some(stage) = &a.emit {
         if !EMIT_STAGES.contains(&stage.as_str()) {
             return Err(usage(format!(

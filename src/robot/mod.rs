@@ -179,6 +179,9 @@ pub struct Robot {
 pub struct LoadOptions {
     /// URDF: the link that ends the chain (default: `flange`, `tool0`, or the chain's last link).
     pub flange_link: Option<String>,
+    /// URDF: the link whose frame is the robot base frame (default: the root link). It must be
+    /// rigid with the root (fixed joints only).
+    pub base_link: Option<String>,
     /// URDF: directories searched for `package://NAME/...` mesh paths.
     pub package_paths: Vec<PathBuf>,
     /// Joint speeds (rad/s) that replace the file's (e.g. from the cell file, for URDFs
