@@ -61,6 +61,19 @@ fn load_robot(
     Ok(Some(robot::load(&path, &opts)?))
 }
 
+/// The setup as it enters an inputs hash: its text without the `robot` path, whose file enters
+/// through the robot's content digest. A program's hash then names what was computed, not
+/// where the checkout lies.
+fn setup_identity(text: &str) -> String {
+    match text.parse::<toml_edit::DocumentMut>() {
+        Ok(mut doc) => {
+            doc.remove("robot");
+            doc.to_string()
+        }
+        Err(_) => text.to_string(),
+    }
+}
+
 fn hash(parts: &[&[u8]]) -> String {
     let mut all = Vec::new();
     for p in parts {
@@ -122,7 +135,7 @@ pub fn ldbb(a: &LdbbArgs) -> Result<i32, Error> {
             let digest = robot.as_ref().map_or(String::new(), |r| r.digest.clone());
             let h = hash(&[
                 text.as_bytes(),
-                setup_text.as_bytes(),
+                setup_identity(&setup_text).as_bytes(),
                 ref_text.as_bytes(),
                 digest.as_bytes(),
                 format!("{opts:?}").as_bytes(),
@@ -207,7 +220,7 @@ pub fn circle(a: &LdbbCircleArgs) -> Result<i32, Error> {
         .ok_or_else(|| usage("ROBOT: required"))?;
     let h = hash(&[
         robot.digest.as_bytes(),
-        setup_text.as_bytes(),
+        setup_identity(&setup_text).as_bytes(),
         cell_text.as_bytes(),
         format!("{opts:?} {:?} {:?}", spec.margin, spec.joint_margin).as_bytes(),
         template.as_bytes(),
