@@ -205,7 +205,10 @@ pub struct Path {
     pub time_sorted: f64,
 }
 
-/// Dialect-free program: what `emit` renders.
+/// The program: what `emit` renders, and the whole context of every template (`h` = the
+/// header, `moves`). The plan (poses, order, blends, times) is the same for every dialect;
+/// [`crate::emit::target`] fills the fields that depend on the controller (the dialect, the
+/// mapping, each move's axis values and speed percentage) before rendering.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Program {
     pub header: Header,
@@ -234,6 +237,23 @@ pub struct Header {
     pub time_s: f64,
     pub inputs_sha256: String,
     pub joint_names: Vec<String>,
+    /// The program's name (the output file's stem): KRL's DEF, FANUC's /PROG, RAPID's MODULE.
+    #[serde(default)]
+    pub program_name: String,
+    /// The dialect the program is written in (`ngc`, `krl`, ...).
+    #[serde(default)]
+    pub dialect: String,
+    /// The controller mapping in one line (`J1 = q1, ..., J3 = q3 - q2, ..., in deg`):
+    /// `verify` refuses a program whose mapping differs from the one in force.
+    #[serde(default)]
+    pub controller: String,
+    /// The controller's axis names, their unit (`deg` or `rad`) and printed decimals.
+    #[serde(default)]
+    pub axis_names: Vec<String>,
+    #[serde(default)]
+    pub axis_units: String,
+    #[serde(default)]
+    pub axis_decimals: usize,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -252,4 +272,21 @@ pub struct Move {
     pub time_s: f64,
     /// Predicted bar length at the target (mm).
     pub length_mm: f64,
+    /// Section (1-based): the bar is remounted between sections.
+    #[serde(default)]
+    pub section: usize,
+    /// The operator removes the bar before this move (the transit to the next section).
+    #[serde(default)]
+    pub remove_before: bool,
+    /// The operator mounts the bar after this move (its target is a section's first pose).
+    #[serde(default)]
+    pub mount_after: bool,
+    /// The target as controller axis values (the header's units), exactly as printed.
+    #[serde(default)]
+    pub axes: [f64; 6],
+    /// The percentage of every controller axis's maximum speed that makes this move take
+    /// `time_s`, the slowest axis leading (100 for the approach; above 100 where the move
+    /// cannot be that fast on the controller's axes: the template caps it).
+    #[serde(default)]
+    pub speed_pct: f64,
 }

@@ -26,7 +26,9 @@
 pub mod cell;
 pub mod cli;
 pub mod collision;
+pub mod controller;
 pub mod diagnose;
+pub mod dialect;
 pub mod emit;
 pub mod ir;
 pub mod model;

@@ -6,6 +6,8 @@
 
 use crate::cell::CellSpec;
 use crate::collision::{self, Scene, SceneReport};
+use crate::controller::ControllerMap;
+use crate::dialect::Template;
 use crate::emit;
 use crate::ir::{Cell, Header, Move, Path, Pool, Program, Reason, Selection};
 use crate::model::{self, Identifiability, IdentifyOptions, MeasurementModel, N_PARAMS};
@@ -37,6 +39,10 @@ pub struct CompileOptions {
     pub blend: f64,
     /// Start configuration; the tour starts at the selected pose nearest to it (Eq. 7).
     pub start: [f64; 6],
+    /// The program's name (KRL's DEF, FANUC's /PROG, RAPID's MODULE): the output file's stem.
+    /// Not part of the input hash: the text carries it.
+    #[serde(skip)]
+    pub program_name: String,
 }
 
 impl CompileOptions {
@@ -51,17 +57,18 @@ impl CompileOptions {
             poses: None,
             blend: DEFAULT_BLEND_MM * 1e-3,
             start: [0.0; 6],
+            program_name: DEFAULT_PROGRAM_NAME.to_string(),
         }
     }
 }
 
-pub const DEFAULT_BAR_MM: (f64, f64) = (300.0, 520.0);
+pub use crate::cell::{DEFAULT_BALL_MM, DEFAULT_BAR_MM};
 pub const DEFAULT_STEP_DEG: f64 = 10.0;
 pub const DEFAULT_MAX_CANDIDATES: usize = 3400;
 pub const DEFAULT_SEED: u64 = 1;
 pub const DEFAULT_BLEND_MM: f64 = 10.0;
-/// Ball diameter assumed when none is given (precision ball-bar balls are 12.7–25.4 mm).
-pub const DEFAULT_BALL_MM: f64 = 25.0;
+/// The program name when none is given.
+pub const DEFAULT_PROGRAM_NAME: &str = "EDBB";
 /// Measurement poses keep this far from the bar's ends and the cone edges, so that the joint
 /// moves between them (which bow) have room; moves are checked against the full limits.
 pub const POSE_INSET_BAR_MM: f64 = 5.0;
@@ -127,6 +134,8 @@ pub enum PipelineError {
     Order(#[from] order::OrderError),
     #[error("template: {0}")]
     Template(String),
+    #[error(transparent)]
+    Controller(#[from] crate::controller::ControllerError),
     #[error("refusing to write an unsafe program: {0}")]
     Unsafe(String),
 }
@@ -405,6 +414,10 @@ pub fn compile(
     template: &str,
     progress: &dyn Progress,
 ) -> Result<Compiled, PipelineError> {
+    // The template and its controller mapping are checked before the long work starts.
+    let template =
+        Template::from_source(template).map_err(|e| PipelineError::Template(e.to_string()))?;
+    let axes = controller_map(robot, opts, &template)?;
     let (map, mut warnings) = resolve_map(robot, opts.cell.map);
     warnings.extend(robot.notes.iter().cloned());
     let cell = make_cell(robot, opts.fixture, map, &opts.cell)?;
@@ -598,17 +611,30 @@ pub fn compile(
         cond,
         time_unsorted_s: path.time_unsorted,
         time_s: path.time_sorted,
-        inputs_sha256: inputs_hash(robot, opts, template),
+        inputs_sha256: String::new(),
         joint_names: robot.joints.iter().map(|j| j.name.clone()).collect(),
+        program_name: opts.program_name.clone(),
+        dialect: String::new(),
+        controller: String::new(),
+        axis_names: Vec::new(),
+        axis_units: String::new(),
+        axis_decimals: 0,
     };
-    let mut pose_no = 0;
-    let moves = plan
-        .waypoints
+    let (mut pose_no, mut section) = (0, 0);
+    let wps = &plan.waypoints;
+    let moves = wps
         .iter()
         .zip(&path.move_times)
-        .map(|(w, &t)| {
+        .enumerate()
+        .map(|(k, (w, &t))| {
             if !w.support {
                 pose_no += 1;
+            }
+            // A transit's target without support flag is a section's first pose: the bar goes
+            // in there; it comes out before the first transit move after a mounted stretch.
+            let mount_after = w.transit && !w.support;
+            if mount_after {
+                section += 1;
             }
             Move {
                 q_deg: w.q.map(|r| emit::round_deg(to_deg(r))),
@@ -618,15 +644,17 @@ pub fn compile(
                 blend_mm: to_mm(w.blend),
                 time_s: t,
                 length_mm: to_mm(model.length(&model.nominal, &w.q)),
+                section: section.max(1),
+                remove_before: k > 0 && w.transit && !(wps[k - 1].transit && wps[k - 1].support),
+                mount_after,
+                axes: [0.0; 6],
+                speed_pct: 0.0,
             }
         })
         .collect();
-    let program = Program { header, moves };
-    let text = emit::render(template, &program).map_err(PipelineError::Template)?;
-
-    // The compiler does not trust its own memory either: re-read the text and check it.
-    let verified =
-        verify::check_text(&ck, robot, &text).map_err(|f| PipelineError::Unsafe(f.to_string()))?;
+    let base = Program { header, moves };
+    // The compiler does not trust its own memory either: `finish` re-reads the text and checks it.
+    let (program, text, verified) = finish(&ck, robot, opts, &base, &template, &axes)?;
 
     let report = Report {
         schema: "edbbgen.report/1",
@@ -675,6 +703,69 @@ pub fn compile(
         report,
         warnings,
     })
+}
+
+/// The controller mapping a template's programs use: the cell's `[controller]` over the
+/// dialect's defaults.
+pub fn controller_map(
+    robot: &Robot,
+    opts: &CompileOptions,
+    template: &Template,
+) -> Result<ControllerMap, PipelineError> {
+    let d = template.dialect;
+    Ok(ControllerMap::resolve(
+        opts.cell.controller.as_ref(),
+        &d.defaults(),
+        &d.name,
+        robot,
+    )?)
+}
+
+/// Writes the planned `base` program for one controller: fills the dialect's fields, renders
+/// the template and checks the text with `verify` (the compiler refuses to hand out a program
+/// that fails). Returns the program, its text and the verify summary.
+pub fn finish(
+    ck: &Checker,
+    robot: &Robot,
+    opts: &CompileOptions,
+    base: &Program,
+    template: &Template,
+    map: &ControllerMap,
+) -> Result<(Program, String, verify::Summary), PipelineError> {
+    let mut program = emit::target(base, template.dialect, map, &robot.max_speeds());
+    let h = &mut program.header;
+    if !crate::dialect::valid_name(&h.program_name, template.dialect.name_max) {
+        h.program_name = emit::ident(
+            if h.program_name.is_empty() {
+                DEFAULT_PROGRAM_NAME
+            } else {
+                &h.program_name
+            },
+            template.dialect.name_max,
+        );
+    }
+    h.inputs_sha256 = inputs_hash(robot, opts, &template.source);
+    let text = emit::render(template, &program).map_err(PipelineError::Template)?;
+    let verified = verify::check_text(ck, robot, &text, template.dialect, map)
+        .map_err(|f| PipelineError::Unsafe(f.to_string()))?;
+    Ok((program, text, verified))
+}
+
+/// The compiled plan written for another dialect (or template): the same poses, order, blends
+/// and times, verified like [`compile`]'s own text.
+pub fn retarget(
+    robot: &Robot,
+    opts: &CompileOptions,
+    compiled: &Compiled,
+    template: &str,
+) -> Result<(Program, String), PipelineError> {
+    let template =
+        Template::from_source(template).map_err(|e| PipelineError::Template(e.to_string()))?;
+    let map = controller_map(robot, opts, &template)?;
+    let (scene, _) = build_scene(robot, &opts.cell, &opts.fixture, &compiled.cell.map)?;
+    let ck = Checker::new(robot, &compiled.model, &compiled.cell, &scene, opts.cell.margin);
+    let (program, text, _) = finish(&ck, robot, opts, &compiled.program, &template, &map)?;
+    Ok((program, text))
 }
 
 /// Splits the chosen poses (pool indices) into sections by group and orders them: the section

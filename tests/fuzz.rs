@@ -219,7 +219,12 @@ proptest! {
 
     #[test]
     fn user_template(text in mutated(read("templates/ngc.j2"))) {
-        if let Err(e) = edbbgen::emit::render(&text, &program()) {
+        let template = edbbgen::dialect::Template {
+            source: text,
+            dialect: edbbgen::dialect::by_name("ngc").unwrap(),
+            user: true,
+        };
+        if let Err(e) = edbbgen::emit::render(&template, &program()) {
             one_line(&e);
         }
     }

@@ -20,7 +20,7 @@ pub use truth::Truth;
 
 use crate::model::{MeasurementModel, Params, A, D, N_PARAMS};
 use crate::robot::Robot;
-use crate::verify::gcode::Parsed;
+use crate::dialect::Parsed;
 use rand::{Rng, SeedableRng};
 
 #[derive(Clone, Debug)]
