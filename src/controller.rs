@@ -147,18 +147,25 @@ impl ControllerMap {
 
     /// Controller axis values (program units) of a model joint vector (deg).
     pub fn apply(&self, q_deg: &[f64; 6]) -> [f64; 6] {
-        let mut c: [f64; 6] = std::array::from_fn(|i| self.sign[i] * q_deg[i] + self.offset_deg[i]);
-        c[2] += self.j3_coupling * q_deg[1];
+        let c = grid_exact(q_deg, &self.offset_deg, |q, o| {
+            let mut c: [f64; 6] = std::array::from_fn(|i| self.sign[i] * q[i] + o[i]);
+            c[2] += self.j3_coupling * q[1];
+            c
+        });
         c.map(|v| self.units.from_deg(v))
     }
 
-    /// The model joint vector (deg) of controller axis values (program units): the exact
-    /// inverse of [`Self::apply`].
+    /// The model joint vector (deg) of controller axis values (program units): the inverse of
+    /// [`Self::apply`]. Degree values on the 0.001° grid are combined in exact integer
+    /// thousandths, so a planned pose read back is the very same number (not one ulp off a
+    /// limit it touches).
     pub fn undo(&self, c: &[f64; 6]) -> [f64; 6] {
         let c = c.map(|v| self.units.to_deg(v));
-        let mut q: [f64; 6] = std::array::from_fn(|i| (c[i] - self.offset_deg[i]) * self.sign[i]);
-        q[2] = (c[2] - self.offset_deg[2] - self.j3_coupling * q[1]) * self.sign[2];
-        q
+        grid_exact(&c, &self.offset_deg, |c, o| {
+            let mut q: [f64; 6] = std::array::from_fn(|i| (c[i] - o[i]) * self.sign[i]);
+            q[2] = (c[2] - o[2] - self.j3_coupling * q[1]) * self.sign[2];
+            q
+        })
     }
 
     /// The maximum speed of each controller axis (program units per second), taking the robot
@@ -184,7 +191,11 @@ impl ControllerMap {
                     i + 1
                 );
                 if i == 2 && self.j3_coupling != 0.0 {
-                    s += if self.j3_coupling > 0.0 { " + q2" } else { " - q2" };
+                    s += if self.j3_coupling > 0.0 {
+                        " + q2"
+                    } else {
+                        " - q2"
+                    };
                 }
                 let o = self.offset_deg[i];
                 if o != 0.0 {
@@ -286,6 +297,25 @@ impl ControllerMap {
             units,
             axis_names,
         })
+    }
+}
+
+/// `f(values, offsets)`, in exact integer thousandths of a degree when every value lies on the
+/// 0.001° grid (the plan's values, and what the program prints), else in floating point.
+fn grid_exact(
+    v: &[f64; 6],
+    o: &[f64; 6],
+    f: impl Fn(&[f64; 6], &[f64; 6]) -> [f64; 6],
+) -> [f64; 6] {
+    let k = 10f64.powi(DEG_DECIMALS);
+    let on_grid = |x: &f64| x.abs() < 1e12 && ((x * k).round() - x * k).abs() < 1e-6;
+    if v.iter().chain(o.iter()).all(on_grid) {
+        let vi = v.map(|x| (x * k).round());
+        let oi = o.map(|x| (x * k).round());
+        // Integers below 2^53 combine exactly; one division per value rounds once.
+        f(&vi, &oi).map(|x| x / k)
+    } else {
+        f(v, o)
     }
 }
 

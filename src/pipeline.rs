@@ -763,7 +763,13 @@ pub fn retarget(
         Template::from_source(template).map_err(|e| PipelineError::Template(e.to_string()))?;
     let map = controller_map(robot, opts, &template)?;
     let (scene, _) = build_scene(robot, &opts.cell, &opts.fixture, &compiled.cell.map)?;
-    let ck = Checker::new(robot, &compiled.model, &compiled.cell, &scene, opts.cell.margin);
+    let ck = Checker::new(
+        robot,
+        &compiled.model,
+        &compiled.cell,
+        &scene,
+        opts.cell.margin,
+    );
     let (program, text, _) = finish(&ck, robot, opts, &compiled.program, &template, &map)?;
     Ok((program, text))
 }

@@ -5,10 +5,12 @@
 
 mod common;
 
+mod architecture;
 mod cli;
 mod cli_errors;
 mod compile;
 mod diagnose;
+mod dialects;
 mod fuzz;
 mod linuxcnc;
 mod model_cmd;
@@ -16,3 +18,4 @@ mod passive;
 mod report;
 mod safety;
 mod snapshots;
+mod structure;

@@ -3,7 +3,8 @@
 
 use crate::common::*;
 
-/// Every snapshot file must belong to a case here: orphans fail (like `--unreferenced reject`).
+/// Every snapshot file must belong to a case here, or be a dialect program `<dialect>@<cell>`
+/// of tests/dialects.rs: orphans fail (like `--unreferenced reject`).
 const CASES: &[&str] = &[
     "gcode@nj130_default",
     "html@nj130_default",
@@ -70,6 +71,13 @@ fn no_orphaned_snapshots() {
                 "unexpected file in snapshots/: {name} (pending .snap.new? run cargo insta review)"
             );
         };
-        assert!(CASES.contains(&case), "orphaned snapshot {name}");
+        let dialect_case = case.split_once('@').is_some_and(|(d, c)| {
+            crate::dialects::DIALECTS.contains(&d)
+                && (c == "nj130_cell" || SHARED_ROBOTS.contains(&c))
+        });
+        assert!(
+            CASES.contains(&case) || dialect_case,
+            "orphaned snapshot {name}"
+        );
     }
 }

@@ -475,7 +475,10 @@ pub(crate) fn controller_map(
         robot,
     )
     .map_err(|e| Error::File {
-        path: cell.map_or_else(|| format!("--dialect {}", dialect.name), |p| p.display().to_string()),
+        path: cell.map_or_else(
+            || format!("--dialect {}", dialect.name),
+            |p| p.display().to_string(),
+        ),
         msg: e.to_string(),
     })
 }

@@ -67,7 +67,12 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
             }
             let name = rest.split_whitespace().next().unwrap_or("");
             if !valid_name(name) {
-                return Err(perr(line, format!("/PROG {name}: not a program name (a letter, letters/digits/_, at most 36)")));
+                return Err(perr(
+                    line,
+                    format!(
+                        "/PROG {name}: not a program name (a letter, letters/digits/_, at most 36)"
+                    ),
+                ));
             }
             sec = Sec::Attr;
             continue;
@@ -94,7 +99,10 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                 continue;
             }
             _ if t.starts_with('/') && !t.starts_with("/APPL") => {
-                return Err(perr(line, format!("{t} out of place (/PROG, /ATTR, /MN, /POS, /END in this order)")))
+                return Err(perr(
+                    line,
+                    format!("{t} out of place (/PROG, /ATTR, /MN, /POS, /END in this order)"),
+                ))
             }
             _ => {}
         }
@@ -103,7 +111,10 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
             Sec::End => return Err(perr(line, "text after /END")),
             Sec::Attr => {
                 if !(t.ends_with(';') || t.ends_with(',') || t.starts_with("/APPL")) {
-                    return Err(perr(line, "an /ATTR line ends with ';' (or ',' inside TCD)"));
+                    return Err(perr(
+                        line,
+                        "an /ATTR line ends with ';' (or ',' inside TCD)",
+                    ));
                 }
             }
             Sec::Mn => {
@@ -128,7 +139,13 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                 }
                 if let Some(r) = instr.strip_prefix('!') {
                     if r.chars().count() > 32 {
-                        return Err(perr(line, format!("a remark holds at most 32 characters, this one {}", r.chars().count())));
+                        return Err(perr(
+                            line,
+                            format!(
+                                "a remark holds at most 32 characters, this one {}",
+                                r.chars().count()
+                            ),
+                        ));
                     }
                     if !moved {
                         push_header(&mut out.header, r);
@@ -142,20 +159,42 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                     items.push(Item::Move(motion(line, r.trim(), comment)?));
                     moved = true;
                 } else if let Some(r) = upper.strip_prefix("MESSAGE[") {
-                    let inner = r.strip_suffix(']').ok_or_else(|| perr(line, "MESSAGE[ without ']'"))?;
+                    let inner = r
+                        .strip_suffix(']')
+                        .ok_or_else(|| perr(line, "MESSAGE[ without ']'"))?;
                     if inner.chars().count() > 24 {
                         return Err(perr(line, "a MESSAGE holds at most 24 characters"));
                     }
                 } else if upper == "PAUSE" {
-                    items.push(Item::Step(Line { line, step: Step::Pause, comment }));
+                    items.push(Item::Step(Line {
+                        line,
+                        step: Step::Pause,
+                        comment,
+                    }));
                 } else if upper == "END" {
-                    items.push(Item::Step(Line { line, step: Step::End, comment }));
+                    items.push(Item::Step(Line {
+                        line,
+                        step: Step::End,
+                        comment,
+                    }));
                 } else if let Some(r) = upper.strip_prefix("WAIT ") {
-                    let s = r.trim().strip_suffix("(SEC)").ok_or_else(|| perr(line, "WAIT takes a time: WAIT t(sec)"))?;
+                    let s = r
+                        .trim()
+                        .strip_suffix("(SEC)")
+                        .ok_or_else(|| perr(line, "WAIT takes a time: WAIT t(sec)"))?;
                     let secs = number(line, "WAIT", s)?;
-                    items.push(Item::Step(Line { line, step: Step::Dwell(secs), comment }));
-                } else if let Some(r) = upper.strip_prefix("UFRAME_NUM=").or(upper.strip_prefix("UTOOL_NUM=")) {
-                    r.trim().parse::<u32>().map_err(|_| perr(line, "UFRAME_NUM/UTOOL_NUM take a number"))?;
+                    items.push(Item::Step(Line {
+                        line,
+                        step: Step::Dwell(secs),
+                        comment,
+                    }));
+                } else if let Some(r) = upper
+                    .strip_prefix("UFRAME_NUM=")
+                    .or(upper.strip_prefix("UTOOL_NUM="))
+                {
+                    r.trim()
+                        .parse::<u32>()
+                        .map_err(|_| perr(line, "UFRAME_NUM/UTOOL_NUM take a number"))?;
                 } else {
                     return Err(perr(line, format!("'{instr}' is not an instruction edbbgen reads (J, !, MESSAGE, PAUSE, WAIT)")));
                 }
@@ -165,9 +204,14 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                     if open_p.is_some() {
                         return Err(perr(line, "a position starts inside another (no '};')"));
                     }
-                    let (idx, rest) = r.split_once(']').ok_or_else(|| perr(line, "P[ without ']'"))?;
+                    let (idx, rest) = r
+                        .split_once(']')
+                        .ok_or_else(|| perr(line, "P[ without ']'"))?;
                     let idx = idx.split(':').next().unwrap_or("");
-                    let kk: usize = idx.trim().parse().map_err(|_| perr(line, format!("P[{idx}]: not a position number")))?;
+                    let kk: usize = idx
+                        .trim()
+                        .parse()
+                        .map_err(|_| perr(line, format!("P[{idx}]: not a position number")))?;
                     if rest.trim() != "{" {
                         return Err(perr(line, "a position starts with 'P[k]{'"));
                     }
@@ -176,24 +220,36 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                     }
                     open_p = Some((kk, line, [None; 6]));
                 } else if t == "};" {
-                    let p = open_p.take().ok_or_else(|| perr(line, "'};' without a position"))?;
+                    let p = open_p
+                        .take()
+                        .ok_or_else(|| perr(line, "'};' without a position"))?;
                     positions.push(p);
                 } else {
-                    let p = open_p.as_mut().ok_or_else(|| perr(line, "text outside a position"))?;
+                    let p = open_p
+                        .as_mut()
+                        .ok_or_else(|| perr(line, "text outside a position"))?;
                     if t == "GP1:" || t.starts_with("UF") {
                         continue;
                     }
                     for part in t.split(',').map(str::trim).filter(|s| !s.is_empty()) {
-                        let (name, value) = part.split_once('=').ok_or_else(|| perr(line, format!("'{part}' is not 'Jn = value deg'")))?;
-                        let i = match name.trim() {
-                            "J1" => 0,
-                            "J2" => 1,
-                            "J3" => 2,
-                            "J4" => 3,
-                            "J5" => 4,
-                            "J6" => 5,
-                            n => return Err(perr(line, format!("'{n}' is not a joint (J1..J6): joint representation only"))),
-                        };
+                        let (name, value) = part.split_once('=').ok_or_else(|| {
+                            perr(line, format!("'{part}' is not 'Jn = value deg'"))
+                        })?;
+                        let i =
+                            match name.trim() {
+                                "J1" => 0,
+                                "J2" => 1,
+                                "J3" => 2,
+                                "J4" => 3,
+                                "J5" => 4,
+                                "J6" => 5,
+                                n => return Err(perr(
+                                    line,
+                                    format!(
+                                        "'{n}' is not a joint (J1..J6): joint representation only"
+                                    ),
+                                )),
+                            };
                         let v = value
                             .trim()
                             .strip_suffix("deg")
@@ -208,7 +264,10 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
         }
     }
     if sec != Sec::End {
-        return Err(perr(text.lines().count(), "the program does not end with /END"));
+        return Err(perr(
+            text.lines().count(),
+            "the program does not end with /END",
+        ));
     }
     for it in items {
         match it {
@@ -220,34 +279,61 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                     .ok_or_else(|| perr(m.line, format!("P[{}] is not in /POS", m.p)))?;
                 let mut axes = [0.0; 6];
                 for i in 0..6 {
-                    axes[i] = j[i].ok_or_else(|| perr(*pl, format!("P[{}] lacks J{}", m.p, i + 1)))?;
+                    axes[i] =
+                        j[i].ok_or_else(|| perr(*pl, format!("P[{}] lacks J{}", m.p, i + 1)))?;
                 }
                 out.lines.push(Line {
                     line: m.line,
-                    step: Step::Move { target: map.undo(&axes), axes, timing: m.timing, blend: m.blend },
+                    step: Step::Move {
+                        target: map.undo(&axes),
+                        axes,
+                        timing: m.timing,
+                        blend: m.blend,
+                    },
                     comment: m.comment,
                 });
             }
         }
     }
-    out.lines.push(Line { line: end_line, step: Step::End, comment: None });
+    out.lines.push(Line {
+        line: end_line,
+        step: Step::End,
+        comment: None,
+    });
     Ok(out)
 }
 
 /// `P[k] 100% CNT10` (upper case) → the motion.
 fn motion(line: usize, s: &str, comment: Option<String>) -> Result<Motion, ParseError> {
-    let r = s.strip_prefix("P[").ok_or_else(|| perr(line, "J takes a position P[k]"))?;
-    let (idx, rest) = r.split_once(']').ok_or_else(|| perr(line, "P[ without ']'"))?;
+    let r = s
+        .strip_prefix("P[")
+        .ok_or_else(|| perr(line, "J takes a position P[k]"))?;
+    let (idx, rest) = r
+        .split_once(']')
+        .ok_or_else(|| perr(line, "P[ without ']'"))?;
     let idx = idx.split(':').next().unwrap_or("");
-    let p: usize = idx.trim().parse().map_err(|_| perr(line, format!("P[{idx}]: not a position number")))?;
+    let p: usize = idx
+        .trim()
+        .parse()
+        .map_err(|_| perr(line, format!("P[{idx}]: not a position number")))?;
     let words: Vec<&str> = rest.split_whitespace().collect();
     let (speed, term) = match words.as_slice() {
         [sp, term] => (sp.to_string(), *term),
         [n, unit, term] if *unit == "SEC" || *unit == "MSEC" => (format!("{n}{unit}"), *term),
-        _ => return Err(perr(line, "J P[k] takes a speed and a termination (n% FINE|CNTn)")),
+        _ => {
+            return Err(perr(
+                line,
+                "J P[k] takes a speed and a termination (n% FINE|CNTn)",
+            ))
+        }
     };
     let timing = if let Some(n) = speed.strip_suffix('%') {
-        let v: u32 = n.parse().map_err(|_| perr(line, format!("'{speed}': a joint speed is an integer percentage")))?;
+        let v: u32 = n.parse().map_err(|_| {
+            perr(
+                line,
+                format!("'{speed}': a joint speed is an integer percentage"),
+            )
+        })?;
         if !(1..=100).contains(&v) {
             return Err(perr(line, "a joint speed is 1..100 %"));
         }
@@ -257,20 +343,34 @@ fn motion(line: usize, s: &str, comment: Option<String>) -> Result<Motion, Parse
     } else if let Some(n) = speed.strip_suffix("SEC") {
         Timing::Duration(number(line, "sec", n)?)
     } else {
-        return Err(perr(line, format!("'{speed}' is not a joint speed (n%, t sec, t msec)")));
+        return Err(perr(
+            line,
+            format!("'{speed}' is not a joint speed (n%, t sec, t msec)"),
+        ));
     };
     let blend = if term == "FINE" {
         None
     } else if let Some(n) = term.strip_prefix("CNT").or(term.strip_prefix("CR")) {
-        let v: u32 = n.parse().map_err(|_| perr(line, format!("'{term}' needs an integer")))?;
+        let v: u32 = n
+            .parse()
+            .map_err(|_| perr(line, format!("'{term}' needs an integer")))?;
         if v > 100 && term.starts_with("CNT") {
             return Err(perr(line, "CNT takes 0..100"));
         }
         (v > 0).then_some(f64::from(v))
     } else {
-        return Err(perr(line, format!("'{term}' is not a termination (FINE, CNTn, CRn)")));
+        return Err(perr(
+            line,
+            format!("'{term}' is not a termination (FINE, CNTn, CRn)"),
+        ));
     };
-    Ok(Motion { line, p, timing, blend, comment })
+    Ok(Motion {
+        line,
+        p,
+        timing,
+        blend,
+        comment,
+    })
 }
 
 #[cfg(test)]
@@ -293,9 +393,13 @@ mod tests {
         let p = parse(OK, &map()).unwrap();
         assert_eq!(p.header_value("fixture"), Some("1, 2, 3 mm"));
         let steps: Vec<&Step> = p.lines.iter().map(|l| &l.step).collect();
-        assert!(matches!(steps[0], Step::Move { timing: Timing::AxisPercent(pc), blend: None, .. } if pc[0] == 100.0));
+        assert!(
+            matches!(steps[0], Step::Move { timing: Timing::AxisPercent(pc), blend: None, .. } if pc[0] == 100.0)
+        );
         assert!(matches!(steps[1], Step::Pause));
-        assert!(matches!(steps[2], Step::Move { blend: Some(b), target, .. } if *b == 10.0 && target[0] == 2.0));
+        assert!(
+            matches!(steps[2], Step::Move { blend: Some(b), target, .. } if *b == 10.0 && target[0] == 2.0)
+        );
         assert_eq!(p.lines[2].comment.as_deref(), Some("support"));
         assert!(matches!(steps[3], Step::End));
     }
@@ -304,11 +408,23 @@ mod tests {
     fn rejects_with_the_line_number() {
         for (from, to, msg) in [
             ("   2:  !.. 3 mm ;", "   3:  !.. 3 mm ;", "expected 2"),
-            ("J P[2] 50% CNT10", "J P[3] 50% CNT10", "P[3] is not in /POS"),
+            (
+                "J P[2] 50% CNT10",
+                "J P[3] 50% CNT10",
+                "P[3] is not in /POS",
+            ),
             ("J P[2] 50% CNT10", "J P[2] 150% CNT10", "1..100"),
-            ("J P[2] 50% CNT10", "L P[2] 50mm/sec CNT10", "not an instruction"),
+            (
+                "J P[2] 50% CNT10",
+                "L P[2] 50mm/sec CNT10",
+                "not an instruction",
+            ),
             ("/END\n", "", "does not end"),
-            ("!support ;", "!support with a remark that is much too long ;", "at most 32"),
+            (
+                "!support ;",
+                "!support with a remark that is much too long ;",
+                "at most 32",
+            ),
         ] {
             let text = OK.replacen(from, to, 1);
             let e = parse(&text, &map()).unwrap_err();

@@ -32,7 +32,9 @@ pub fn valid_name(name: &str) -> bool {
     !name.is_empty()
         && name.len() <= 24
         && !name.starts_with(|c: char| c.is_ascii_digit())
-        && name.chars().all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '$')
+        && name
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '$')
 }
 
 /// The name a variable reference starts with (`edbbPar[1]` → `EDBBPAR`).
@@ -55,7 +57,10 @@ fn axis_aggregate(line: usize, agg: &str) -> Result<[Option<f64>; 6], ParseError
     for part in inner.split(',') {
         let mut it = part.split_whitespace();
         let (Some(name), Some(value), None) = (it.next(), it.next(), it.next()) else {
-            return Err(perr(line, format!("'{}' in the axis aggregate is not 'Ai value'", part.trim())));
+            return Err(perr(
+                line,
+                format!("'{}' in the axis aggregate is not 'Ai value'", part.trim()),
+            ));
         };
         let name = name.to_ascii_uppercase();
         let i = match name.as_str() {
@@ -108,19 +113,29 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                 .ok_or_else(|| perr(line, "a KRL program starts with DEF name( )"))?;
             let name = rest.split('(').next().unwrap_or("").trim();
             if !valid_name(name) || !rest.contains('(') || !rest.trim_end().ends_with(')') {
-                return Err(perr(line, format!("DEF {}: not a program name with ( )", rest.trim())));
+                return Err(perr(
+                    line,
+                    format!("DEF {}: not a program name with ( )", rest.trim()),
+                ));
             }
             in_def = true;
             continue;
         }
         if upper == "END" {
-            out.lines.push(Line { line, step: Step::End, comment: None });
+            out.lines.push(Line {
+                line,
+                step: Step::End,
+                comment: None,
+            });
             ended = true;
             continue;
         }
         if let Some(rest) = upper.strip_prefix("DECL ") {
             if statements {
-                return Err(perr(line, "DECL after the first statement: declarations come first"));
+                return Err(perr(
+                    line,
+                    "DECL after the first statement: declarations come first",
+                ));
             }
             let mut it = rest.split_whitespace();
             let (Some(_ty), Some(name)) = (it.next(), it.next()) else {
@@ -128,14 +143,19 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
             };
             let name = base_name(name);
             if !valid_name(&name) {
-                return Err(perr(line, format!("'{name}' is not a KRL name (letters, digits, _, at most 24)")));
+                return Err(perr(
+                    line,
+                    format!("'{name}' is not a KRL name (letters, digits, _, at most 24)"),
+                ));
             }
             declared.push(name);
             continue;
         }
         statements = true;
         if let Some(rest) = upper.strip_prefix("PTP ").map(|_| code[4..].trim()) {
-            let close = rest.rfind('}').ok_or_else(|| perr(line, "PTP needs an axis aggregate {A1 …, A6 …}"))?;
+            let close = rest
+                .rfind('}')
+                .ok_or_else(|| perr(line, "PTP needs an axis aggregate {A1 …, A6 …}"))?;
             let (agg, tail) = rest.split_at(close + 1);
             let axis = axis_aggregate(line, agg)?;
             let blend = match tail.trim().to_ascii_uppercase().as_str() {
@@ -152,7 +172,10 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                     (Some(v), _) => v,
                     (None, Some(p)) => p,
                     (None, None) => {
-                        return Err(perr(line, format!("the first PTP must give all six axes (A{} missing)", i + 1)))
+                        return Err(perr(
+                            line,
+                            format!("the first PTP must give all six axes (A{} missing)", i + 1),
+                        ))
                     }
                 };
                 pos[i] = Some(target[i]);
@@ -163,14 +186,23 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
             }
             out.lines.push(Line {
                 line,
-                step: Step::Move { target: map.undo(&target), axes: target, timing: Timing::AxisPercent(pct), blend },
+                step: Step::Move {
+                    target: map.undo(&target),
+                    axes: target,
+                    timing: Timing::AxisPercent(pct),
+                    blend,
+                },
                 comment: comment.map(str::to_string),
             });
             moved = true;
             continue;
         }
         if upper == "HALT" {
-            out.lines.push(Line { line, step: Step::Pause, comment: comment.map(str::to_string) });
+            out.lines.push(Line {
+                line,
+                step: Step::Pause,
+                comment: comment.map(str::to_string),
+            });
             continue;
         }
         if let Some(rest) = upper.strip_prefix("WAIT SEC ") {
@@ -178,7 +210,11 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
             if t < 0.0 {
                 return Err(perr(line, "WAIT SEC needs a time >= 0"));
             }
-            out.lines.push(Line { line, step: Step::Dwell(t), comment: None });
+            out.lines.push(Line {
+                line,
+                step: Step::Dwell(t),
+                comment: None,
+            });
             continue;
         }
         // Assignments.
@@ -187,16 +223,32 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
         };
         let lhs = lhs.trim().to_ascii_uppercase();
         let rhs = rhs.trim();
-        if let Some(idx) = lhs.strip_prefix("$VEL_AXIS[").and_then(|r| r.strip_suffix(']')) {
-            let i: usize = idx.trim().parse().map_err(|_| perr(line, "$VEL_AXIS index must be 1..6"))?;
-            let v: i64 = rhs.parse().map_err(|_| perr(line, format!("$VEL_AXIS is an INT percentage, not '{rhs}'")))?;
+        if let Some(idx) = lhs
+            .strip_prefix("$VEL_AXIS[")
+            .and_then(|r| r.strip_suffix(']'))
+        {
+            let i: usize = idx
+                .trim()
+                .parse()
+                .map_err(|_| perr(line, "$VEL_AXIS index must be 1..6"))?;
+            let v: i64 = rhs
+                .parse()
+                .map_err(|_| perr(line, format!("$VEL_AXIS is an INT percentage, not '{rhs}'")))?;
             if !(1..=6).contains(&i) || !(1..=100).contains(&v) {
                 return Err(perr(line, "$VEL_AXIS[1..6] takes 1..100 %"));
             }
             vel[i - 1] = Some(v as f64);
-        } else if let Some(idx) = lhs.strip_prefix("$ACC_AXIS[").and_then(|r| r.strip_suffix(']')) {
-            let i: usize = idx.trim().parse().map_err(|_| perr(line, "$ACC_AXIS index must be 1..6"))?;
-            let v: i64 = rhs.parse().map_err(|_| perr(line, format!("$ACC_AXIS is an INT percentage, not '{rhs}'")))?;
+        } else if let Some(idx) = lhs
+            .strip_prefix("$ACC_AXIS[")
+            .and_then(|r| r.strip_suffix(']'))
+        {
+            let i: usize = idx
+                .trim()
+                .parse()
+                .map_err(|_| perr(line, "$ACC_AXIS index must be 1..6"))?;
+            let v: i64 = rhs
+                .parse()
+                .map_err(|_| perr(line, format!("$ACC_AXIS is an INT percentage, not '{rhs}'")))?;
             if !(1..=6).contains(&i) || !(1..=100).contains(&v) {
                 return Err(perr(line, "$ACC_AXIS[1..6] takes 1..100 %"));
             }
@@ -207,7 +259,9 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
             }
             cdis = Some(v);
         } else if lhs == "$ADVANCE" {
-            let v: i64 = rhs.parse().map_err(|_| perr(line, "$ADVANCE is an INT 0..5"))?;
+            let v: i64 = rhs
+                .parse()
+                .map_err(|_| perr(line, "$ADVANCE is an INT 0..5"))?;
             if !(0..=5).contains(&v) {
                 return Err(perr(line, "$ADVANCE takes 0..5"));
             }
@@ -218,12 +272,22 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
         } else {
             let name = base_name(&lhs);
             if name.starts_with('$') {
-                return Err(perr(line, format!("{name} is not a system variable edbbgen reads")));
+                return Err(perr(
+                    line,
+                    format!("{name} is not a system variable edbbgen reads"),
+                ));
             }
             if !declared.contains(&name) {
-                return Err(perr(line, format!("'{name}' is not declared (DECL before the first statement)")));
+                return Err(perr(
+                    line,
+                    format!("'{name}' is not declared (DECL before the first statement)"),
+                ));
             }
-            if rhs.is_empty() || rhs.matches('{').count() != rhs.matches('}').count() || rhs.matches('(').count() != rhs.matches(')').count() || rhs.matches('"').count() % 2 != 0 {
+            if rhs.is_empty()
+                || rhs.matches('{').count() != rhs.matches('}').count()
+                || rhs.matches('(').count() != rhs.matches(')').count()
+                || rhs.matches('"').count() % 2 != 0
+            {
                 return Err(perr(line, format!("the value of {name} is not balanced")));
             }
         }
@@ -255,9 +319,13 @@ mod tests {
         let p = parse(OK, &map()).unwrap();
         assert_eq!(p.header_value("fixture"), Some("1, 2, 3 mm"));
         let steps: Vec<&Step> = p.lines.iter().map(|l| &l.step).collect();
-        assert!(matches!(steps[0], Step::Move { timing: Timing::AxisPercent(p), blend: None, .. } if p[5] == 50.0));
+        assert!(
+            matches!(steps[0], Step::Move { timing: Timing::AxisPercent(p), blend: None, .. } if p[5] == 50.0)
+        );
         assert!(matches!(steps[1], Step::Pause));
-        assert!(matches!(steps[2], Step::Move { target, blend: Some(b), .. } if *b == 10.0 && target[0] == 2.0 && target[5] == 6.0));
+        assert!(
+            matches!(steps[2], Step::Move { target, blend: Some(b), .. } if *b == 10.0 && target[0] == 2.0 && target[5] == 6.0)
+        );
         assert_eq!(p.lines[2].comment.as_deref(), Some("support"));
         assert!(matches!(steps[3], Step::Dwell(_)));
         assert!(matches!(steps[4], Step::End));
@@ -270,7 +338,11 @@ mod tests {
             ("h = 3", "k = 3", "'K' is not declared"),
             ("$VEL_AXIS[6] = 50", "$VEL_AXIS[6] = 150", "1..100"),
             ("END\n", "", "no END"),
-            ("PTP {A1 1, A2 2, A3 3, A4 4, A5 5, A6 6}", "PTP {A1 1, A2 2}", "all six axes"),
+            (
+                "PTP {A1 1, A2 2, A3 3, A4 4, A5 5, A6 6}",
+                "PTP {A1 1, A2 2}",
+                "all six axes",
+            ),
             ("HALT", "DECL INT k", "DECL after the first statement"),
         ] {
             let text = OK.replacen(from, to, 1);

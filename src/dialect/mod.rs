@@ -223,7 +223,14 @@ pub fn detect(path: &std::path::Path, text: &str) -> Option<&'static Dialect> {
     let first_code = text
         .lines()
         .map(str::trim)
-        .find(|l| !l.is_empty() && !l.starts_with(';') && !l.starts_with('(') && !l.starts_with('!') && !l.starts_with('#') && !l.starts_with('&'))
+        .find(|l| {
+            !l.is_empty()
+                && !l.starts_with(';')
+                && !l.starts_with('(')
+                && !l.starts_with('!')
+                && !l.starts_with('#')
+                && !l.starts_with('&')
+        })
         .unwrap_or("");
     let name = if t.starts_with("/PROG") {
         "fanuc"
@@ -270,7 +277,13 @@ impl Timing {
         let d: [f64; 6] = std::array::from_fn(|i| (to[i] - from[i]).abs());
         let lead = |scale: &dyn Fn(usize) -> f64| {
             (0..6)
-                .map(|i| if d[i] == 0.0 { 0.0 } else { d[i] / (speeds[i] * scale(i)) })
+                .map(|i| {
+                    if d[i] == 0.0 {
+                        0.0
+                    } else {
+                        d[i] / (speeds[i] * scale(i))
+                    }
+                })
                 .fold(0.0, f64::max)
         };
         match *self {
@@ -355,7 +368,12 @@ impl Parsed {
     /// The duration (s) the move `from` → `step` commands (controller axes), with the robot
     /// file's joint speeds (rad/s) as each axis's 100 %; None for a move whose speed is left
     /// to the controller.
-    pub fn duration(&self, from_axes: &[f64; 6], step: &Step, model_speeds: &[f64; 6]) -> Option<f64> {
+    pub fn duration(
+        &self,
+        from_axes: &[f64; 6],
+        step: &Step,
+        model_speeds: &[f64; 6],
+    ) -> Option<f64> {
         match step {
             Step::Move { axes, timing, .. } => {
                 timing.duration(from_axes, axes, &self.map.axis_speeds(model_speeds))
@@ -433,7 +451,10 @@ mod tests {
             assert!(!t.user);
             assert!(!d.extensions.is_empty());
             let e = d
-                .read("", &ControllerMap::identity(d.units, ["A", "B", "C", "D", "E", "F"]))
+                .read(
+                    "",
+                    &ControllerMap::identity(d.units, ["A", "B", "C", "D", "E", "F"]),
+                )
                 .err();
             assert!(
                 e.map_or(true, |e| !e.msg.contains("no reader")),
@@ -445,7 +466,10 @@ mod tests {
 
     #[test]
     fn user_templates_declare_what_they_extend() {
-        let t = Template::from_source("{# mine #}\n{% extends \"krl\" %}\n{% block header %}x{% endblock %}").unwrap();
+        let t = Template::from_source(
+            "{# mine #}\n{% extends \"krl\" %}\n{% block header %}x{% endblock %}",
+        )
+        .unwrap();
         assert_eq!(t.dialect.name, "krl");
         assert!(t.user);
         assert!(matches!(
@@ -464,7 +488,10 @@ mod tests {
         let a = [0.0; 6];
         let b = [10.0, 10.0, 0.0, 0.0, 0.0, 40.0];
         assert_eq!(Timing::Rapid.duration(&a, &b, &speeds), Some(0.2));
-        assert_eq!(Timing::AxisPercent([50.0; 6]).duration(&a, &b, &speeds), Some(0.4));
+        assert_eq!(
+            Timing::AxisPercent([50.0; 6]).duration(&a, &b, &speeds),
+            Some(0.4)
+        );
         assert_eq!(Timing::Duration(1.5).duration(&a, &b, &speeds), Some(1.5));
         assert_eq!(Timing::LeadSpeed(20.0).duration(&a, &b, &speeds), Some(2.0));
         let path = (10f64 * 10.0 + 10.0 * 10.0 + 40.0 * 40.0).sqrt();

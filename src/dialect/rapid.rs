@@ -151,19 +151,35 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                     _ => &w[..],
                 };
                 let [kind, ty, name] = w else {
-                    return Err(perr(line, "a declaration is CONST|PERS|VAR type name := value;"));
+                    return Err(perr(
+                        line,
+                        "a declaration is CONST|PERS|VAR type name := value;",
+                    ));
                 };
-                if !matches!(kind.to_ascii_uppercase().as_str(), "CONST" | "PERS" | "VAR") || !valid_name(ty) || !valid_name(name) {
-                    return Err(perr(line, "a declaration is CONST|PERS|VAR type name := value;"));
+                if !matches!(kind.to_ascii_uppercase().as_str(), "CONST" | "PERS" | "VAR")
+                    || !valid_name(ty)
+                    || !valid_name(name)
+                {
+                    return Err(perr(
+                        line,
+                        "a declaration is CONST|PERS|VAR type name := value;",
+                    ));
                 }
                 if data.iter().any(|d| d.name.eq_ignore_ascii_case(name)) {
                     return Err(perr(line, format!("'{name}' declared twice")));
                 }
                 let v = value.trim();
                 if v.matches('[').count() != v.matches(']').count() {
-                    return Err(perr(line, format!("the value of {name} has unbalanced brackets")));
+                    return Err(perr(
+                        line,
+                        format!("the value of {name} has unbalanced brackets"),
+                    ));
                 }
-                data.push(Data { ty: ty.to_ascii_lowercase(), name: name.to_string(), value: v.to_string() });
+                data.push(Data {
+                    ty: ty.to_ascii_lowercase(),
+                    name: name.to_string(),
+                    value: v.to_string(),
+                });
                 continue;
             }
             At::AfterProc => return Err(perr(line, "only one routine, PROC main(), is read")),
@@ -179,7 +195,9 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
             .ok_or_else(|| perr(line, "a statement ends with ';'"))?
             .trim();
         let comment = pending_comment.take();
-        let (word, args) = stmt.split_once(|c: char| c.is_whitespace()).unwrap_or((stmt, ""));
+        let (word, args) = stmt
+            .split_once(|c: char| c.is_whitespace())
+            .unwrap_or((stmt, ""));
         match word.to_ascii_uppercase().as_str() {
             "MOVEABSJ" => {
                 let parts = split_top(args, ',');
@@ -187,9 +205,13 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                     return Err(perr(line, "MoveAbsJ takes jointtarget, speed, zone, tool"));
                 }
                 let opt = |p: &str| -> Vec<String> {
-                    split_top(p, '\\').iter().map(|s| s.trim().to_string()).collect()
+                    split_top(p, '\\')
+                        .iter()
+                        .map(|s| s.trim().to_string())
+                        .collect()
                 };
-                let (jt, speed, zone, tool) = (opt(parts[0]), opt(parts[1]), opt(parts[2]), opt(parts[3]));
+                let (jt, speed, zone, tool) =
+                    (opt(parts[0]), opt(parts[1]), opt(parts[2]), opt(parts[3]));
                 let lookup = |name: &str, ty: &str| {
                     data.iter()
                         .find(|d| d.name.eq_ignore_ascii_case(name) && d.ty == ty)
@@ -198,11 +220,18 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                 let jt_value = if jt[0].starts_with('[') {
                     jt[0].clone()
                 } else {
-                    lookup(&jt[0], "jointtarget").ok_or_else(|| perr(line, format!("'{}' is not a declared jointtarget", jt[0])))?
+                    lookup(&jt[0], "jointtarget").ok_or_else(|| {
+                        perr(line, format!("'{}' is not a declared jointtarget", jt[0]))
+                    })?
                 };
                 for s in &jt[1..] {
-                    if !(s.eq_ignore_ascii_case("NoEOffs") || s.to_ascii_uppercase().starts_with("ID:=")) {
-                        return Err(perr(line, format!("\\{s} is not an argument of the jointtarget")));
+                    if !(s.eq_ignore_ascii_case("NoEOffs")
+                        || s.to_ascii_uppercase().starts_with("ID:="))
+                    {
+                        return Err(perr(
+                            line,
+                            format!("\\{s} is not an argument of the jointtarget"),
+                        ));
                     }
                 }
                 let inner = jt_value
@@ -217,14 +246,23 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                 let robax = list(line, "robax", halves[0])?;
                 let extax = list(line, "extax", halves[1])?;
                 if robax.len() != 6 || extax.len() != 6 {
-                    return Err(perr(line, "a jointtarget has 6 robot and 6 external axis values"));
+                    return Err(perr(
+                        line,
+                        "a jointtarget has 6 robot and 6 external axis values",
+                    ));
                 }
                 let axes: [f64; 6] = std::array::from_fn(|i| robax[i]);
                 // Speed: \T is the time; speed data alone is a TCP speed.
                 let mut timing = Timing::Unknown;
                 let sp = &speed[0];
-                if !(sp.eq_ignore_ascii_case("vmax") || sp.starts_with(['v', 'V']) && sp[1..].parse::<f64>().is_ok() || lookup(sp, "speeddata").is_some()) {
-                    return Err(perr(line, format!("'{sp}' is not speed data (vN, vmax or a declared speeddata)")));
+                if !(sp.eq_ignore_ascii_case("vmax")
+                    || sp.starts_with(['v', 'V']) && sp[1..].parse::<f64>().is_ok()
+                    || lookup(sp, "speeddata").is_some())
+                {
+                    return Err(perr(
+                        line,
+                        format!("'{sp}' is not speed data (vN, vmax or a declared speeddata)"),
+                    ));
                 }
                 for s in &speed[1..] {
                     match s.split_once(":=") {
@@ -236,17 +274,32 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                             timing = Timing::Duration(t);
                         }
                         Some((n, _)) if n.trim().eq_ignore_ascii_case("V") => {}
-                        _ => return Err(perr(line, format!("\\{s} is not an argument of the speed"))),
+                        _ => {
+                            return Err(perr(
+                                line,
+                                format!("\\{s} is not an argument of the speed"),
+                            ))
+                        }
                     }
                 }
                 let z = &zone[0];
                 let blend = if z.eq_ignore_ascii_case("fine") {
                     None
-                } else if let Some((_, tcp)) = ZONES.iter().find(|(n, _)| n.eq_ignore_ascii_case(z)) {
+                } else if let Some((_, tcp)) = ZONES.iter().find(|(n, _)| n.eq_ignore_ascii_case(z))
+                {
                     Some(*tcp)
                 } else {
-                    let v = lookup(z, "zonedata").ok_or_else(|| perr(line, format!("'{z}' is not fine, a zN or a declared zonedata")))?;
-                    let inner = v.trim().strip_prefix('[').and_then(|r| r.strip_suffix(']')).unwrap_or("");
+                    let v = lookup(z, "zonedata").ok_or_else(|| {
+                        perr(
+                            line,
+                            format!("'{z}' is not fine, a zN or a declared zonedata"),
+                        )
+                    })?;
+                    let inner = v
+                        .trim()
+                        .strip_prefix('[')
+                        .and_then(|r| r.strip_suffix(']'))
+                        .unwrap_or("");
                     let f: Vec<&str> = inner.split(',').map(str::trim).collect();
                     if f.len() != 7 {
                         return Err(perr(line, format!("zonedata {z} has 7 fields")));
@@ -256,18 +309,31 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                     } else if f[0].eq_ignore_ascii_case("FALSE") {
                         Some(number(line, "pzone_tcp", f[1])?)
                     } else {
-                        return Err(perr(line, format!("zonedata {z}: finep must be TRUE or FALSE")));
+                        return Err(perr(
+                            line,
+                            format!("zonedata {z}: finep must be TRUE or FALSE"),
+                        ));
                     }
                 };
                 if zone.len() > 1 {
                     return Err(perr(line, "\\Z and \\Inpos are not read: use zonedata"));
                 }
-                if !(tool[0].eq_ignore_ascii_case("tool0") || lookup(&tool[0], "tooldata").is_some()) {
-                    return Err(perr(line, format!("'{}' is not a declared tooldata", tool[0])));
+                if !(tool[0].eq_ignore_ascii_case("tool0")
+                    || lookup(&tool[0], "tooldata").is_some())
+                {
+                    return Err(perr(
+                        line,
+                        format!("'{}' is not a declared tooldata", tool[0]),
+                    ));
                 }
                 out.lines.push(Line {
                     line,
-                    step: Step::Move { target: map.undo(&axes), axes, timing, blend },
+                    step: Step::Move {
+                        target: map.undo(&axes),
+                        axes,
+                        timing,
+                        blend,
+                    },
                     comment,
                 });
                 moved = true;
@@ -275,28 +341,51 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
             "TPWRITE" => {
                 let s = args.trim();
                 if !(s.len() >= 2 && s.starts_with('"') && s.ends_with('"')) || s.len() - 2 > 80 {
-                    return Err(perr(line, "TPWrite takes one string of at most 80 characters"));
+                    return Err(perr(
+                        line,
+                        "TPWrite takes one string of at most 80 characters",
+                    ));
                 }
             }
-            "STOP" => out.lines.push(Line { line, step: Step::Pause, comment }),
+            "STOP" => out.lines.push(Line {
+                line,
+                step: Step::Pause,
+                comment,
+            }),
             "WAITTIME" => {
                 let t = number(line, "WaitTime", args)?;
                 if t < 0.0 {
                     return Err(perr(line, "WaitTime needs a time >= 0"));
                 }
-                out.lines.push(Line { line, step: Step::Dwell(t), comment });
+                out.lines.push(Line {
+                    line,
+                    step: Step::Dwell(t),
+                    comment,
+                });
             }
             "CONFJ" | "CONFL" => {}
-            w => return Err(perr(line, format!("'{w}' is not an instruction edbbgen reads (MoveAbsJ, TPWrite, Stop, WaitTime)"))),
+            w => return Err(perr(
+                line,
+                format!(
+                    "'{w}' is not an instruction edbbgen reads (MoveAbsJ, TPWrite, Stop, WaitTime)"
+                ),
+            )),
         }
     }
     match at {
         At::End => {
-            out.lines.push(Line { line: text.lines().count(), step: Step::End, comment: None });
+            out.lines.push(Line {
+                line: text.lines().count(),
+                step: Step::End,
+                comment: None,
+            });
             Ok(out)
         }
         At::Start => Err(perr(0, "no MODULE: not a RAPID program module")),
-        _ => Err(perr(text.lines().count(), "the module does not end with ENDPROC and ENDMODULE")),
+        _ => Err(perr(
+            text.lines().count(),
+            "the module does not end with ENDPROC and ENDMODULE",
+        )),
     }
 }
 
@@ -306,7 +395,10 @@ mod tests {
     use crate::controller::Units;
 
     fn map() -> ControllerMap {
-        ControllerMap::identity(Units::Deg, ["rax_1", "rax_2", "rax_3", "rax_4", "rax_5", "rax_6"])
+        ControllerMap::identity(
+            Units::Deg,
+            ["rax_1", "rax_2", "rax_3", "rax_4", "rax_5", "rax_6"],
+        )
     }
 
     const OK: &str = "MODULE EDBB\n  ! fixture: 1, 2, 3 mm\n  PERS tooldata tEdbb := [TRUE, [[1, 2, 3], [1, 0, 0, 0]], [0.001, [0, 0, 0.001], [1, 0, 0, 0], 0, 0, 0]];\n\
@@ -320,9 +412,18 @@ mod tests {
         let p = parse(OK, &map()).unwrap();
         assert_eq!(p.header_value("fixture"), Some("1, 2, 3 mm"));
         let steps: Vec<&Step> = p.lines.iter().map(|l| &l.step).collect();
-        assert!(matches!(steps[0], Step::Move { timing: Timing::Unknown, blend: None, .. }));
+        assert!(matches!(
+            steps[0],
+            Step::Move {
+                timing: Timing::Unknown,
+                blend: None,
+                ..
+            }
+        ));
         assert!(matches!(steps[1], Step::Pause));
-        assert!(matches!(steps[2], Step::Move { timing: Timing::Duration(t), blend: Some(b), target, .. } if *t == 0.7 && *b == 10.0 && target[0] == 2.0));
+        assert!(
+            matches!(steps[2], Step::Move { timing: Timing::Duration(t), blend: Some(b), target, .. } if *t == 0.7 && *b == 10.0 && target[0] == 2.0)
+        );
         assert_eq!(p.lines[2].comment.as_deref(), Some("support"));
         assert!(matches!(steps[3], Step::End));
     }

@@ -33,7 +33,11 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
         map: map.clone(),
         ..Parsed::default()
     };
-    let names: Vec<String> = map.axis_names.iter().map(|n| n.to_ascii_uppercase()).collect();
+    let names: Vec<String> = map
+        .axis_names
+        .iter()
+        .map(|n| n.to_ascii_uppercase())
+        .collect();
     let mut pos: [Option<f64>; 6] = [None; 6];
     let mut absolute = true;
     let mut inverse_time = false;
@@ -63,7 +67,9 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                 return Err(perr(line, "MSG( without its closing parenthesis"));
             }
             let inner = rest[..rest.len() - 1].trim();
-            if !(inner.is_empty() || (inner.len() >= 2 && inner.starts_with('"') && inner.ends_with('"'))) {
+            if !(inner.is_empty()
+                || (inner.len() >= 2 && inner.starts_with('"') && inner.ends_with('"')))
+            {
                 return Err(perr(line, "MSG needs a quoted text or nothing"));
             }
             continue;
@@ -74,7 +80,10 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                 .ok_or_else(|| perr(line, "FGROUP( without its closing parenthesis"))?;
             for a in inner.split(',').map(str::trim).filter(|a| !a.is_empty()) {
                 if !names.iter().any(|n| n == a) {
-                    return Err(perr(line, format!("FGROUP: '{a}' is not one of the axes {}", names.join(", "))));
+                    return Err(perr(
+                        line,
+                        format!("FGROUP: '{a}' is not one of the axes {}", names.join(", ")),
+                    ));
                 }
             }
             continue;
@@ -96,7 +105,10 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                     }
                     axis[i] = Some(number(line, name, value)?);
                 } else {
-                    return Err(perr(line, format!("'{name}=' is not an axis ({}) or ADIS", names.join(", "))));
+                    return Err(perr(
+                        line,
+                        format!("'{name}=' is not an axis ({}) or ADIS", names.join(", ")),
+                    ));
                 }
                 continue;
             }
@@ -106,26 +118,40 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
             let (letter, num) = word.split_at(1);
             match letter {
                 "N" => {
-                    num.parse::<u64>().map_err(|_| perr(line, format!("block number '{word}'")))?;
+                    num.parse::<u64>()
+                        .map_err(|_| perr(line, format!("block number '{word}'")))?;
                 }
-                "G" => match num {
-                    "0" | "00" => g_motion = Some(true),
-                    "1" | "01" => g_motion = Some(false),
-                    "4" | "04" => dwell = true,
-                    "9" | "09" => exact_here = true,
-                    "60" => blend_mode = false,
-                    "641" => blend_mode = true,
-                    "64" => {
-                        return Err(perr(line, "G64 without a rounding distance: edbbgen reads G641 ADIS= (or G60)"))
+                "G" => {
+                    match num {
+                        "0" | "00" => g_motion = Some(true),
+                        "1" | "01" => g_motion = Some(false),
+                        "4" | "04" => dwell = true,
+                        "9" | "09" => exact_here = true,
+                        "60" => blend_mode = false,
+                        "641" => blend_mode = true,
+                        "64" => return Err(perr(
+                            line,
+                            "G64 without a rounding distance: edbbgen reads G641 ADIS= (or G60)",
+                        )),
+                        "71" | "710" => {}
+                        "70" | "700" => {
+                            return Err(perr(
+                                line,
+                                "G70/G700 (inch) is not supported: joint values are degrees",
+                            ))
+                        }
+                        "90" => absolute = true,
+                        "91" => absolute = false,
+                        "93" => inverse_time = true,
+                        "94" => inverse_time = false,
+                        _ => {
+                            return Err(perr(
+                                line,
+                                format!("{word} is not supported in a joint-space program"),
+                            ))
+                        }
                     }
-                    "71" | "710" => {}
-                    "70" | "700" => return Err(perr(line, "G70/G700 (inch) is not supported: joint values are degrees")),
-                    "90" => absolute = true,
-                    "91" => absolute = false,
-                    "93" => inverse_time = true,
-                    "94" => inverse_time = false,
-                    _ => return Err(perr(line, format!("{word} is not supported in a joint-space program"))),
-                },
+                }
                 "M" => match num {
                     "0" | "00" | "1" | "01" => m_word = Some(true),
                     "2" | "02" | "17" | "30" => m_word = Some(false),
@@ -133,7 +159,10 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                 },
                 "F" => f_word = Some(number(line, "F", num)?),
                 _ => {
-                    return Err(perr(line, format!("word '{word}' is not supported (axes are written NAME=value)")))
+                    return Err(perr(
+                        line,
+                        format!("word '{word}' is not supported (axes are written NAME=value)"),
+                    ))
                 }
             }
         }
@@ -142,7 +171,11 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
             if t < 0.0 {
                 return Err(perr(line, "G4 F must be >= 0 seconds"));
             }
-            out.lines.push(Line { line, step: Step::Dwell(t), comment: comment.map(str::to_string) });
+            out.lines.push(Line {
+                line,
+                step: Step::Dwell(t),
+                comment: comment.map(str::to_string),
+            });
         } else if let Some(f) = f_word {
             if f <= 0.0 {
                 return Err(perr(line, "F must be positive"));
@@ -156,7 +189,8 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
             if dwell {
                 return Err(perr(line, "G4 and axis motion in one block"));
             }
-            let is_rapid = rapid.ok_or_else(|| perr(line, "axes without a motion mode (G0 or G1)"))?;
+            let is_rapid =
+                rapid.ok_or_else(|| perr(line, "axes without a motion mode (G0 or G1)"))?;
             let mut target = [0.0; 6];
             for i in 0..6 {
                 target[i] = match (axis[i], pos[i]) {
@@ -164,7 +198,10 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                     (Some(v), _) => v,
                     (None, Some(p)) => p,
                     (None, None) => {
-                        return Err(perr(line, format!("first move must give all six axes ({} missing)", names[i])))
+                        return Err(perr(
+                            line,
+                            format!("first move must give all six axes ({} missing)", names[i]),
+                        ))
                     }
                 };
                 pos[i] = Some(target[i]);
@@ -173,7 +210,9 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                 Timing::Rapid
             } else if inverse_time {
                 // With G93 the F word belongs to its block.
-                let f = f_word.filter(|_| !dwell).ok_or_else(|| perr(line, "G1 in G93 needs its own F (1/min)"))?;
+                let f = f_word
+                    .filter(|_| !dwell)
+                    .ok_or_else(|| perr(line, "G1 in G93 needs its own F (1/min)"))?;
                 Timing::Duration(60.0 / f)
             } else {
                 Timing::PathFeed(feed.ok_or_else(|| perr(line, "G1 without a feed rate F"))?)
@@ -185,15 +224,28 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
             };
             out.lines.push(Line {
                 line,
-                step: Step::Move { target: map.undo(&target), axes: target, timing, blend },
+                step: Step::Move {
+                    target: map.undo(&target),
+                    axes: target,
+                    timing,
+                    blend,
+                },
                 comment: comment.map(str::to_string),
             });
             moved = true;
         }
         match m_word {
-            Some(true) => out.lines.push(Line { line, step: Step::Pause, comment: comment.map(str::to_string) }),
+            Some(true) => out.lines.push(Line {
+                line,
+                step: Step::Pause,
+                comment: comment.map(str::to_string),
+            }),
             Some(false) => {
-                out.lines.push(Line { line, step: Step::End, comment: comment.map(str::to_string) });
+                out.lines.push(Line {
+                    line,
+                    step: Step::End,
+                    comment: comment.map(str::to_string),
+                });
                 ended = true;
             }
             None => {}
@@ -222,7 +274,9 @@ mod tests {
         assert_eq!(moves[2], [2.0, -1.0, 3.0, 4.0, 5.0, 6.0]);
         let steps: Vec<&Step> = p.lines.iter().map(|l| &l.step).collect();
         assert!(matches!(steps[1], Step::Pause));
-        assert!(matches!(steps[2], Step::Move { timing: Timing::Duration(t), blend: Some(b), .. } if *t == 0.5 && *b == 10.0));
+        assert!(
+            matches!(steps[2], Step::Move { timing: Timing::Duration(t), blend: Some(b), .. } if *t == 0.5 && *b == 10.0)
+        );
         assert!(matches!(steps[3], Step::Move { blend: None, .. }));
         assert!(matches!(steps[4], Step::Dwell(d) if *d == 0.5));
         assert!(matches!(steps[5], Step::End));
@@ -232,10 +286,18 @@ mod tests {
     fn rejects_with_the_line_number() {
         for (text, line, msg) in [
             ("G0 X1=1 Y1=2\n", 1, "first move must give all six"),
-            ("G0 X1=1 Y1=2 Z1=3 A1=4 B1=5 C1=6\nG93\nG1 X1=3\n", 3, "needs its own F"),
+            (
+                "G0 X1=1 Y1=2 Z1=3 A1=4 B1=5 C1=6\nG93\nG1 X1=3\n",
+                3,
+                "needs its own F",
+            ),
             ("G64\n", 1, "G64 without a rounding distance"),
             ("G0 X2=1\n", 1, "not an axis"),
-            ("G641\nG0 X1=1 Y1=2 Z1=3 A1=4 B1=5 C1=6\n", 2, "G641 without ADIS"),
+            (
+                "G641\nG0 X1=1 Y1=2 Z1=3 A1=4 B1=5 C1=6\n",
+                2,
+                "G641 without ADIS",
+            ),
             ("M30\nG0 X1=1\n", 2, "after the program end"),
             ("G2 X1=1\n", 1, "G2 is not supported"),
         ] {

@@ -75,13 +75,20 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                 .ok_or_else(|| perr(line, "a URScript program starts with def name():"))?;
             let name = rest.trim().strip_suffix("():").unwrap_or("");
             if !super::valid_name(name, 64) {
-                return Err(perr(line, format!("def {}: not 'def name():'", rest.trim())));
+                return Err(perr(
+                    line,
+                    format!("def {}: not 'def name():'", rest.trim()),
+                ));
             }
             in_def = true;
             continue;
         }
         if code == "end" {
-            out.lines.push(Line { line, step: Step::End, comment: None });
+            out.lines.push(Line {
+                line,
+                step: Step::End,
+                comment: None,
+            });
             ended = true;
             continue;
         }
@@ -93,8 +100,11 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
             .ok_or_else(|| perr(line, "a call ends with ')'"))?;
         let a = args(inner);
         let named = |key: &str| {
-            a.iter()
-                .find_map(|x| x.split_once('=').filter(|(k, _)| k.trim() == key).map(|(_, v)| v.trim()))
+            a.iter().find_map(|x| {
+                x.split_once('=')
+                    .filter(|(k, _)| k.trim() == key)
+                    .map(|(_, v)| v.trim())
+            })
         };
         let comment = comment.map(str::to_string);
         match name.trim() {
@@ -103,17 +113,29 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                 let list = q
                     .strip_prefix('[')
                     .and_then(|r| r.strip_suffix(']'))
-                    .ok_or_else(|| perr(line, "movej takes the joint positions as a list [q1, ..., q6] (radians)"))?;
+                    .ok_or_else(|| {
+                        perr(
+                            line,
+                            "movej takes the joint positions as a list [q1, ..., q6] (radians)",
+                        )
+                    })?;
                 let v: Vec<f64> = list
                     .split(',')
                     .map(|x| number(line, "joint position", x))
                     .collect::<Result<_, _>>()?;
                 if v.len() != 6 {
-                    return Err(perr(line, format!("movej needs 6 joint positions, not {}", v.len())));
+                    return Err(perr(
+                        line,
+                        format!("movej needs 6 joint positions, not {}", v.len()),
+                    ));
                 }
                 let axes: [f64; 6] = std::array::from_fn(|i| v[i]);
                 // Positional a, v, t, r after q, or named.
-                let positional: Vec<&str> = a[1..].iter().copied().filter(|x| !x.contains('=')).collect();
+                let positional: Vec<&str> = a[1..]
+                    .iter()
+                    .copied()
+                    .filter(|x| !x.contains('='))
+                    .collect();
                 for x in a[1..].iter().filter(|x| x.contains('=')) {
                     let key = x.split('=').next().unwrap_or("").trim();
                     if !["a", "v", "t", "r"].contains(&key) {
@@ -135,34 +157,70 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                         None => Ok(default),
                     }
                 };
-                let (acc, speed, t, r) = (arg("a", 0, 1.4)?, arg("v", 1, 1.05)?, arg("t", 2, 0.0)?, arg("r", 3, 0.0)?);
+                let (acc, speed, t, r) = (
+                    arg("a", 0, 1.4)?,
+                    arg("v", 1, 1.05)?,
+                    arg("t", 2, 0.0)?,
+                    arg("r", 3, 0.0)?,
+                );
                 if acc <= 0.0 || speed <= 0.0 {
                     return Err(perr(line, "movej a and v must be positive"));
                 }
-                let timing = if t > 0.0 { Timing::Duration(t) } else { Timing::LeadSpeed(speed) };
+                let timing = if t > 0.0 {
+                    Timing::Duration(t)
+                } else {
+                    Timing::LeadSpeed(speed)
+                };
                 let blend = (r > 0.0).then_some(r * 1e3);
-                out.lines.push(Line { line, step: Step::Move { target: map.undo(&axes), axes, timing, blend }, comment });
+                out.lines.push(Line {
+                    line,
+                    step: Step::Move {
+                        target: map.undo(&axes),
+                        axes,
+                        timing,
+                        blend,
+                    },
+                    comment,
+                });
                 moved = true;
             }
             "popup" => {
                 if named("blocking") != Some("True") {
-                    return Err(perr(line, "popup without blocking=True does not wait for the operator"));
+                    return Err(perr(
+                        line,
+                        "popup without blocking=True does not wait for the operator",
+                    ));
                 }
                 let msg = a.first().copied().unwrap_or("");
-                if !(msg.len() >= 2 && (msg.starts_with('"') && msg.ends_with('"') || msg.starts_with('\'') && msg.ends_with('\''))) {
+                if !(msg.len() >= 2
+                    && (msg.starts_with('"') && msg.ends_with('"')
+                        || msg.starts_with('\'') && msg.ends_with('\'')))
+                {
                     return Err(perr(line, "popup's first argument is the message text"));
                 }
-                out.lines.push(Line { line, step: Step::Pause, comment });
+                out.lines.push(Line {
+                    line,
+                    step: Step::Pause,
+                    comment,
+                });
             }
             "sleep" => {
                 let t = number(line, "sleep", a.first().copied().unwrap_or(""))?;
                 if t < 0.0 {
                     return Err(perr(line, "sleep needs a time >= 0"));
                 }
-                out.lines.push(Line { line, step: Step::Dwell(t), comment });
+                out.lines.push(Line {
+                    line,
+                    step: Step::Dwell(t),
+                    comment,
+                });
             }
             "halt" => {
-                out.lines.push(Line { line, step: Step::End, comment });
+                out.lines.push(Line {
+                    line,
+                    step: Step::End,
+                    comment,
+                });
             }
             "set_tcp" => {
                 let p = a.first().copied().unwrap_or("");
@@ -170,13 +228,21 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                     .strip_prefix("p[")
                     .and_then(|r| r.strip_suffix(']'))
                     .ok_or_else(|| perr(line, "set_tcp takes a pose p[x, y, z, rx, ry, rz]"))?;
-                let n = list.split(',').map(|x| number(line, "set_tcp", x)).collect::<Result<Vec<_>, _>>()?;
+                let n = list
+                    .split(',')
+                    .map(|x| number(line, "set_tcp", x))
+                    .collect::<Result<Vec<_>, _>>()?;
                 if n.len() != 6 {
                     return Err(perr(line, "set_tcp takes a pose of 6 numbers"));
                 }
             }
             "textmsg" | "set_payload" => {}
-            other => return Err(perr(line, format!("'{other}' is not a call edbbgen reads (movej, popup, sleep, halt, set_tcp)"))),
+            other => return Err(perr(
+                line,
+                format!(
+                    "'{other}' is not a call edbbgen reads (movej, popup, sleep, halt, set_tcp)"
+                ),
+            )),
         }
     }
     if !in_def {
@@ -194,7 +260,10 @@ mod tests {
     use crate::controller::Units;
 
     fn map() -> ControllerMap {
-        ControllerMap::identity(Units::Rad, ["base", "shoulder", "elbow", "wrist1", "wrist2", "wrist3"])
+        ControllerMap::identity(
+            Units::Rad,
+            ["base", "shoulder", "elbow", "wrist1", "wrist2", "wrist3"],
+        )
     }
 
     const OK: &str = "def edbb():\n  # fixture: 1, 2, 3 mm\n  set_tcp(p[0.06, 0.03, 0.12, 0, 0, 0])\n\
@@ -207,10 +276,14 @@ mod tests {
         let p = parse(OK, &map()).unwrap();
         assert_eq!(p.header_value("fixture"), Some("1, 2, 3 mm"));
         let steps: Vec<&Step> = p.lines.iter().map(|l| &l.step).collect();
-        assert!(matches!(steps[0], Step::Move { timing: Timing::LeadSpeed(v), blend: None, .. } if *v == 1.05));
+        assert!(
+            matches!(steps[0], Step::Move { timing: Timing::LeadSpeed(v), blend: None, .. } if *v == 1.05)
+        );
         assert!(matches!(steps[1], Step::Pause));
-        assert!(matches!(steps[2], Step::Move { timing: Timing::Duration(t), blend: Some(b), target, .. }
-            if *t == 0.7 && (*b - 10.0).abs() < 1e-12 && (target[0] - 0.2f64.to_degrees()).abs() < 1e-12));
+        assert!(
+            matches!(steps[2], Step::Move { timing: Timing::Duration(t), blend: Some(b), target, .. }
+            if *t == 0.7 && (*b - 10.0).abs() < 1e-12 && (target[0] - 0.2f64.to_degrees()).abs() < 1e-12)
+        );
         assert_eq!(p.lines[2].comment.as_deref(), Some("support"));
         assert!(matches!(steps[3], Step::Dwell(_)));
         assert!(matches!(steps[4], Step::End));
@@ -220,7 +293,11 @@ mod tests {
     fn rejects_with_the_line_number() {
         for (from, to, msg) in [
             ("blocking=True", "blocking=False", "does not wait"),
-            ("[0.2, 0.2, 0.3, 0.4, 0.5, 0.6]", "[0.2, 0.2, 0.3]", "6 joint positions"),
+            (
+                "[0.2, 0.2, 0.3, 0.4, 0.5, 0.6]",
+                "[0.2, 0.2, 0.3]",
+                "6 joint positions",
+            ),
             ("sleep(0.5)", "movel(p[0, 0, 0, 0, 0, 0])", "'movel' is not"),
             ("end\n", "", "no end"),
             ("t=0.7", "q=0.7", "no argument 'q'"),

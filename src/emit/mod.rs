@@ -71,7 +71,12 @@ pub fn percent(p: f64) -> i64 {
 /// The program for one controller: the plan's `base` with the dialect, the mapping, every
 /// move's axis values (exactly as printed) and speed percentage filled in. `speeds` are the
 /// robot file's joint speeds (rad/s), each controller axis's 100 %.
-pub fn target(base: &Program, dialect: &Dialect, map: &ControllerMap, speeds: &[f64; 6]) -> Program {
+pub fn target(
+    base: &Program,
+    dialect: &Dialect,
+    map: &ControllerMap,
+    speeds: &[f64; 6],
+) -> Program {
     let mut p = base.clone();
     let decimals = map.units.decimals();
     let h = &mut p.header;
@@ -80,7 +85,18 @@ pub fn target(base: &Program, dialect: &Dialect, map: &ControllerMap, speeds: &[
     h.axis_names = map.axis_names.to_vec();
     h.axis_units = map.units.name().to_string();
     h.axis_decimals = decimals;
-    let printed = |v: f64| fmt_fixed(v, decimals).parse::<f64>().unwrap_or(v);
+    // Degrees: the plan's grid, printed exactly. Radians: cut toward zero at the printed
+    // decimals, so a pose on a limit that contains zero (joint ranges, harness ranges) stays
+    // inside it when read back.
+    let printed = |v: f64| match map.units {
+        crate::controller::Units::Deg => fmt_fixed(v, decimals).parse::<f64>().unwrap_or(v),
+        crate::controller::Units::Rad => {
+            let k = 10f64.powi(decimals as i32);
+            fmt_fixed((v * k).trunc() / k, decimals)
+                .parse::<f64>()
+                .unwrap_or(v)
+        }
+    };
     let vmax = map.axis_speeds(speeds);
     let mut prev: Option<[f64; 6]> = None;
     for m in &mut p.moves {
@@ -158,7 +174,10 @@ pub fn wrap(text: String, width: usize) -> Vec<String> {
                 prefix = ".. ";
             }
             None => {
-                let cut = (1..=room).rev().find(|&k| rest.is_char_boundary(k)).unwrap_or(room);
+                let cut = (1..=room)
+                    .rev()
+                    .find(|&k| rest.is_char_boundary(k))
+                    .unwrap_or(room);
                 out.push(format!("{prefix}{}", &rest[..cut]));
                 rest = &rest[cut..];
                 prefix = "..";
@@ -171,7 +190,13 @@ pub fn wrap(text: String, width: usize) -> Vec<String> {
 pub fn ident(name: &str, max: usize) -> String {
     let mut s: String = name
         .chars()
-        .map(|c| if c.is_ascii_alphanumeric() || c == '_' { c } else { '_' })
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '_' {
+                c
+            } else {
+                '_'
+            }
+        })
         .collect();
     if !s.chars().next().is_some_and(|c| c.is_ascii_alphabetic()) {
         s.insert(0, 'P');

@@ -17,9 +17,9 @@
 //!   no M0).
 
 use super::SimError;
+use crate::dialect::{Parsed, Step};
 use crate::model::MeasurementModel;
 use crate::robot::Robot;
-use crate::dialect::{Parsed, Step};
 use std::f64::consts::TAU;
 
 #[derive(Clone, Debug)]
