@@ -49,7 +49,7 @@ impl Units {
         }
     }
 
-    fn from_deg(self, v: f64) -> f64 {
+    fn of_deg(self, v: f64) -> f64 {
         match self {
             Units::Deg => v,
             Units::Rad => v.to_radians(),
@@ -152,7 +152,7 @@ impl ControllerMap {
             c[2] += self.j3_coupling * q[1];
             c
         });
-        c.map(|v| self.units.from_deg(v))
+        c.map(|v| self.units.of_deg(v))
     }
 
     /// The model joint vector (deg) of controller axis values (program units): the inverse of

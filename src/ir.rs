@@ -45,10 +45,12 @@ pub enum Reason {
     SocketCone,
     CupCone,
     Collision,
+    /// The program text itself: unreadable, or written for another controller mapping.
+    Program,
 }
 
 impl Reason {
-    pub const ALL: [Reason; 8] = [
+    pub const ALL: [Reason; 9] = [
         Reason::JointLimit,
         Reason::JointSpeed,
         Reason::CableLimit,
@@ -57,6 +59,7 @@ impl Reason {
         Reason::SocketCone,
         Reason::CupCone,
         Reason::Collision,
+        Reason::Program,
     ];
 
     pub fn name(self) -> &'static str {
@@ -69,6 +72,7 @@ impl Reason {
             Reason::SocketCone => "socket_cone",
             Reason::CupCone => "cup_cone",
             Reason::Collision => "collision",
+            Reason::Program => "program",
         }
     }
 }

@@ -24,6 +24,7 @@ pub struct Cell {
     pub cell_path: PathBuf,
     pub robot: edbbgen::robot::Robot,
     pub opts: edbbgen::pipeline::CompileOptions,
+    pub compiled: edbbgen::pipeline::Compiled,
     /// (dialect, program, text), in [`DIALECTS`] order.
     pub programs: Vec<(&'static str, Program, String)>,
 }
@@ -69,6 +70,7 @@ fn compile_cell(case: &'static str, robot_path: PathBuf, cell_path: PathBuf) -> 
         cell_path,
         robot,
         opts,
+        compiled,
         programs,
     }
 }
@@ -438,4 +440,272 @@ fn the_structural_checks_fail_on_hand_broken_programs() {
     // Names the language cannot carry.
     assert!(structure::check("krl", c.text("krl"), "other").is_err());
     assert!(structure::check("fanuc", c.text("fanuc"), "OTHER").is_err());
+}
+
+#[test]
+fn fanuc_j3_follows_j2_round_trips_and_a_wrong_coupling_is_caught_by_verify() {
+    let c = cell("fanuc_r2000ic_165f");
+    let p = c.program("fanuc");
+    // The R-2000iC's J3 is the forearm angle from the horizontal; in the ROS-Industrial URDF
+    // joint 3 turns about -y and joint 2 about +y, so the default `auto` gives J3 = q3 - q2.
+    assert!(
+        p.header.controller.contains("J3 = q3 - q2"),
+        "{}",
+        p.header.controller
+    );
+    for m in &p.moves {
+        assert!(
+            (m.axes[2] - (m.q_deg[2] - m.q_deg[1])).abs() < 1e-9,
+            "{:?}",
+            m
+        );
+    }
+    // (The read-back of this program, J3 undone to q3, is in the golden test above.)
+
+    // The same plan written for a controller without the coupling: the cell claimed
+    // j3_coupling = 0, but the real controller couples.
+    let mut wrong_opts = c.opts.clone();
+    wrong_opts.cell.controller = Some(edbbgen::controller::ControllerSpec {
+        j3_coupling: Some(edbbgen::controller::Coupling::Factor(0)),
+        ..Default::default()
+    });
+    let (wp, wrong) = edbbgen::pipeline::retarget(
+        &c.robot,
+        &wrong_opts,
+        &c.compiled,
+        edbbgen::emit::dialect("fanuc").unwrap(),
+    )
+    .unwrap();
+    assert!(
+        wp.header.controller.contains("J3 = q3,"),
+        "{}",
+        wp.header.controller
+    );
+    let dir = tempdir();
+    let path = dir.path().join("EDBB.ls");
+    std::fs::write(&path, &wrong).unwrap();
+    // verify with the cell as it is (the real, coupled controller): refused by the header.
+    let r = edbbgen([
+        "verify",
+        c.robot_path.to_str().unwrap(),
+        path.to_str().unwrap(),
+        "--cell",
+        c.cell_path.to_str().unwrap(),
+    ]);
+    assert_eq!(r.code, 1, "{}", r.stderr);
+    assert!(
+        r.stderr.contains("written for the controller axes"),
+        "{}",
+        r.stderr
+    );
+    // And without that header line the joint values themselves betray it: read with the real
+    // mapping, the poses leave the bar's shell, its cones or the cell.
+    let dl = dialect::by_name("fanuc").unwrap();
+    let map = dl.default_map(&c.robot).unwrap();
+    let mut parsed = dl.read(&wrong, &map).unwrap();
+    parsed.header.retain(|h| !h.starts_with("controller"));
+    let spec = &c.opts.cell;
+    let fixture = spec.fixture.unwrap();
+    let tool = spec.map.unwrap();
+    let cellv = edbbgen::pipeline::make_cell(&c.robot, fixture, tool, spec).unwrap();
+    let model = edbbgen::model::MeasurementModel::new(&c.robot, fixture, tool);
+    let (scene, _) = edbbgen::pipeline::build_scene(&c.robot, spec, &fixture, &tool).unwrap();
+    let ck = edbbgen::safety::Checker::new(&c.robot, &model, &cellv, &scene, spec.margin);
+    let f = edbbgen::verify::check(&ck, &c.robot, &parsed).expect_err("a wrong coupling passes");
+    assert!(
+        !f.violation.detail.contains("cannot read")
+            && !f.violation.detail.contains("controller axes"),
+        "{f}"
+    );
+    // The program read with the mapping it was written for passes: the plan is safe.
+    let wrong_map = edbbgen::controller::ControllerMap::resolve(
+        wrong_opts.cell.controller.as_ref(),
+        &dl.defaults(),
+        "fanuc",
+        &c.robot,
+    )
+    .unwrap();
+    let parsed = dl.read(&wrong, &wrong_map).unwrap();
+    edbbgen::verify::check(&ck, &c.robot, &parsed).unwrap();
+}
+
+#[test]
+fn check_mode_works_for_every_dialect() {
+    let c = cell("nj130_cell");
+    let dir = tempdir();
+    for (d, program, text) in &c.programs {
+        let path = file_for(dir.path(), d, program);
+        std::fs::write(&path, text).unwrap();
+        let run = |path: &Path| {
+            edbbgen([
+                c.robot_path.to_str().unwrap(),
+                "--cell",
+                c.cell_path.to_str().unwrap(),
+                "--step",
+                "20",
+                "--max-candidates",
+                "600",
+                "--dialect",
+                d,
+                "-o",
+                path.to_str().unwrap(),
+                "--check",
+                "-q",
+            ])
+        };
+        // The CLI writes exactly what the library wrote from the one plan.
+        let same = run(&path);
+        assert_eq!(same.code, 0, "{d}: {}{}", same.stdout, same.stderr);
+        if *d == "krl" {
+            let edited = text.replacen("HALT", "WAIT SEC 0", 1);
+            std::fs::write(&path, &edited).unwrap();
+            let differ = run(&path);
+            assert_eq!(differ.code, 1, "{}", differ.stderr);
+            assert!(
+                differ.stdout.contains("-WAIT SEC 0") && differ.stdout.contains("+HALT"),
+                "{}",
+                differ.stdout
+            );
+            assert_eq!(
+                std::fs::read_to_string(&path).unwrap(),
+                edited,
+                "--check writes nothing"
+            );
+        }
+    }
+}
+
+/// The example custom template of README.md, verbatim.
+fn readme_template() -> String {
+    let readme = std::fs::read_to_string(root().join("README.md")).unwrap();
+    let start = readme
+        .find("```jinja\n{% extends \"krl\" %}")
+        .expect("README has the example template");
+    let body = &readme[start + "```jinja\n".len()..];
+    body[..body.find("```").unwrap()].to_string()
+}
+
+#[test]
+fn a_user_template_extending_a_dialect_is_written_and_read_back_through_it() {
+    let dir = tempdir();
+    let tpl = dir.path().join("site.j2");
+    std::fs::write(&tpl, readme_template()).unwrap();
+    let c = cell("nj130_cell");
+    let out = dir.path().join("EDBB.src");
+    let r = edbbgen([
+        c.robot_path.to_str().unwrap(),
+        "--cell",
+        c.cell_path.to_str().unwrap(),
+        "--step",
+        "20",
+        "--max-candidates",
+        "600",
+        "--template",
+        tpl.to_str().unwrap(),
+        "-o",
+        out.to_str().unwrap(),
+        "-q",
+    ]);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    let text = std::fs::read_to_string(&out).unwrap();
+    // The user's lines are there, and the rest is the bundled KRL program's.
+    assert!(text.contains("; site: "), "{text}");
+    assert!(text.contains("$ACC_AXIS[2] = 50"), "{text}");
+    let bundled = c.text("krl");
+    let moves = |t: &str| {
+        t.lines()
+            .filter(|l| l.starts_with("PTP "))
+            .map(str::to_string)
+            .collect::<Vec<_>>()
+    };
+    assert_eq!(moves(&text), moves(bundled));
+    // Read back through the dialect it extends: verify and the structural check pass.
+    let v = edbbgen([
+        "verify",
+        c.robot_path.to_str().unwrap(),
+        out.to_str().unwrap(),
+        "--cell",
+        c.cell_path.to_str().unwrap(),
+    ]);
+    assert_eq!(v.code, 0, "{}", v.stderr);
+    structure::check("krl", &text, "EDBB").unwrap();
+    // A template that declares no dialect is refused, naming the file.
+    let bad = dir.path().join("bare.j2");
+    std::fs::write(&bad, "G0 X{{ moves[0].axes[0] }}\n").unwrap();
+    let r = edbbgen([
+        c.robot_path.to_str().unwrap(),
+        "--cell",
+        c.cell_path.to_str().unwrap(),
+        "--template",
+        bad.to_str().unwrap(),
+        "-o",
+        dir.path().join("x.nc").to_str().unwrap(),
+    ]);
+    assert_eq!(r.code, 2);
+    assert!(
+        r.stderr.contains("bare.j2") && r.stderr.contains("extends"),
+        "{}",
+        r.stderr
+    );
+}
+
+#[test]
+fn simulate_runs_every_dialect() {
+    let c = cell("nj130_cell");
+    let dir = tempdir();
+    let truth = dir.path().join("truth.toml");
+    std::fs::write(&truth, "noise_um = 0.0\n[geometric]\na2 = 0.1\n").unwrap();
+    let mut rows = Vec::new();
+    for (d, program, text) in &c.programs {
+        let path = file_for(dir.path(), d, program);
+        std::fs::write(&path, text).unwrap();
+        let csv = dir.path().join(format!("{d}.csv"));
+        let r = edbbgen([
+            "simulate",
+            c.robot_path.to_str().unwrap(),
+            path.to_str().unwrap(),
+            "--cell",
+            c.cell_path.to_str().unwrap(),
+            "--truth",
+            truth.to_str().unwrap(),
+            "-o",
+            csv.to_str().unwrap(),
+            "-q",
+        ]);
+        assert_eq!(r.code, 0, "{d}: {}", r.stderr);
+        rows.push((*d, std::fs::read_to_string(&csv).unwrap().lines().count()));
+    }
+    // The same motions: as many bar samples within the languages' timing (integer speed
+    // percentages make KRL and FANUC moves up to a few per cent slower).
+    let ngc = rows[0].1 as f64;
+    for (d, n) in &rows {
+        let ratio = *n as f64 / ngc;
+        assert!(
+            (0.999..1.05).contains(&ratio),
+            "{d}: {n} rows vs {ngc} in ngc"
+        );
+    }
+}
+
+#[test]
+fn the_dialects_subcommand_lists_every_bundled_dialect() {
+    let r = edbbgen(["dialects", "-q"]);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    for d in DIALECTS {
+        assert!(r.stdout.lines().any(|l| l.starts_with(d)), "{d}: {}", r.stdout);
+    }
+    assert_golden("dialects@list", &r.stdout);
+    let j = edbbgen(["dialects", "--json"]);
+    assert_eq!(j.code, 0, "{}", j.stderr);
+    let v: serde_json::Value = serde_json::from_str(&j.stdout).unwrap();
+    assert_eq!(v["schema"], "edbbgen.dialects/1");
+    let names: Vec<&str> = v["dialects"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|d| d["name"].as_str().unwrap())
+        .collect();
+    assert_eq!(names, DIALECTS);
+    assert_eq!(v["dialects"][5]["j3_coupling"], "auto");
+    assert_eq!(v["dialects"][4]["units"], "rad");
 }

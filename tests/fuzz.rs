@@ -162,6 +162,15 @@ fn read(rel: &str) -> String {
     std::fs::read_to_string(root().join(rel)).expect(rel)
 }
 
+/// The NJ-130 cell's program in a dialect, from its insta snapshot (the body after the header).
+fn snapshot(d: &str) -> String {
+    let snap = read(&format!("snapshots/{d}@nj130_cell.snap"));
+    match snap.split_once("\n---\n") {
+        Some((_, body)) => body.to_string(),
+        None => snap,
+    }
+}
+
 fn one_line(msg: &str) {
     assert!(
         !msg.trim().is_empty() && !msg.contains('\n'),
@@ -214,6 +223,33 @@ proptest! {
     fn program_reader(text in mutated(read("fuzz/corpus/gcode/short"))) {
         if let Err(e) = edbbgen::verify::gcode::parse(&text) {
             one_line(&e.to_string());
+        }
+    }
+
+    #[test]
+    fn every_dialect_reader(
+        k in 0usize..6,
+        text in prop_oneof![
+            mutated(snapshot("ngc")),
+            mutated(snapshot("sinumerik")),
+            mutated(snapshot("krl")),
+            mutated(snapshot("rapid")),
+            mutated(snapshot("urscript")),
+            mutated(snapshot("fanuc")),
+        ],
+    ) {
+        // Any text through any reader (mostly the wrong one): a program or a one-line error.
+        let d = &edbbgen::dialect::all()[k];
+        let map = edbbgen::controller::ControllerMap {
+            sign: [1.0, -1.0, 1.0, 1.0, -1.0, 1.0],
+            offset_deg: [0.0, 90.0, -90.0, 0.0, 0.0, 0.0],
+            j3_coupling: -1.0,
+            units: d.units,
+            axis_names: d.axis_names.clone(),
+        };
+        match d.read(&text, &map) {
+            Ok(p) => { let _ = p.targets().count(); }
+            Err(e) => one_line(&e.to_string()),
         }
     }
 

@@ -9,6 +9,7 @@ const CASES: &[&str] = &[
     "gcode@nj130_default",
     "html@nj130_default",
     "html@nj130_diagnosis",
+    "dialects@list",
 ];
 
 pub fn assert_golden(name: &str, text: &str) {
@@ -19,8 +20,9 @@ pub fn assert_golden(name: &str, text: &str) {
 
 #[test]
 fn nj130_default_program_is_deterministic_and_golden() {
-    let dir = tempdir();
-    let (one, two) = (dir.path().join("t1.nc"), dir.path().join("t2.nc"));
+    // The same file name in two places: the program's name (its header) is the file's stem.
+    let (d1, d2) = (tempdir(), tempdir());
+    let (one, two) = (d1.path().join("nj130.nc"), d2.path().join("nj130.nc"));
     let run = |out: &std::path::Path, threads: &str| {
         let html = out.with_extension("html");
         let r = edbbgen_env(

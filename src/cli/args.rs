@@ -228,7 +228,7 @@ pub struct SimulateArgs {
     /// MAP in the flange frame, mm [default: the program's header, else the robot file's tool].
     #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true)]
     pub tool: Option<String>,
-    /// Cell file: its [controller] section maps the program's axes to the model's joints
+    /// Cell file: its `[controller]` section maps the program's axes to the model's joints
     /// (the twin needs nothing else from it).
     #[arg(long, value_name = "CELL.toml")]
     pub cell: Option<PathBuf>,

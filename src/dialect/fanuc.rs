@@ -235,21 +235,22 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                         let (name, value) = part.split_once('=').ok_or_else(|| {
                             perr(line, format!("'{part}' is not 'Jn = value deg'"))
                         })?;
-                        let i =
-                            match name.trim() {
-                                "J1" => 0,
-                                "J2" => 1,
-                                "J3" => 2,
-                                "J4" => 3,
-                                "J5" => 4,
-                                "J6" => 5,
-                                n => return Err(perr(
+                        let i = match name.trim() {
+                            "J1" => 0,
+                            "J2" => 1,
+                            "J3" => 2,
+                            "J4" => 3,
+                            "J5" => 4,
+                            "J6" => 5,
+                            n => {
+                                return Err(perr(
                                     line,
                                     format!(
                                         "'{n}' is not a joint (J1..J6): joint representation only"
                                     ),
-                                )),
-                            };
+                                ))
+                            }
+                        };
                         let v = value
                             .trim()
                             .strip_suffix("deg")

@@ -456,11 +456,7 @@ mod tests {
                     &ControllerMap::identity(d.units, ["A", "B", "C", "D", "E", "F"]),
                 )
                 .err();
-            assert!(
-                e.map_or(true, |e| !e.msg.contains("no reader")),
-                "{}",
-                d.name
-            );
+            assert!(e.is_none_or(|e| !e.msg.contains("no reader")), "{}", d.name);
         }
     }
 

@@ -364,12 +364,14 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                 });
             }
             "CONFJ" | "CONFL" => {}
-            w => return Err(perr(
-                line,
-                format!(
+            w => {
+                return Err(perr(
+                    line,
+                    format!(
                     "'{w}' is not an instruction edbbgen reads (MoveAbsJ, TPWrite, Stop, WaitTime)"
                 ),
-            )),
+                ))
+            }
         }
     }
     match at {

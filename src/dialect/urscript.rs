@@ -237,12 +237,14 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                 }
             }
             "textmsg" | "set_payload" => {}
-            other => return Err(perr(
-                line,
-                format!(
+            other => {
+                return Err(perr(
+                    line,
+                    format!(
                     "'{other}' is not a call edbbgen reads (movej, popup, sleep, halt, set_tcp)"
                 ),
-            )),
+                ))
+            }
         }
     }
     if !in_def {

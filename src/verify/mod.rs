@@ -102,7 +102,7 @@ pub fn check_text(
         fail(
             e.line,
             0.0,
-            Reason::JointLimit,
+            Reason::Program,
             format!("cannot read the program: {}", e.msg),
         )
     })?;
@@ -119,7 +119,7 @@ pub fn check(ck: &Checker, robot: &Robot, parsed: &Parsed) -> Result<Summary, Fa
             return Err(fail(
                 0,
                 0.0,
-                Reason::JointLimit,
+                Reason::Program,
                 format!(
                     "the program was written for the controller axes \"{declared}\", but the mapping in force is \"{in_force}\" (the cell's [controller] section, else the dialect's default)"
                 ),
