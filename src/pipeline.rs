@@ -567,7 +567,7 @@ pub fn compile(
             "the program has {sections} sections: the bar is removed and remounted between them (no safe motion joins their poses with the bar in place)"
         ));
     }
-    // The program carries joint values rounded to its 4 decimals of a degree: time the moves on
+    // The program carries joint values on the 0.001 deg grid every dialect prints: time the moves on
     // exactly those values, so the emitted feed never asks an axis for more than its speed.
     let wq: Vec<[f64; 6]> = plan
         .waypoints
