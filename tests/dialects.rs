@@ -692,7 +692,11 @@ fn the_dialects_subcommand_lists_every_bundled_dialect() {
     let r = edbbgen(["dialects", "-q"]);
     assert_eq!(r.code, 0, "{}", r.stderr);
     for d in DIALECTS {
-        assert!(r.stdout.lines().any(|l| l.starts_with(d)), "{d}: {}", r.stdout);
+        assert!(
+            r.stdout.lines().any(|l| l.starts_with(d)),
+            "{d}: {}",
+            r.stdout
+        );
     }
     assert_golden("dialects@list", &r.stdout);
     let j = edbbgen(["dialects", "--json"]);

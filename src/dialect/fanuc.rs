@@ -3,7 +3,7 @@
 //!
 //! The subset a joint-space measurement program needs, strictly:
 //! - `/PROG name`, an optional `/ATTR` block, `/MN` with lines `n:  instruction ;` numbered
-//!   1, 2, … without gaps, `/POS` with one `P[k]{ GP1: UF : u, UT : t, J1 = v deg, …, J6 = v
+//!   1, 2, … without gaps, `/POS` with one `P[k]{ GP1: UF : u, UT : t, J1= v deg, …, J6= v
 //!   deg };` per position, `/END`;
 //! - `J P[k] n% FINE|CNTn|CRn` (also `P[k:label]`; `n sec`/`n msec` as the move's time): `n%`
 //!   runs the slowest axis at n % of its speed, all axes arriving together. FINE is an exact
