@@ -2,7 +2,7 @@
 CARGO ?= cargo
 NJ130 := robots/comau_nj130/robot.dh.toml
 
-.PHONY: build run test check fmt clippy doc snapshots bench bench-peers bench-diagnose paper ci fuzz rapidchecker
+.PHONY: build run test check fmt clippy doc snapshots bench bench-peers bench-diagnose paper calibration ci fuzz rapidchecker
 
 build:
 	$(CARGO) build --release --locked
@@ -49,6 +49,11 @@ bench-diagnose:
 # Fig. 12: sensitivity of the compiled program vs the ISO 230-4 circle test, 20 random robots.
 paper:
 	$(CARGO) run --release --locked --example paper
+
+# What a program buys: 25 simulated NJ-130s calibrated from the compiled program, the ISO
+# circle and random poses; true MAP error over the joint space next to the prediction.
+calibration:
+	$(CARGO) run --release --locked --example calibration
 
 # edbbgen against LKH-3 (elkai), OR-tools and Pinocchio on the same instances, in a throwaway
 # venv under target/. Not part of `make test` or CI: it downloads the peers from PyPI.

@@ -308,9 +308,15 @@ struct ShapeT {
 
 /// Loads a cell file. Relative mesh paths resolve against the file's folder.
 pub fn load(path: &Path) -> Result<CellSpec, CellError> {
-    let text = std::fs::read_to_string(path).map_err(|source| CellError::Io {
-        path: path.display().to_string(),
-        source,
+    let text = crate::files::read_text(path, crate::files::Kind::Config).map_err(|e| match e {
+        crate::files::ReadError::Io(source) => CellError::Io {
+            path: path.display().to_string(),
+            source,
+        },
+        other => CellError::Invalid {
+            path: path.display().to_string(),
+            msg: other.to_string(),
+        },
     })?;
     from_str(&text, path)
 }

@@ -241,6 +241,12 @@ pub struct Header {
     pub time_s: f64,
     pub inputs_sha256: String,
     pub joint_names: Vec<String>,
+    /// What the program buys: the predicted 1σ MAP position uncertainty after calibrating
+    /// from its recording, RMS over the joint space (µm), at this bar noise (µm per reading)
+    /// and sample rate (Hz).
+    pub predicted_std_um: f64,
+    pub bar_noise_um: f64,
+    pub bar_rate_hz: f64,
     /// The program's name (the output file's stem): KRL's DEF, FANUC's /PROG, RAPID's MODULE.
     #[serde(default)]
     pub program_name: String,

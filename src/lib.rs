@@ -23,6 +23,7 @@
 // Joint loops index several arrays by joint number; `for i in 0..6` says that best.
 #![allow(clippy::needless_range_loop)]
 
+pub mod calibrate;
 pub mod cell;
 pub mod cli;
 pub mod collision;
@@ -30,6 +31,7 @@ pub mod controller;
 pub mod diagnose;
 pub mod dialect;
 pub mod emit;
+pub mod files;
 pub mod ir;
 pub mod model;
 pub mod order;

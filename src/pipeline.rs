@@ -39,6 +39,10 @@ pub struct CompileOptions {
     pub blend: f64,
     /// Start configuration; the tour starts at the selected pose nearest to it (Eq. 7).
     pub start: [f64; 6],
+    /// The bar's noise per reading (m) and its sample rate (Hz): what the predicted
+    /// calibration uncertainty assumes.
+    pub bar_noise: f64,
+    pub bar_rate: f64,
     /// The program's name (KRL's DEF, FANUC's /PROG, RAPID's MODULE): the output file's stem.
     /// Not part of the input hash: the text carries it.
     #[serde(skip)]
@@ -57,6 +61,8 @@ impl CompileOptions {
             poses: None,
             blend: DEFAULT_BLEND_MM * 1e-3,
             start: [0.0; 6],
+            bar_noise: DEFAULT_BAR_NOISE_UM * 1e-6,
+            bar_rate: DEFAULT_BAR_RATE_HZ,
             program_name: DEFAULT_PROGRAM_NAME.to_string(),
         }
     }
@@ -67,6 +73,11 @@ pub const DEFAULT_STEP_DEG: f64 = 10.0;
 pub const DEFAULT_MAX_CANDIDATES: usize = 3400;
 pub const DEFAULT_SEED: u64 = 1;
 pub const DEFAULT_BLEND_MM: f64 = 10.0;
+/// The EDBB's stated accuracy (1 µm) as its noise per reading, and the twin's sample rate.
+pub const DEFAULT_BAR_NOISE_UM: f64 = 1.0;
+pub const DEFAULT_BAR_RATE_HZ: f64 = 50.0;
+/// Random joint poses over which predicted accuracies are stated (seeded).
+pub const PREDICTION_POSES: usize = 2000;
 /// The program name when none is given.
 pub const DEFAULT_PROGRAM_NAME: &str = "EDBB";
 /// Measurement poses keep this far from the bar's ends and the cone edges, so that the joint
@@ -346,6 +357,20 @@ pub struct Report {
     pub collision_pairs_checked: usize,
     pub excluded_pairs: Vec<collision::ExcludedPair>,
     pub warnings: Vec<String>,
+    /// What the program buys: the predicted 1σ MAP position uncertainty after calibrating from
+    /// its recording.
+    pub predicted_position_std_um: Predicted,
+}
+
+/// The predicted MAP position uncertainty after calibration from a program's recording (µm):
+/// Type A from the bar noise at the bar's rate along every move made with the bar, the
+/// identifiable parameters free, over random joint poses, after a best rigid registration.
+#[derive(Clone, Copy, Debug, Serialize)]
+pub struct Predicted {
+    pub workspace_rms: f64,
+    pub workspace_p95: f64,
+    pub bar_noise_um: f64,
+    pub bar_rate_hz: f64,
 }
 
 /// Every stage's result, for reports and `--emit STAGE`.
@@ -588,6 +613,32 @@ pub fn compile(
         time_sorted,
     };
 
+    // What the program buys: the MAP position uncertainty after calibrating from its recording
+    // (every move made with the bar, at the bar's rate), over the whole joint space.
+    let segments: Vec<([f64; 6], [f64; 6], f64)> = path
+        .poses
+        .windows(2)
+        .zip(plan.waypoints.iter().skip(1))
+        .zip(path.move_times.iter().skip(1))
+        .filter(|((_, w), _)| !w.transit)
+        .map(|((q, _), &t)| (q[0], q[1], t))
+        .collect();
+    let space = crate::calibrate::predict::workspace(robot, PREDICTION_POSES, opts.seed);
+    let predicted = crate::calibrate::predict::spread(&crate::calibrate::predict::after_recording(
+        &model,
+        &segments,
+        &identifiability.identifiable,
+        opts.bar_noise,
+        opts.bar_rate,
+        &space,
+    ));
+    let predicted_um = Predicted {
+        workspace_rms: predicted.rms * 1e6,
+        workspace_p95: predicted.p95 * 1e6,
+        bar_noise_um: opts.bar_noise * 1e6,
+        bar_rate_hz: opts.bar_rate,
+    };
+
     let measured = plan.waypoints.iter().filter(|w| !w.support).count();
     let cond = selection
         .curve
@@ -613,6 +664,9 @@ pub fn compile(
         time_s: path.time_sorted,
         inputs_sha256: String::new(),
         joint_names: robot.joints.iter().map(|j| j.name.clone()).collect(),
+        predicted_std_um: predicted_um.workspace_rms,
+        bar_noise_um: predicted_um.bar_noise_um,
+        bar_rate_hz: predicted_um.bar_rate_hz,
         program_name: opts.program_name.clone(),
         dialect: String::new(),
         controller: String::new(),
@@ -687,6 +741,7 @@ pub fn compile(
         collision_pairs_checked: scene_report.pairs_checked,
         excluded_pairs: scene_report.excluded.clone(),
         warnings: warnings.clone(),
+        predicted_position_std_um: predicted_um,
     };
     Ok(Compiled {
         cell,

@@ -60,7 +60,7 @@ pub fn nj130_cell() -> Cell {
     cell(common::load(&nj130_dh()), [258.0, 1468.0, 708.0])
 }
 
-fn urdf_cell() -> Cell {
+pub fn urdf_cell() -> Cell {
     let mut robot = common::load(&shared_robot("kuka_kr210_l150"));
     robot.tool = Some(Vector3::new(0.06, 0.03, 0.12));
     assert!(!robot.masses.is_empty(), "KR 210 URDF has inertials");
@@ -83,7 +83,7 @@ pub fn random_geometry(rng: &mut ChaCha8Rng) -> [f64; 30] {
 }
 
 #[derive(Clone, Copy, Debug, PartialEq)]
-enum Hidden {
+pub enum Hidden {
     None,
     Compliance,
     Thermal(bool),
@@ -93,7 +93,7 @@ enum Hidden {
     Slip,
 }
 
-fn truth_with(h: Hidden, rng: &mut ChaCha8Rng) -> Truth {
+pub fn truth_with(h: Hidden, rng: &mut ChaCha8Rng) -> Truth {
     let mut t = Truth {
         geometric: random_geometry(rng),
         ..Truth::default()

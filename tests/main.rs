@@ -6,6 +6,7 @@
 mod common;
 
 mod architecture;
+mod calibrate;
 mod cli;
 mod cli_errors;
 mod compile;

@@ -13,12 +13,12 @@ use std::path::Path;
 
 /// The URDF's own kinematics: every link's pose in the root frame for joint values by name
 /// (chain joints), mimic joints following their source (nested), other joints at 0.
-struct Kin {
-    doc: urdf_rs::Robot,
+pub struct Kin {
+    pub doc: urdf_rs::Robot,
 }
 
 impl Kin {
-    fn new(path: &Path) -> Self {
+    pub fn new(path: &Path) -> Self {
         Kin {
             doc: urdf_rs::read_file(path).expect("URDF parses"),
         }
@@ -42,7 +42,7 @@ impl Kin {
         }
     }
 
-    fn poses(&self, chain: &HashMap<String, f64>) -> HashMap<String, Isometry3<f64>> {
+    pub fn poses(&self, chain: &HashMap<String, f64>) -> HashMap<String, Isometry3<f64>> {
         let mut out = HashMap::new();
         let children: Vec<&str> = self
             .doc

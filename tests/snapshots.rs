@@ -6,6 +6,7 @@ use crate::common::*;
 /// Every snapshot file must belong to a case here, or be a dialect program `<dialect>@<cell>`
 /// of tests/dialects.rs: orphans fail (like `--unreferenced reject`).
 const CASES: &[&str] = &[
+    "calibrated@nj130",
     "gcode@nj130_default",
     "html@nj130_default",
     "html@nj130_diagnosis",

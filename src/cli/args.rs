@@ -40,6 +40,10 @@ pub enum Command {
     Circle(CircleArgs),
     /// List the bundled controller dialects (templates) and what each approximates.
     Dialects(DialectsArgs),
+    /// Calibrate: from measured EDBB runs to a calibrated robot file, with the parameters the
+    /// data determine, their uncertainties and the predicted MAP position accuracy.
+    #[command(allow_negative_numbers = true)]
+    Calibrate(CalibrateArgs),
     /// Print a shell completion script (bash, zsh, fish, elvish, powershell) on stdout.
     Completions(CompletionsArgs),
     /// Print the manual page (roff, `man -l -` reads it) on stdout.
@@ -140,6 +144,12 @@ pub struct CompileArgs {
     /// Corner blend distance at the MAP, mm.
     #[arg(long, value_name = "MM", default_value = "10")]
     pub blend: String,
+    /// The bar's noise per reading, um: what the predicted calibration uncertainty assumes.
+    #[arg(long, value_name = "UM", default_value = "1.0")]
+    pub bar_noise: String,
+    /// The bar's sample rate, Hz: readings along every move made with the bar.
+    #[arg(long, value_name = "HZ", default_value = "50")]
+    pub bar_rate: String,
     /// Start configuration, degrees: the tour starts at the selected pose nearest to it.
     #[arg(long, value_name = "Q1,..,Q6", allow_hyphen_values = true)]
     pub start: Option<String>,
@@ -200,6 +210,9 @@ pub struct ModelArgs {
     /// Size of the random pose set the analysis uses.
     #[arg(long, value_name = "N", default_value_t = 400)]
     pub samples: usize,
+    /// The bar's noise per reading, um: what the predicted calibration uncertainty assumes.
+    #[arg(long, value_name = "UM", default_value = "1.0")]
+    pub bar_noise: String,
     /// Print the report as JSON.
     #[arg(long)]
     pub json: bool,
@@ -292,6 +305,61 @@ pub struct CircleArgs {
     #[arg(long, value_name = "MM_S", default_value = "50")]
     pub speed: String,
     /// No progress output.
+    #[arg(short, long)]
+    pub quiet: bool,
+}
+
+#[derive(Args, Debug)]
+pub struct CalibrateArgs {
+    /// Robot description: a .urdf or a .dh.toml file (the nominal robot).
+    #[arg(value_name = "ROBOT")]
+    pub robot: PathBuf,
+    /// Measured EDBB data of one run (CSV contract); repeat for a campaign of runs, in pairs
+    /// with --fixture.
+    #[arg(long, value_name = "M.csv", required = true)]
+    pub measured: Vec<PathBuf>,
+    /// Fixture ball centre of the run, mm, robot base frame; repeat in pairs with --measured,
+    /// or give it once for every run.
+    #[arg(
+        long,
+        value_name = "X,Y,Z",
+        allow_hyphen_values = true,
+        required = true
+    )]
+    pub fixture: Vec<String>,
+    /// MAP in the flange frame, mm [default: the robot file's tool].
+    #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true)]
+    pub tool: Option<String>,
+    /// The calibrated robot: a .dh.toml for a DH robot, a .urdf for a URDF robot.
+    #[arg(short, long, value_name = "CALIBRATED.dh.toml|CALIBRATED.urdf")]
+    pub output: PathBuf,
+    /// Write the JSON report here (schema edbbgen.calibrate/1).
+    #[arg(long, value_name = "REPORT.json")]
+    pub json: Option<PathBuf>,
+    /// Write the residual plot (SVG) here: measured − model before and after, per run.
+    #[arg(long, value_name = "REPORT.svg")]
+    pub plot: Option<PathBuf>,
+    /// Write a self-contained HTML report here.
+    #[arg(long, value_name = "REPORT.html")]
+    pub html: Option<PathBuf>,
+    /// Effects fitted together with the geometry: auto (those the diagnosis names), none, or
+    /// a list such as cyclic_error:2,servo_lag (joint numbers 1-based).
+    #[arg(long, value_name = "auto|none|LIST", default_value = "auto")]
+    pub effects: String,
+    /// Estimate each run's fixture position too, where the campaign determines it.
+    #[arg(long)]
+    pub fixture_free: bool,
+    /// Standard uncertainty of a length and an angle before calibration, mm,deg: what a
+    /// parameter's calibrated uncertainty is judged against [default: 1,0.05].
+    #[arg(long, value_name = "MM,DEG", allow_hyphen_values = true)]
+    pub prior: Option<String>,
+    /// URDF: the link that ends the chain [default: flange, tool0, or the chain's last link].
+    #[arg(long, value_name = "LINK")]
+    pub flange: Option<String>,
+    /// URDF: directory searched for package:// paths (repeatable).
+    #[arg(long = "package-path", value_name = "DIR")]
+    pub package_path: Vec<PathBuf>,
+    /// No progress output (calibrate draws none; accepted like on every subcommand).
     #[arg(short, long)]
     pub quiet: bool,
 }

@@ -2,6 +2,7 @@
 //! write files (temp file + rename) and print results. Progress bars live here and only here.
 
 pub mod args;
+mod calibrate_cli;
 mod twin_cli;
 
 use crate::cell::CellSpec;
@@ -66,6 +67,7 @@ pub fn run(argv: Vec<std::ffi::OsString>) -> Result<i32, Error> {
         Some(Command::Diagnose(a)) => twin_cli::diagnose(&a),
         Some(Command::Circle(a)) => twin_cli::circle(&a),
         Some(Command::Dialects(a)) => run_dialects(&a),
+        Some(Command::Calibrate(a)) => calibrate_cli::calibrate(&a),
         Some(Command::Completions(a)) => {
             let mut cmd = <Cli as clap::CommandFactory>::command();
             clap_complete::generate(a.shell, &mut cmd, "edbbgen", &mut std::io::stdout());
@@ -307,10 +309,7 @@ fn run_compile(a: &CompileArgs) -> Result<i32, Error> {
     }
     let template = match &a.template {
         Some(p) => {
-            let text = std::fs::read_to_string(p).map_err(|e| Error::File {
-                path: p.display().to_string(),
-                msg: format!("cannot read template: {e}"),
-            })?;
+            let text = read_input(p, "template", crate::files::Kind::Config)?;
             // The dialect it extends decides how its programs are read back: checked first.
             crate::dialect::Template::from_source(&text).map_err(|e| Error::File {
                 path: p.display().to_string(),
@@ -345,6 +344,18 @@ fn run_compile(a: &CompileArgs) -> Result<i32, Error> {
     controller_map(&spec, a.cell.cell.as_deref(), dialect, &robot)?;
     let (lo, hi) = robot.limits();
     let start = std::array::from_fn(|i| f64::clamp(start[i], lo[i], hi[i]));
+    let bar_noise = scalar("--bar-noise", &a.bar_noise)?;
+    if bar_noise <= 0.0 {
+        return Err(usage(format!(
+            "--bar-noise: {bar_noise} um must be positive"
+        )));
+    }
+    let bar_rate = scalar("--bar-rate", &a.bar_rate)?;
+    if !(1.0..=100_000.0).contains(&bar_rate) {
+        return Err(usage(format!(
+            "--bar-rate: {bar_rate} Hz is outside 1..100000 Hz"
+        )));
+    }
     let opts = CompileOptions {
         fixture,
         cell: spec,
@@ -355,6 +366,8 @@ fn run_compile(a: &CompileArgs) -> Result<i32, Error> {
         blend: blend * MM,
         start,
         program_name,
+        bar_noise: bar_noise * 1e-6,
+        bar_rate,
     };
     let bar = Bar::new(a.cell.quiet, "sampling");
     let out = match pipeline::compile(&robot, &opts, &template, &bar) {
@@ -416,15 +429,16 @@ fn run_compile(a: &CompileArgs) -> Result<i32, Error> {
         )?)?),
         None => None,
     };
-    write_atomic(output, &out.text)?;
+    let mut files: Vec<(&Path, &str)> = vec![(output.as_path(), out.text.as_str())];
     if let (Some(path), Some(html)) = (&a.html, &html) {
-        write_atomic(path, html)?;
+        files.push((path.as_path(), html.as_str()));
     }
+    write_all_atomic(&files)?;
     if a.emit.is_none() {
         let h = &out.program.header;
         let v = &out.verified;
         println!(
-            "{}: {} poses + {} support ({} identifiable parameters, cond {}), estimated {} s in tour order ({} s unsorted); verified: min clearance {} mm ({} / {}), bar {}..{} mm",
+            "{}: {} poses + {} support ({} identifiable parameters, cond {}), estimated {} s in tour order ({} s unsorted); verified: min clearance {} mm ({} / {}), bar {}..{} mm; predicted MAP position uncertainty after calibration {} um RMS over the joint space ({} um bar noise at {} Hz)",
             output.display(),
             h.poses,
             h.supports,
@@ -437,6 +451,9 @@ fn run_compile(a: &CompileArgs) -> Result<i32, Error> {
             v.min_clearance.b,
             fmt_fixed(to_mm(v.extremes.min_length), 1),
             fmt_fixed(to_mm(v.extremes.max_length), 1),
+            fmt_fixed(h.predicted_std_um, 2),
+            fmt_fixed(h.bar_noise_um, 2),
+            fmt_fixed(h.bar_rate_hz, 0),
         );
     }
     Ok(0)
@@ -586,34 +603,59 @@ fn emit_stage(c: &pipeline::Compiled, stage: &str) -> String {
 }
 
 /// Writes the whole file or nothing: a temp file beside the target, then rename.
-fn write_atomic(path: &Path, text: &str) -> Result<(), Error> {
-    let err = |msg: String| Error::File {
+/// An input file's text, within the limit of its kind (see [`crate::files`]).
+fn read_input(path: &Path, what: &str, kind: crate::files::Kind) -> Result<String, Error> {
+    crate::files::read_text(path, kind).map_err(|e| Error::File {
         path: path.display().to_string(),
-        msg,
-    };
-    let dir = match path.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
-        _ => PathBuf::from("."),
-    };
-    let mut builder = tempfile::Builder::new();
-    builder.prefix(".edbbgen-").suffix(".tmp");
-    // A temp file is private (0600) by default; the output is an ordinary file (0666 less the
-    // user's umask), like one written by any other program.
-    #[cfg(unix)]
-    {
-        use std::os::unix::fs::PermissionsExt;
-        builder.permissions(std::fs::Permissions::from_mode(0o666));
+        msg: match e {
+            crate::files::ReadError::Io(e) => format!("cannot read {what}: {e}"),
+            other => other.to_string(),
+        },
+    })
+}
+
+fn write_atomic(path: &Path, text: &str) -> Result<(), Error> {
+    write_all_atomic(&[(path, text)])
+}
+
+/// Writes several files as one: every temp file is written and synced first, and only then
+/// are they renamed into place, so a failure on any of them leaves none behind.
+fn write_all_atomic(files: &[(&Path, &str)]) -> Result<(), Error> {
+    let mut staged = Vec::with_capacity(files.len());
+    for (path, text) in files {
+        let err = |msg: String| Error::File {
+            path: path.display().to_string(),
+            msg,
+        };
+        let dir = match path.parent() {
+            Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
+            _ => PathBuf::from("."),
+        };
+        let mut builder = tempfile::Builder::new();
+        builder.prefix(".edbbgen-").suffix(".tmp");
+        // A temp file is private (0600) by default; the output is an ordinary file (0666 less
+        // the user's umask), like one written by any other program.
+        #[cfg(unix)]
+        {
+            use std::os::unix::fs::PermissionsExt;
+            builder.permissions(std::fs::Permissions::from_mode(0o666));
+        }
+        let mut tmp = builder
+            .tempfile_in(&dir)
+            .map_err(|e| err(format!("cannot write (directory {}): {e}", dir.display())))?;
+        tmp.write_all(text.as_bytes())
+            .map_err(|e| err(format!("cannot write: {e}")))?;
+        tmp.as_file()
+            .sync_all()
+            .map_err(|e| err(format!("cannot write: {e}")))?;
+        staged.push((path, tmp));
     }
-    let mut tmp = builder
-        .tempfile_in(&dir)
-        .map_err(|e| err(format!("cannot write (directory {}): {e}", dir.display())))?;
-    tmp.write_all(text.as_bytes())
-        .map_err(|e| err(format!("cannot write: {e}")))?;
-    tmp.as_file()
-        .sync_all()
-        .map_err(|e| err(format!("cannot write: {e}")))?;
-    tmp.persist(path)
-        .map_err(|e| err(format!("cannot write: {}", e.error)))?;
+    for (path, tmp) in staged {
+        tmp.persist(path).map_err(|e| Error::File {
+            path: path.display().to_string(),
+            msg: format!("cannot write: {}", e.error),
+        })?;
+    }
     Ok(())
 }
 
@@ -634,10 +676,7 @@ struct VerifyReport<'a> {
 
 fn run_verify(a: &VerifyArgs) -> Result<i32, Error> {
     let spec = resolve_cell(&a.cell)?;
-    let text = std::fs::read_to_string(&a.program).map_err(|e| Error::File {
-        path: a.program.display().to_string(),
-        msg: format!("cannot read: {e}"),
-    })?;
+    let text = read_input(&a.program, "program", crate::files::Kind::Program)?;
     let dialect = program_dialect(a.dialect.as_deref(), &a.program, &text)?;
     let robot = load_robot(&a.robot, &a.cell, &spec)?;
     let axes = controller_map(&spec, a.cell.cell.as_deref(), dialect, &robot)?;
@@ -744,6 +783,22 @@ fn run_model(a: &ModelArgs) -> Result<i32, Error> {
         .collect();
     let jm = DMatrix::from_fn(rows.len(), ids.len(), |i, k| rows[i][ids[k]] / norms[k]);
     let obs = model::observability(&jm);
+    // What this pose set would buy: one reading per pose at the bar's noise.
+    let bar_noise = scalar("--bar-noise", &a.bar_noise)?;
+    if bar_noise <= 0.0 {
+        return Err(usage(format!(
+            "--bar-noise: {bar_noise} um must be positive"
+        )));
+    }
+    let space =
+        crate::calibrate::predict::workspace(&robot, pipeline::PREDICTION_POSES, a.cell.seed);
+    let predicted = crate::calibrate::predict::spread(&crate::calibrate::predict::after_readings(
+        &model,
+        &rows,
+        ids,
+        bar_noise * 1e-6,
+        &space,
+    ));
 
     let changes: Vec<serde_json::Value> = free
         .params
@@ -781,6 +836,12 @@ fn run_model(a: &ModelArgs) -> Result<i32, Error> {
             },
             "params": known.params,
             "observability": obs,
+            "predicted_position_std_um": {
+                "workspace_rms": predicted.rms * 1e6,
+                "workspace_p95": predicted.p95 * 1e6,
+                "bar_noise_um": bar_noise,
+                "readings": "one per pose",
+            },
             "map_on_flange_axis": model::map_offset_from_joint6_axis(&model) < model::AXIS_TOLERANCE,
             "warnings": warnings,
         });
@@ -792,6 +853,12 @@ fn run_model(a: &ModelArgs) -> Result<i32, Error> {
         print!(
             "{}",
             model_text(&robot, &cell, &known, &free, &obs, rows.len())
+        );
+        println!(
+            "predicted MAP position uncertainty after calibrating from these poses (one reading each, {} um bar noise): {} um RMS, {} um p95 over the joint space",
+            fmt_fixed(bar_noise, 2),
+            fmt_fixed(predicted.rms * 1e6, 2),
+            fmt_fixed(predicted.p95 * 1e6, 2)
         );
     }
     for w in &warnings {

@@ -87,11 +87,35 @@ fn preference_order() -> impl Iterator<Item = usize> {
 
 /// Classifies the 30 parameters from Jacobian rows (one row per pose).
 pub fn analyse(rows: &[[f64; N_PARAMS]], opts: &IdentifyOptions) -> Identifiability {
-    let n = rows.len();
-    let col = |j: usize| -> Vec<f64> { rows.iter().map(|r| r[j]).collect() };
-    let norms: Vec<f64> = (0..N_PARAMS)
-        .map(|j| col(j).iter().map(|v| v * v).sum::<f64>().sqrt())
+    let names: Vec<String> = PARAM_NAMES.iter().map(|s| s.to_string()).collect();
+    let known: Vec<bool> = (0..N_PARAMS)
+        .map(|j| {
+            (super::is_fixture(j) && opts.fixture_known) || (super::is_map(j) && opts.map_known)
+        })
         .collect();
+    let order: Vec<usize> = preference_order().collect();
+    let cols = DMatrix::from_fn(rows.len(), N_PARAMS, |i, j| rows[i][j]);
+    let (params, identifiable) = classify(&cols, &names, &order, &known);
+    Identifiability {
+        params,
+        identifiable,
+        poses: rows.len(),
+    }
+}
+
+/// Classifies the columns of a Jacobian (rows = observations, one column per parameter named in
+/// `names`), taken in the preference `order` (columns not in it are known): known, negligible,
+/// dependent on the ones taken before, or identifiable. Returns every column's info and the
+/// identifiable columns in ascending order. The same rule for one run's 30 parameters
+/// ([`analyse`]) and for a campaign's shared geometry plus one fixture per run.
+pub fn classify(
+    cols: &DMatrix<f64>,
+    names: &[String],
+    order: &[usize],
+    known: &[bool],
+) -> (Vec<ParamInfo>, Vec<usize>) {
+    let (n, m) = cols.shape();
+    let norms: Vec<f64> = (0..m).map(|j| cols.column(j).norm()).collect();
     let rms = |j: usize| {
         if n > 0 {
             norms[j] / (n as f64).sqrt()
@@ -100,13 +124,11 @@ pub fn analyse(rows: &[[f64; N_PARAMS]], opts: &IdentifyOptions) -> Identifiabil
         }
     };
 
-    let mut status: Vec<Option<Status>> = vec![None; N_PARAMS];
+    let mut status: Vec<Option<Status>> = vec![None; m];
     let mut accepted: Vec<usize> = Vec::new();
-    let mut basis: Vec<Vec<f64>> = Vec::new();
-    for j in preference_order() {
-        let known =
-            (super::is_fixture(j) && opts.fixture_known) || (super::is_map(j) && opts.map_known);
-        if known {
+    let mut basis: Vec<DVector<f64>> = Vec::new();
+    for &j in order {
+        if known[j] {
             status[j] = Some(Status::Known);
             continue;
         }
@@ -114,56 +136,47 @@ pub fn analyse(rows: &[[f64; N_PARAMS]], opts: &IdentifyOptions) -> Identifiabil
             status[j] = Some(Status::Negligible);
             continue;
         }
-        let mut v: Vec<f64> = col(j).iter().map(|x| x / norms[j]).collect();
+        let mut v: DVector<f64> = cols.column(j) / norms[j];
         // Twice is enough (Kahan–Parlett) to keep the basis orthogonal to working precision.
         for _ in 0..2 {
             for b in &basis {
-                let c: f64 = b.iter().zip(&v).map(|(x, y)| x * y).sum();
-                v.iter_mut().zip(b).for_each(|(x, y)| *x -= c * y);
+                let c = b.dot(&v);
+                v.axpy(-c, b, 1.0);
             }
         }
-        let r = v.iter().map(|x| x * x).sum::<f64>().sqrt();
+        let r = v.norm();
         if r > DEPENDENT {
-            v.iter_mut().for_each(|x| *x /= r);
-            basis.push(v);
+            basis.push(v / r);
             accepted.push(j);
             status[j] = Some(Status::Identifiable);
         } else {
+            let on = dependence(cols, &norms, &accepted, j);
             status[j] = Some(Status::Dependent {
-                on: dependence(rows, &norms, &accepted, j),
+                on: on.into_iter().map(|k| names[k].clone()).collect(),
             });
         }
     }
     let mut identifiable = accepted;
     identifiable.sort_unstable();
-    let params = (0..N_PARAMS)
+    let params = (0..m)
         .map(|j| ParamInfo {
-            name: PARAM_NAMES[j].to_string(),
+            name: names[j].clone(),
             status: status[j].clone().unwrap_or(Status::Known),
             sensitivity: rms(j),
         })
         .collect();
-    Identifiability {
-        params,
-        identifiable,
-        poses: n,
-    }
+    (params, identifiable)
 }
 
-/// The accepted parameters that a dependent column is made of (least squares on unit columns).
-fn dependence(
-    rows: &[[f64; N_PARAMS]],
-    norms: &[f64],
-    accepted: &[usize],
-    j: usize,
-) -> Vec<String> {
+/// The accepted columns that a dependent column is made of (least squares on unit columns).
+fn dependence(cols: &DMatrix<f64>, norms: &[f64], accepted: &[usize], j: usize) -> Vec<usize> {
     if accepted.is_empty() {
         return Vec::new();
     }
-    let a = DMatrix::from_fn(rows.len(), accepted.len(), |i, k| {
-        rows[i][accepted[k]] / norms[accepted[k]]
+    let a = DMatrix::from_fn(cols.nrows(), accepted.len(), |i, k| {
+        cols[(i, accepted[k])] / norms[accepted[k]]
     });
-    let b = DVector::from_fn(rows.len(), |i, _| rows[i][j] / norms[j]);
+    let b = cols.column(j) / norms[j];
     let Ok(beta) = a.svd(true, true).solve(&b, 1e-12) else {
         return Vec::new();
     };
@@ -175,7 +188,7 @@ fn dependence(
         .map(|(&k, _)| k)
         .collect();
     on.sort_unstable();
-    on.into_iter().map(|k| PARAM_NAMES[k].to_string()).collect()
+    on
 }
 
 /// Observability indices of Table 2 for a Jacobian with P rows (poses) and r columns.

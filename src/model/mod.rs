@@ -153,6 +153,34 @@ impl MeasurementModel {
 }
 
 impl MeasurementModel {
+    /// The MAP position and its Jacobian ∂P/∂p (3 × 30, column k = `cols[k]`) at (q, p): the
+    /// positional kinematic regressor that propagates a parameter covariance to the MAP.
+    /// Fixture columns are zero (the fixture does not move the MAP). Allocation-free.
+    pub fn position_jacobian(
+        &self,
+        p: &Params,
+        q: &[f64; 6],
+        cols: &mut [Vector3<f64>; N_PARAMS],
+    ) -> Vector3<f64> {
+        let frames = chain_frames(&self.base, &p.dh, &self.flange, q);
+        let pos = frames[7].apply(&p.map);
+        for k in 0..3 {
+            cols[FIX + k] = Vector3::zeros();
+            cols[MAP + k] = frames[7].r.column(k).into_owned();
+        }
+        for i in 0..6 {
+            let prev = &frames[i];
+            let cur = &frames[i + 1];
+            let z = prev.r.column(2).into_owned();
+            let x = cur.r.column(0).into_owned();
+            cols[THETA + i] = z.cross(&(pos - prev.t));
+            cols[D + i] = z;
+            cols[A + i] = x;
+            cols[ALPHA + i] = x.cross(&(pos - cur.t));
+        }
+        pos
+    }
+
     /// Identification-Jacobian rows at the nominal parameters for a set of poses, in order
     /// (computed in parallel; the order of the result is the order of `poses`).
     pub fn rows(&self, poses: &[[f64; 6]]) -> Vec<[f64; N_PARAMS]> {
@@ -256,6 +284,36 @@ mod tests {
             }
         }
         assert!(worst < 1e-6, "worst relative error {worst:e}");
+    }
+
+    #[test]
+    fn position_jacobian_matches_central_differences() {
+        let robot = nj130();
+        let model = MeasurementModel::new(
+            &robot,
+            Vector3::new(0.258, 1.468, 0.708),
+            Vector3::new(0.06, 0.03, 0.12),
+        );
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(8);
+        let h = f64::EPSILON.cbrt();
+        let p0 = model.nominal.to_array();
+        let mut worst: f64 = 0.0;
+        for _ in 0..100 {
+            let q: [f64; 6] = std::array::from_fn(|_| rng.random_range(-3.0..3.0));
+            let mut cols = [Vector3::zeros(); N_PARAMS];
+            let pos = model.position_jacobian(&model.nominal, &q, &mut cols);
+            assert!((pos - model.map_position(&model.nominal, &q)).norm() < 1e-15);
+            for k in 0..N_PARAMS {
+                let (mut pp, mut pm) = (p0, p0);
+                pp[k] += h;
+                pm[k] -= h;
+                let fd = (model.map_position(&Params::from_array(&pp), &q)
+                    - model.map_position(&Params::from_array(&pm), &q))
+                    / (2.0 * h);
+                worst = worst.max((fd - cols[k]).norm() / 3.0);
+            }
+        }
+        assert!(worst < 1e-8, "worst error {worst:e}");
     }
 
     #[test]

@@ -34,8 +34,18 @@ fn value_text(v: &serde_json::Value) -> String {
     match v {
         serde_json::Value::Number(n) => n
             .as_f64()
-            .map(|x| fmt_fixed(x, 4))
+            .map(|x| {
+                // Small coefficients (thermal expansion, servo lag) keep their digits.
+                if x != 0.0 && x.abs() < 1e-3 {
+                    format!("{x:.3e}")
+                } else {
+                    fmt_fixed(x, 4)
+                }
+            })
             .unwrap_or_else(|| n.to_string()),
+        serde_json::Value::Array(a) => a.iter().map(value_text).collect::<Vec<_>>().join(", "),
+        serde_json::Value::String(s) => s.clone(),
+        serde_json::Value::Null => "—".to_string(),
         other => other.to_string(),
     }
 }
@@ -152,6 +162,32 @@ pub fn page(
             ]);
         }
     }
+    let mut final_model: Vec<Vec<String>> = r
+        .model
+        .params
+        .iter()
+        .map(|(k, v)| {
+            vec![
+                "geometric".to_string(),
+                k.clone(),
+                value_text(v),
+                r.model.std.get(k).map(value_text).unwrap_or_default(),
+            ]
+        })
+        .collect();
+    for e in &r.model.effects {
+        for (k, v) in &e.params {
+            final_model.push(vec![
+                match e.joint {
+                    Some(j) => format!("{} (joint {j})", e.effect),
+                    None => e.effect.to_string(),
+                },
+                k.clone(),
+                value_text(v),
+                e.std.get(k).map(value_text).unwrap_or_default(),
+            ]);
+        }
+    }
     let named: Vec<String> = r
         .named_effects
         .iter()
@@ -238,6 +274,15 @@ pub fn page(
                         "Parameters of each step with their standard uncertainties (lengths in mm, angles in degrees; geometric parameters are deviations from nominal).",
                     ),
                     Block::table(&["step", "parameter", "value", "std"], params),
+                ],
+            },
+            Section {
+                heading: "Final model".into(),
+                blocks: vec![
+                    Block::text(
+                        "The geometry and every named effect fitted together (the geometric step above is the geometry alone, which a missing effect biases). Standard uncertainties from the residual's noise, inflated for its lag-1 correlation. `edbbgen calibrate` turns this into a calibrated robot file, moving only what the data determine.",
+                    ),
+                    Block::table(&["term", "parameter", "value", "std"], final_model),
                 ],
             },
         ],

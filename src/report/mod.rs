@@ -8,6 +8,7 @@
 //! number of data series it draws (`data-series`), which the browser test checks against what
 //! was actually drawn.
 
+pub mod calibrate;
 pub mod compile;
 pub mod diagnose;
 

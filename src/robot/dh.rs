@@ -122,3 +122,110 @@ pub fn from_str(text: &str, path: &Path) -> Result<Robot, LoadError> {
         digest: String::new(),
     })
 }
+
+/// Start of the comment block edbbgen puts on a calibrated DH spec (replaced on
+/// re-calibration).
+const CALIBRATION_MARK: &str = "# --- edbbgen calibration ---";
+
+/// The input DH spec with a calibrated table: `alpha`, `a`, `d`, `theta` of every joint and
+/// `tool` (the MAP) set to the calibrated values in the file's own units; comments, names,
+/// limits, speeds and every other key kept; `header` lines as a comment block on top.
+/// Lengths are written to 1e-9 of the unit, angles to 1e-10 (far below any instrument).
+pub fn calibrated(
+    text: &str,
+    path: &Path,
+    dh: &[Dh; 6],
+    tool: &Vector3<f64>,
+    header: &[String],
+) -> Result<String, LoadError> {
+    // The same checks as loading: the units, six joints.
+    from_str(text, path)?;
+    let spec: Spec =
+        toml::from_str(text).map_err(|e| LoadError::invalid(path, toml_error(text, &e)))?;
+    let lscale = if spec.length_unit == "m" { 1.0 } else { 1e-3 };
+    let ascale = if spec.angle_unit == "rad" {
+        1.0
+    } else {
+        std::f64::consts::PI / 180.0
+    };
+    let body = strip_calibration_block(text);
+    let mut doc: toml_edit::DocumentMut = body
+        .parse()
+        .map_err(|e| LoadError::invalid(path, format!("cannot edit: {e}")))?;
+    let round = |v: f64, d: i32| {
+        let s = 10f64.powi(d);
+        let r = (v * s).round() / s;
+        if r == 0.0 {
+            0.0
+        } else {
+            r
+        }
+    };
+    let set = |item: &mut toml_edit::Item, v: f64| {
+        let decor = item.as_value().map(|x| x.decor().clone());
+        let mut new = toml_edit::Value::from(v);
+        if let Some(d) = decor {
+            *new.decor_mut() = d;
+        }
+        *item = toml_edit::Item::Value(new);
+    };
+    let joints = doc
+        .get_mut("joints")
+        .and_then(|j| j.as_array_of_tables_mut())
+        .ok_or_else(|| LoadError::invalid(path, "joints: not an array of tables"))?;
+    for (i, t) in joints.iter_mut().enumerate() {
+        let d = &dh[i];
+        for (key, v) in [
+            ("alpha", round(d.alpha / ascale, 10)),
+            ("a", round(d.a / lscale, 9)),
+            ("d", round(d.d / lscale, 9)),
+            ("theta", round(d.theta / ascale, 10)),
+        ] {
+            match t.get_mut(key) {
+                Some(item) => set(item, v),
+                None => {
+                    t.insert(key, toml_edit::value(v));
+                }
+            }
+        }
+    }
+    let mut arr = toml_edit::Array::new();
+    for v in tool.iter() {
+        arr.push(round(v / lscale, 9));
+    }
+    match doc.get_mut("tool") {
+        Some(item) => {
+            let decor = item.as_value().map(|x| x.decor().clone());
+            let mut new = toml_edit::Value::Array(arr);
+            if let Some(d) = decor {
+                *new.decor_mut() = d;
+            }
+            *item = toml_edit::Item::Value(new);
+        }
+        None => {
+            doc.insert("tool", toml_edit::value(arr));
+        }
+    }
+    let mut out = String::from(CALIBRATION_MARK);
+    out.push('\n');
+    for l in header {
+        out.push_str("# ");
+        out.push_str(l);
+        out.push('\n');
+    }
+    out.push_str("# ---\n");
+    out.push_str(&doc.to_string());
+    Ok(out)
+}
+
+/// The text without an earlier calibration block (from the mark to its closing `# ---`).
+fn strip_calibration_block(text: &str) -> String {
+    let Some(start) = text.find(CALIBRATION_MARK) else {
+        return text.to_string();
+    };
+    let after = &text[start + CALIBRATION_MARK.len()..];
+    match after.find("\n# ---\n") {
+        Some(end) => format!("{}{}", &text[..start], &after[end + "\n# ---\n".len()..]),
+        None => text.to_string(),
+    }
+}

@@ -82,6 +82,25 @@ impl Frame {
     }
 }
 
+impl Frame {
+    /// The fixed-axis roll-pitch-yaw of the rotation (the inverse of [`Frame::from_xyz_rpy`]),
+    /// pitch in [−π/2, π/2]; at pitch ±π/2 the roll is 0.
+    pub fn rpy(&self) -> [f64; 3] {
+        let r = &self.r;
+        let pitch = (-r[(2, 0)]).atan2(r[(0, 0)].hypot(r[(1, 0)]));
+        if r[(0, 0)].hypot(r[(1, 0)]) < 1e-12 {
+            // Gimbal lock: only yaw − roll (or yaw + roll) is defined; take roll = 0.
+            let yaw = (-r[(0, 1)]).atan2(r[(1, 1)]);
+            return [0.0, pitch, yaw];
+        }
+        [
+            r[(2, 1)].atan2(r[(2, 2)]),
+            pitch,
+            r[(1, 0)].atan2(r[(0, 0)]),
+        ]
+    }
+}
+
 /// The DH transform of one joint at joint value `q` (Eq. 1's building block):
 /// RotZ(theta + q) · TransZ(d) · TransX(a) · RotX(alpha).
 #[inline]
@@ -132,6 +151,20 @@ impl super::Robot {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn rpy_inverts_from_xyz_rpy_including_gimbal_lock() {
+        for rpy in [
+            [0.1, -0.2, 0.3],
+            [3.0, 1.2, -2.9],
+            [0.0, std::f64::consts::FRAC_PI_2, 0.7],
+            [0.0, -std::f64::consts::FRAC_PI_2, -1.1],
+        ] {
+            let f = Frame::from_xyz_rpy([1.0, 2.0, 3.0], rpy);
+            let back = Frame::from_xyz_rpy([1.0, 2.0, 3.0], f.rpy());
+            assert!((back.r - f.r).norm() < 1e-14, "{rpy:?} -> {:?}", f.rpy());
+        }
+    }
 
     #[test]
     fn rpy_matches_composition_of_elementary_rotations() {

@@ -209,9 +209,12 @@ impl LoadError {
 
 /// Loads a robot from a `.urdf` or a `.dh.toml` (any `.toml`) file.
 pub fn load(path: &Path, opts: &LoadOptions) -> Result<Robot, LoadError> {
-    let text = std::fs::read_to_string(path).map_err(|source| LoadError::Io {
-        path: path.display().to_string(),
-        source,
+    let text = crate::files::read_text(path, crate::files::Kind::Robot).map_err(|e| match e {
+        crate::files::ReadError::Io(source) => LoadError::Io {
+            path: path.display().to_string(),
+            source,
+        },
+        other => LoadError::invalid(path, other.to_string()),
     })?;
     let ext = path
         .extension()

@@ -49,73 +49,15 @@ fn convert(text: &str, path: &Path, opts: &LoadOptions) -> Result<Robot, String>
     // (velocity 0), which `Robot::validate` turns into a request for speeds.
     let patched = with_default_velocity(text);
     let doc = urdf_rs::read_from_string(&patched).map_err(|e| format!("not a valid URDF: {e}"))?;
-    let tree = Tree::new(&doc)?;
-    let flange_link = pick_flange(&doc, &tree, opts)?;
-    let chain = tree.path_from_root(&doc, flange_link);
-    let chain_name = format!(
-        "{} -> {}",
-        doc.links[tree.root].name, doc.links[flange_link].name
-    );
-
-    // Which revolute joint (0-based) each chain joint is, if it is one.
-    let mut revolute: Vec<usize> = Vec::new();
-    let mut joint_number: HashMap<usize, usize> = HashMap::new();
-    for &j in &chain {
-        let joint = &doc.joints[j];
-        match joint.joint_type {
-            JointType::Fixed => {}
-            JointType::Revolute | JointType::Continuous => {
-                if joint.mimic.is_some() {
-                    return Err(format!(
-                        "joint {} on the chain {chain_name} is a mimic joint; edbbgen needs 6 independent revolute joints",
-                        joint.name
-                    ));
-                }
-                joint_number.insert(j, revolute.len());
-                revolute.push(j);
-            }
-            ref t => {
-                return Err(format!(
-                    "joint {} on the chain {chain_name} is {}; edbbgen supports only revolute and fixed joints on the chain",
-                    joint.name,
-                    type_name(t)
-                ))
-            }
-        }
-    }
-    if revolute.len() != 6 {
-        let names: Vec<&str> = revolute
-            .iter()
-            .map(|&j| doc.joints[j].name.as_str())
-            .collect();
-        return Err(format!(
-            "chain {chain_name} has {} revolute joints ({}); edbbgen needs exactly 6",
-            revolute.len(),
-            names.join(", ")
-        ));
-    }
-
-    // Link poses in the root frame at q = 0, and the DH frame each link is rigid with
-    // (None: it hangs off the chain through a moving joint, e.g. a passive mimic cylinder).
+    let Layout {
+        tree,
+        flange_link,
+        revolute,
+        joint_number,
+        pose0,
+        group,
+    } = layout(&doc, opts)?;
     let n_links = doc.links.len();
-    let mut pose0 = vec![Frame::IDENTITY; n_links];
-    let mut group: Vec<Option<usize>> = vec![None; n_links];
-    group[tree.root] = Some(0);
-    for &j in &tree.order {
-        let joint = &doc.joints[j];
-        let (p, c) = (
-            tree.link_of[joint.parent.link.as_str()],
-            tree.link_of[joint.child.link.as_str()],
-        );
-        let origin = origin_frame(&joint.origin.xyz, &joint.origin.rpy)
-            .ok_or_else(|| format!("joint {}: origin is not finite", joint.name))?;
-        pose0[c] = pose0[p].mul(&origin);
-        group[c] = match (joint_number.get(&j), &joint.joint_type) {
-            (Some(&k), _) => Some(k + 1),
-            (None, JointType::Fixed) => group[p],
-            _ => None,
-        };
-    }
 
     // The six joint axes as lines in the root frame at q = 0, signs kept.
     let mut axes = [Line {
@@ -322,6 +264,99 @@ fn convert(text: &str, path: &Path, opts: &LoadOptions) -> Result<Robot, String>
         notes,
         masses,
         digest: String::new(),
+    })
+}
+
+/// The chain of a URDF: its tree, flange link, the six revolute joints on the root → flange
+/// path, every link's pose at q = 0 and the DH frame each link is rigid with (None: it hangs
+/// off the chain behind a moving joint).
+struct Layout<'a> {
+    tree: Tree<'a>,
+    flange_link: usize,
+    /// The chain's revolute joints (indices into the document's joints), root first.
+    revolute: Vec<usize>,
+    /// Which revolute joint (0-based) a chain joint is.
+    joint_number: HashMap<usize, usize>,
+    pose0: Vec<Frame>,
+    group: Vec<Option<usize>>,
+}
+
+fn layout<'a>(doc: &'a urdf_rs::Robot, opts: &LoadOptions) -> Result<Layout<'a>, String> {
+    let tree = Tree::new(doc)?;
+    let flange_link = pick_flange(doc, &tree, opts)?;
+    let chain = tree.path_from_root(doc, flange_link);
+    let chain_name = format!(
+        "{} -> {}",
+        doc.links[tree.root].name, doc.links[flange_link].name
+    );
+
+    // Which revolute joint (0-based) each chain joint is, if it is one.
+    let mut revolute: Vec<usize> = Vec::new();
+    let mut joint_number: HashMap<usize, usize> = HashMap::new();
+    for &j in &chain {
+        let joint = &doc.joints[j];
+        match joint.joint_type {
+            JointType::Fixed => {}
+            JointType::Revolute | JointType::Continuous => {
+                if joint.mimic.is_some() {
+                    return Err(format!(
+                        "joint {} on the chain {chain_name} is a mimic joint; edbbgen needs 6 independent revolute joints",
+                        joint.name
+                    ));
+                }
+                joint_number.insert(j, revolute.len());
+                revolute.push(j);
+            }
+            ref t => {
+                return Err(format!(
+                    "joint {} on the chain {chain_name} is {}; edbbgen supports only revolute and fixed joints on the chain",
+                    joint.name,
+                    type_name(t)
+                ))
+            }
+        }
+    }
+    if revolute.len() != 6 {
+        let names: Vec<&str> = revolute
+            .iter()
+            .map(|&j| doc.joints[j].name.as_str())
+            .collect();
+        return Err(format!(
+            "chain {chain_name} has {} revolute joints ({}); edbbgen needs exactly 6",
+            revolute.len(),
+            names.join(", ")
+        ));
+    }
+
+    // Link poses in the root frame at q = 0, and the DH frame each link is rigid with
+    // (None: it hangs off the chain through a moving joint, e.g. a passive mimic cylinder).
+    let n_links = doc.links.len();
+    let mut pose0 = vec![Frame::IDENTITY; n_links];
+    let mut group: Vec<Option<usize>> = vec![None; n_links];
+    group[tree.root] = Some(0);
+    for &j in &tree.order {
+        let joint = &doc.joints[j];
+        let (p, c) = (
+            tree.link_of[joint.parent.link.as_str()],
+            tree.link_of[joint.child.link.as_str()],
+        );
+        let origin = origin_frame(&joint.origin.xyz, &joint.origin.rpy)
+            .ok_or_else(|| format!("joint {}: origin is not finite", joint.name))?;
+        pose0[c] = pose0[p].mul(&origin);
+        group[c] = match (joint_number.get(&j), &joint.joint_type) {
+            (Some(&k), _) => Some(k + 1),
+            (None, JointType::Fixed) => group[p],
+            _ => None,
+        };
+    }
+
+    Ok(Layout {
+        tree,
+        flange_link,
+        revolute,
+        joint_number,
+        pose0,
+        group,
     })
 }
 
@@ -755,6 +790,303 @@ fn with_default_velocity(text: &str) -> std::borrow::Cow<'_, str> {
         std::borrow::Cow::Owned(out)
     } else {
         std::borrow::Cow::Borrowed(text)
+    }
+}
+
+// ---- the calibrated robot ------------------------------------------------------------------
+
+/// Start of the comment edbbgen puts in a calibrated URDF (replaced on re-calibration).
+const CALIBRATION_MARK: &str = "edbbgen calibration";
+
+/// The input URDF with a calibrated chain: the six chain joints' origins (and the `edbb_map`
+/// link's, added when missing) rewritten so that the file's forward kinematics is exactly the
+/// calibrated DH chain `dh` with the MAP at `map` (flange frame); every other byte (meshes,
+/// limits, names, comments, passive linkages) as in the input, plus `header` as a comment.
+///
+/// Why it is exact: a serial chain is fixed by its joint axes (lines, with sign) and its flange
+/// at q = 0 (product of exponentials). The links rigid with DH frame k are moved by the rigid
+/// correction D_{k−1} = F'_{k−1}(0) · F_{k−1}(0)⁻¹, which carries joint k's axis onto the
+/// calibrated one; link 6's own DH deviations (dependent on the MAP for a bar) go into the MAP.
+pub fn calibrated(
+    text: &str,
+    path: &Path,
+    opts: &LoadOptions,
+    nominal: &Robot,
+    dh: &[Dh; 6],
+    map: &V3,
+    header: &[String],
+) -> Result<String, LoadError> {
+    calibrated_text(text, opts, nominal, dh, map, header)
+        .map_err(|msg| LoadError::invalid(path, one_line(&msg)))
+}
+
+fn calibrated_text(
+    text: &str,
+    opts: &LoadOptions,
+    nominal: &Robot,
+    dh: &[Dh; 6],
+    map: &V3,
+    header: &[String],
+) -> Result<String, String> {
+    use crate::robot::kinematics::chain_frames;
+    let patched = with_default_velocity(text);
+    let doc = urdf_rs::read_from_string(&patched).map_err(|e| format!("not a valid URDF: {e}"))?;
+    let lay = layout(&doc, opts)?;
+    let zero = [0.0; 6];
+    let f_nom = chain_frames(&nominal.base, &nominal.dh, &nominal.flange, &zero);
+    let f_cal = chain_frames(&nominal.base, dh, &nominal.flange, &zero);
+    // D_k for the links rigid with DH frame k+1 (k = 0..5); the root's links stay.
+    let corr: [Frame; 6] = std::array::from_fn(|k| f_cal[k].mul(&f_nom[k].inverse()));
+    let moved = |l: usize| -> Frame {
+        match lay.group[l] {
+            Some(g) if g >= 1 => corr[g - 1].mul(&lay.pose0[l]),
+            _ => lay.pose0[l],
+        }
+    };
+    // The new origins of the chain joints.
+    let mut origins: Vec<(String, Frame)> = Vec::new();
+    for &j in &lay.revolute {
+        let joint = &doc.joints[j];
+        let (p, c) = (
+            lay.tree.link_of[joint.parent.link.as_str()],
+            lay.tree.link_of[joint.child.link.as_str()],
+        );
+        let axis = V3::from(joint.axis.xyz.0).normalize();
+        // The child frame rotates about the joint axis through its origin: keep that.
+        let o = moved(p).inverse().mul(&moved(c));
+        debug_assert!((o.r * axis).norm() > 0.5);
+        origins.push((joint.name.clone(), o));
+    }
+    // The MAP: link 6's deviations from nominal move it (flange frame).
+    let k6 = |d: &Dh| crate::robot::kinematics::dh_transform(d, 0.0);
+    let map_urdf = nominal
+        .flange
+        .inverse()
+        .mul(&k6(&nominal.dh[5]).inverse())
+        .mul(&k6(&dh[5]))
+        .mul(&nominal.flange)
+        .apply(map);
+    let flange = lay.flange_link;
+    let map_joint = lay
+        .tree
+        .link_of
+        .get(MAP_LINK)
+        .and_then(|&m| lay.tree.parent_joint[m].map(|j| (m, j)));
+    let mut insert_map = None;
+    match map_joint {
+        Some((m, j)) => {
+            if lay.group[m] != Some(6) {
+                return Err(format!(
+                    "link {MAP_LINK} (the EDBB MAP) must be fixed to the flange link {} through fixed joints",
+                    doc.links[flange].name
+                ));
+            }
+            let joint = &doc.joints[j];
+            let p = lay.tree.link_of[joint.parent.link.as_str()];
+            // Its position in its parent's frame; the orientation of a point does not matter.
+            let xyz = lay.pose0[p]
+                .inverse()
+                .mul(&lay.pose0[flange])
+                .apply(&map_urdf);
+            let rpy = joint.origin.rpy.0;
+            origins.push((
+                joint.name.clone(),
+                Frame::from_xyz_rpy([xyz.x, xyz.y, xyz.z], rpy),
+            ));
+        }
+        None => insert_map = Some(map_urdf),
+    }
+    edit_urdf(text, &origins, insert_map, &doc.links[flange].name, header)
+}
+
+/// Shortest round-trip decimal of a float (exact; no exponent).
+fn num(v: f64) -> String {
+    let v = if v == 0.0 { 0.0 } else { v };
+    format!("{v}")
+}
+
+fn origin_xml(f: &Frame) -> String {
+    let r = f.rpy();
+    format!(
+        "<origin xyz=\"{} {} {}\" rpy=\"{} {} {}\"/>",
+        num(f.t.x),
+        num(f.t.y),
+        num(f.t.z),
+        num(r[0]),
+        num(r[1]),
+        num(r[2])
+    )
+}
+
+/// Rewrites the `<origin>` of each named joint (inserting one where a joint has none), adds
+/// the `edbb_map` link when asked, and puts the header comment first (replacing an earlier
+/// calibration comment).
+fn edit_urdf(
+    text: &str,
+    origins: &[(String, Frame)],
+    insert_map: Option<V3>,
+    flange: &str,
+    header: &[String],
+) -> Result<String, String> {
+    use quick_xml::events::Event;
+    let mut reader = quick_xml::Reader::from_str(text);
+    // (start, end, replacement) byte ranges.
+    let mut edits: Vec<(usize, usize, String)> = Vec::new();
+    let mut joint: Option<(String, usize, bool)> = None; // name, end of its start tag, origin seen
+    let mut depth_in_joint = 0usize;
+    let mut robot_end = None;
+    let mut old_comment = None;
+    let mut first_element = None;
+    let mut edited: Vec<String> = Vec::new();
+    loop {
+        let before = reader.buffer_position() as usize;
+        let ev = reader
+            .read_event()
+            .map_err(|e| format!("not a valid URDF: {e}"))?;
+        let after = reader.buffer_position() as usize;
+        match ev {
+            Event::Eof => break,
+            Event::Comment(c) => {
+                let body = String::from_utf8_lossy(&c);
+                if old_comment.is_none() && body.trim_start().starts_with(CALIBRATION_MARK) {
+                    old_comment = Some((before, after));
+                }
+            }
+            Event::Start(e) => {
+                first_element.get_or_insert(before);
+                match (&joint, e.name().as_ref()) {
+                    (None, b"joint") => {
+                        let name = attr(&e, "name")?;
+                        joint = Some((name, after, false));
+                        depth_in_joint = 0;
+                    }
+                    (Some(_), b"origin") if depth_in_joint == 0 => {
+                        // <origin ...></origin>: replace through its end tag.
+                        let end = skip_to_end(&mut reader)?;
+                        if let Some((name, _, seen)) = joint.as_mut() {
+                            *seen = true;
+                            if let Some((_, f)) = origins.iter().find(|(n, _)| n == name) {
+                                edits.push((before, end, origin_xml(f)));
+                                edited.push(name.clone());
+                            }
+                        }
+                    }
+                    (Some(_), _) => depth_in_joint += 1,
+                    _ => {}
+                }
+            }
+            Event::Empty(e) => {
+                first_element.get_or_insert(before);
+                if let (Some((name, _, seen)), b"origin") = (joint.as_mut(), e.name().as_ref()) {
+                    if depth_in_joint == 0 {
+                        *seen = true;
+                        if let Some((_, f)) = origins.iter().find(|(n, _)| n == name) {
+                            edits.push((before, after, origin_xml(f)));
+                            edited.push(name.clone());
+                        }
+                    }
+                }
+            }
+            Event::End(e) => match (e.name().as_ref(), &joint) {
+                (b"joint", Some((name, start_end, seen))) if depth_in_joint == 0 => {
+                    if !seen {
+                        if let Some((_, f)) = origins.iter().find(|(n, _)| n == name) {
+                            edits.push((
+                                *start_end,
+                                *start_end,
+                                format!("\n    {}", origin_xml(f)),
+                            ));
+                            edited.push(name.clone());
+                        }
+                    }
+                    joint = None;
+                }
+                (b"robot", _) => robot_end = Some(before),
+                (_, Some(_)) => depth_in_joint = depth_in_joint.saturating_sub(1),
+                _ => {}
+            },
+            _ => {}
+        }
+    }
+    let missing: Vec<&str> = origins
+        .iter()
+        .map(|(n, _)| n.as_str())
+        .filter(|n| !edited.iter().any(|e| e == n))
+        .collect();
+    if !missing.is_empty() {
+        return Err(format!(
+            "joint {}: no such <joint> element found by the editor",
+            missing.join(", ")
+        ));
+    }
+    if let Some(m) = insert_map {
+        let at = robot_end.ok_or("no </robot> end tag")?;
+        edits.push((
+            at,
+            at,
+            format!(
+                "  <!-- edbbgen: the EDBB measurement application point (tool ball centre), fixed to the flange -->\n  <link name=\"{MAP_LINK}\"/>\n  <joint name=\"{MAP_LINK}_joint\" type=\"fixed\">\n    <parent link=\"{flange}\"/>\n    <child link=\"{MAP_LINK}\"/>\n    {}\n  </joint>\n",
+                origin_xml(&Frame::translation(m))
+            ),
+        ));
+    }
+    let comment = format!(
+        "<!-- {CALIBRATION_MARK}\n{}\n-->",
+        header
+            .iter()
+            .map(|l| format!("     {}", l.replace("--", "- -")))
+            .collect::<Vec<_>>()
+            .join("\n")
+    );
+    match old_comment {
+        Some((a, b)) => edits.push((a, b, comment)),
+        None => {
+            let at = first_element.ok_or("no <robot> element")?;
+            edits.push((at, at, format!("{comment}\n")));
+        }
+    }
+    edits.sort_by_key(|e| (e.0, e.1));
+    let mut out = String::with_capacity(text.len() + 1024);
+    let mut pos = 0;
+    for (a, b, r) in edits {
+        out.push_str(&text[pos..a]);
+        out.push_str(&r);
+        pos = b;
+    }
+    out.push_str(&text[pos..]);
+    Ok(out)
+}
+
+fn attr(e: &quick_xml::events::BytesStart, name: &str) -> Result<String, String> {
+    match e.try_get_attribute(name) {
+        Ok(Some(a)) => a
+            .unescape_value()
+            .map(|v| v.into_owned())
+            .map_err(|err| format!("attribute {name}: {err}")),
+        Ok(None) => Err(format!("a <joint> without a {name} attribute")),
+        Err(err) => Err(format!("attribute {name}: {err}")),
+    }
+}
+
+/// Reads up to the end tag of the element just started; returns the byte after it.
+fn skip_to_end(reader: &mut quick_xml::Reader<&[u8]>) -> Result<usize, String> {
+    use quick_xml::events::Event;
+    let mut depth = 1usize;
+    loop {
+        match reader
+            .read_event()
+            .map_err(|e| format!("not a valid URDF: {e}"))?
+        {
+            Event::Start(_) => depth += 1,
+            Event::End(_) => {
+                depth -= 1;
+                if depth == 0 {
+                    return Ok(reader.buffer_position() as usize);
+                }
+            }
+            Event::Eof => return Err("unexpected end of file".into()),
+            _ => {}
+        }
     }
 }
 

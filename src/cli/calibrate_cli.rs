@@ -1,0 +1,341 @@
+//! `calibrate`: flags → checked campaign (runs, fixtures, options) → the calibration stage →
+//! the calibrated robot file and the reports, all written together or not at all.
+
+use super::args::CalibrateArgs;
+use super::{usage, write_all_atomic, xyz_mm, Error};
+use crate::calibrate::{self, CalibrateOptions, Calibration, Effects};
+use crate::diagnose::Run;
+use crate::model::MeasurementModel;
+use crate::robot::{self, LoadOptions, Robot};
+use crate::twin::{self, Effect, Measured};
+use crate::units::{fmt_fixed, DEG, MM};
+use nalgebra::Vector3;
+use std::path::Path;
+
+/// `--effects`: auto, none, or a comma-separated list of library effects, `NAME[:JOINT]`.
+pub(super) fn parse_effects(s: &str) -> Result<Effects, Error> {
+    match s.trim() {
+        "auto" => return Ok(Effects::Auto),
+        "none" => return Ok(Effects::None),
+        _ => {}
+    }
+    let mut list = Vec::new();
+    for item in s.split(',') {
+        let item = item.trim();
+        let (name, joint) = match item.split_once(':') {
+            Some((n, j)) => (n, Some(j)),
+            None => (item, None),
+        };
+        let joint = |what: &str| -> Result<usize, Error> {
+            let j = joint.ok_or_else(|| {
+                usage(format!(
+                    "--effects: {what} needs its joint, e.g. {what}:2 (joints 1-6)"
+                ))
+            })?;
+            match j.trim().parse::<usize>() {
+                Ok(n @ 1..=6) => Ok(n - 1),
+                _ => Err(usage(format!(
+                    "--effects: '{item}': the joint must be a number 1-6"
+                ))),
+            }
+        };
+        let no_joint = |e: Effect| -> Result<Effect, Error> {
+            match joint_given(item) {
+                true => Err(usage(format!(
+                    "--effects: '{item}': {} belongs to no single joint",
+                    e.name()
+                ))),
+                false => Ok(e),
+            }
+        };
+        let e = match name {
+            "cyclic_error" => Effect::CyclicError(joint("cyclic_error")?),
+            "backlash" => Effect::Backlash(joint("backlash")?),
+            "joint_compliance" => no_joint(Effect::JointCompliance)?,
+            "thermal_drift" => no_joint(Effect::ThermalDrift)?,
+            "servo_lag" => no_joint(Effect::ServoLag)?,
+            _ => {
+                return Err(usage(format!(
+                    "--effects: '{item}' is not auto, none, or a list of joint_compliance, thermal_drift, cyclic_error:J, backlash:J, servo_lag"
+                )))
+            }
+        };
+        if list.contains(&e) {
+            return Err(usage(format!("--effects: '{item}' is given twice")));
+        }
+        list.push(e);
+    }
+    Ok(Effects::List(list))
+}
+
+fn joint_given(item: &str) -> bool {
+    item.contains(':')
+}
+
+fn file_err(path: &Path, msg: impl std::fmt::Display) -> Error {
+    Error::File {
+        path: path.display().to_string(),
+        msg: msg.to_string(),
+    }
+}
+
+/// The file name (no directory: outputs must not depend on where the inputs live).
+fn name(path: &Path) -> String {
+    path.file_name()
+        .map(|f| f.to_string_lossy().into_owned())
+        .unwrap_or_else(|| path.display().to_string())
+}
+
+fn is_urdf(path: &Path) -> bool {
+    path.extension()
+        .and_then(|e| e.to_str())
+        .is_some_and(|e| e.eq_ignore_ascii_case("urdf") || e.eq_ignore_ascii_case("xml"))
+}
+
+fn is_toml(path: &Path) -> bool {
+    path.extension()
+        .and_then(|e| e.to_str())
+        .is_some_and(|e| e.eq_ignore_ascii_case("toml"))
+}
+
+pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
+    // Everything about the command line first: nothing is read before it is sound.
+    let runs_n = a.measured.len();
+    if a.fixture.len() != runs_n && a.fixture.len() != 1 {
+        return Err(usage(format!(
+            "--measured is given {runs_n} times but --fixture {} times: give one --fixture per --measured, in the same order (or one for every run)",
+            a.fixture.len()
+        )));
+    }
+    let fixtures: Vec<Vector3<f64>> = a
+        .fixture
+        .iter()
+        .map(|f| xyz_mm("--fixture", f))
+        .collect::<Result<_, _>>()?;
+    let fixture_of = |k: usize| fixtures[if fixtures.len() == 1 { 0 } else { k }];
+    let urdf = is_urdf(&a.robot);
+    match (urdf, is_urdf(&a.output), is_toml(&a.output)) {
+        (true, true, _) | (false, _, true) => {}
+        (true, _, _) => {
+            return Err(usage(format!(
+                "-o {}: a URDF robot calibrates to a .urdf file (the input with calibrated joint origins)",
+                a.output.display()
+            )))
+        }
+        (false, _, _) => {
+            return Err(usage(format!(
+                "-o {}: a DH robot calibrates to a .dh.toml file",
+                a.output.display()
+            )))
+        }
+    }
+    let effects = parse_effects(&a.effects)?;
+    let mut opts = CalibrateOptions {
+        effects,
+        fixture_free: a.fixture_free,
+        ..CalibrateOptions::default()
+    };
+    if let Some(p) = &a.prior {
+        let v = super::numbers("--prior", p, Some(2))?;
+        if !(v[0] > 0.0 && v[1] > 0.0) {
+            return Err(usage(format!(
+                "--prior: '{p}' needs a positive length (mm) and angle (deg)"
+            )));
+        }
+        opts.prior_length = v[0] * MM;
+        opts.prior_angle = v[1] * DEG;
+    }
+
+    let load_opts = LoadOptions {
+        flange_link: a.flange.clone(),
+        package_paths: a.package_path.clone(),
+        speeds: None,
+    };
+    let robot_text = super::read_input(&a.robot, "robot", crate::files::Kind::Robot)?;
+    let robot = robot::load(&a.robot, &load_opts)?;
+    let map = match &a.tool {
+        Some(s) => xyz_mm("--tool", s)?,
+        None => robot.tool.unwrap_or_else(Vector3::zeros),
+    };
+    let mut data: Vec<(Measured, String)> = Vec::with_capacity(runs_n);
+    for path in &a.measured {
+        let text = super::read_input(path, "measured data", crate::files::Kind::Measured)?;
+        let m = twin::parse_csv(&text, calibrate::MIN_ROWS).map_err(|e| file_err(path, e))?;
+        data.push((m, robot::sha256_hex(text.as_bytes())));
+    }
+    let model = MeasurementModel::new(&robot, fixture_of(0), map);
+    let runs: Vec<Run> = data
+        .iter()
+        .enumerate()
+        .map(|(k, (m, _))| Run {
+            measured: m,
+            fixture: fixture_of(k),
+        })
+        .collect();
+    let labels: Vec<String> = a.measured.iter().map(|p| name(p)).collect();
+    let cal = calibrate::run(&model, &robot, &runs, &labels, &opts)
+        .map_err(|e| file_err(&a.measured[0], e))?;
+
+    // Everything is rendered before the first file is written: a failure leaves no file.
+    let header = header_lines(&robot, &cal, &data, &labels);
+    let p = cal.params();
+    let calibrated = if urdf {
+        robot::urdf::calibrated(
+            &robot_text,
+            &a.robot,
+            &load_opts,
+            &robot,
+            &p.dh,
+            &p.map,
+            &header,
+        )?
+    } else {
+        robot::dh::calibrated(&robot_text, &a.robot, &p.dh, &p.map, &header)?
+    };
+    let json = serde_json::to_string_pretty(&cal.report).unwrap_or_default() + "\n";
+    let svg = match &a.plot {
+        Some(_) => Some(crate::calibrate::plot::svg(&cal)?),
+        None => None,
+    };
+    let html = match &a.html {
+        Some(_) => {
+            let hash = inputs_hash(&robot, &data, &fixtures, &map, &a.effects);
+            let name = format!("{} [{}]", robot.name, robot.source);
+            let page = crate::report::calibrate::page(&cal, &name, &hash)?;
+            Some(crate::report::render(&page)?)
+        }
+        None => None,
+    };
+    let mut files: Vec<(&Path, &str)> = vec![(a.output.as_path(), calibrated.as_str())];
+    if let Some(p) = &a.json {
+        files.push((p.as_path(), json.as_str()));
+    }
+    if let (Some(p), Some(svg)) = (&a.plot, &svg) {
+        files.push((p.as_path(), svg.as_str()));
+    }
+    if let (Some(p), Some(html)) = (&a.html, &html) {
+        files.push((p.as_path(), html.as_str()));
+    }
+    write_all_atomic(&files)?;
+    print!("{}", cal.summary);
+    println!("wrote {}", a.output.display());
+    Ok(0)
+}
+
+/// The input hash of a calibration: robot, data, fixtures, tool and the effects option.
+fn inputs_hash(
+    robot: &Robot,
+    data: &[(Measured, String)],
+    fixtures: &[Vector3<f64>],
+    map: &Vector3<f64>,
+    effects: &str,
+) -> String {
+    let mut s = robot.digest.clone();
+    for (_, h) in data {
+        s += "\n";
+        s += h;
+    }
+    for f in fixtures {
+        s += &format!("\n{:?}", f.as_slice());
+    }
+    s += &format!("\n{:?}\n{effects}\n", map.as_slice());
+    robot::sha256_hex(s.as_bytes())
+}
+
+/// The comment block on top of the calibrated file: where it came from and how good it is.
+fn header_lines(
+    robot: &Robot,
+    cal: &Calibration,
+    data: &[(Measured, String)],
+    labels: &[String],
+) -> Vec<String> {
+    let r = &cal.report;
+    let mut h = vec![format!(
+        "calibrated by edbbgen {} from {} (sha256 {})",
+        env!("CARGO_PKG_VERSION"),
+        robot.source,
+        &robot.digest[..16.min(robot.digest.len())]
+    )];
+    for (k, run) in r.runs.iter().enumerate() {
+        let f = run.fixture_fitted_mm.unwrap_or(run.fixture_mm);
+        h.push(format!(
+            "run {}: {} (sha256 {}, {} rows), fixture {}, {}, {} mm{}",
+            k + 1,
+            labels[k],
+            &data[k].1[..16],
+            run.rows,
+            fmt_fixed(f[0], 3),
+            fmt_fixed(f[1], 3),
+            fmt_fixed(f[2], 3),
+            if run.fixture_fitted_mm.is_some() {
+                " (estimated)"
+            } else {
+                ""
+            }
+        ));
+    }
+    h.push(format!(
+        "residual RMS {} um nominal -> {} um calibrated; bar noise {} um (lag-1 autocorrelation {})",
+        fmt_fixed(r.rms_before_um, 3),
+        fmt_fixed(r.rms_after_um, 3),
+        fmt_fixed(r.noise_um, 3),
+        fmt_fixed(r.residual_lag1, 2)
+    ));
+    h.push(format!(
+        "determined ({}): {}",
+        r.determined.len(),
+        r.determined.join(", ")
+    ));
+    for u in &r.undetermined {
+        h.push(format!("held at nominal: {}: {}", u.param, u.why));
+    }
+    let p = &r.predicted_position_std_um;
+    h.push(format!(
+        "predicted MAP position uncertainty (1 sigma, after rigid registration): {} um RMS where measured, {} um RMS and {} um p95 over the joint space",
+        fmt_fixed(p.measured_region_rms, 2),
+        fmt_fixed(p.workspace_rms, 2),
+        fmt_fixed(p.workspace_p95, 2)
+    ));
+    if !r.effects.is_empty() {
+        let names: Vec<String> = r
+            .effects
+            .iter()
+            .map(|e| match e.joint {
+                Some(j) => format!("{} (joint {j})", e.effect),
+                None => e.effect.to_string(),
+            })
+            .collect();
+        h.push(format!(
+            "effects fitted with the geometry (in the report, not in this file): {}",
+            names.join(", ")
+        ));
+    }
+    for w in &r.warnings {
+        h.push(format!("warning: {w}"));
+    }
+    h
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn effect_lists_parse_and_bad_ones_are_refused() {
+        assert_eq!(parse_effects("auto").unwrap(), Effects::Auto);
+        assert_eq!(parse_effects("none").unwrap(), Effects::None);
+        assert_eq!(
+            parse_effects("cyclic_error:2, servo_lag").unwrap(),
+            Effects::List(vec![Effect::CyclicError(1), Effect::ServoLag])
+        );
+        for bad in [
+            "cyclic_error",
+            "backlash:7",
+            "servo_lag:2",
+            "gravity",
+            "servo_lag,servo_lag",
+        ] {
+            assert!(parse_effects(bad).is_err(), "{bad}");
+        }
+    }
+}

@@ -1,0 +1,194 @@
+//! The calibration page: in = a [`Calibration`]; out = a [`Page`] with the residual of every
+//! run before and after (Fig. 12's view), the calibrated parameters with their uncertainties,
+//! what was held at nominal and why, the effects, and the predicted position uncertainty — the
+//! numbers of the `edbbgen.calibrate/1` report.
+
+use super::{Block, Page, ReportError, Section};
+use crate::calibrate::{plot, Calibration};
+use crate::units::fmt_fixed;
+
+fn num(v: &serde_json::Value) -> String {
+    match v {
+        serde_json::Value::Number(n) => n
+            .as_f64()
+            .map(|x| fmt_fixed(x, 6))
+            .unwrap_or_else(|| n.to_string()),
+        serde_json::Value::Array(a) => a.iter().map(num).collect::<Vec<_>>().join(", "),
+        other => other.to_string(),
+    }
+}
+
+pub fn page(c: &Calibration, robot: &str, inputs_sha256: &str) -> Result<Page, ReportError> {
+    let r = &c.report;
+    let p = &r.predicted_position_std_um;
+    let mut facts = vec![
+        ("robot".to_string(), robot.to_string()),
+        (
+            "data".into(),
+            format!(
+                "{} run{}, {} rows",
+                r.runs.len(),
+                if r.runs.len() == 1 { "" } else { "s" },
+                r.rows
+            ),
+        ),
+        (
+            "bar noise (from the residual)".into(),
+            format!(
+                "{} µm, lag-1 autocorrelation {}",
+                fmt_fixed(r.noise_um, 3),
+                fmt_fixed(r.residual_lag1, 2)
+            ),
+        ),
+        (
+            "RMS, nominal → calibrated".into(),
+            format!(
+                "{} µm → {} µm",
+                fmt_fixed(r.rms_before_um, 3),
+                fmt_fixed(r.rms_after_um, 3)
+            ),
+        ),
+        (
+            "determined parameters".into(),
+            format!("{}", r.determined.len()),
+        ),
+        (
+            "predicted MAP position uncertainty (1σ, registered)".into(),
+            format!(
+                "{} µm RMS where measured; {} µm RMS, {} µm p95 over the joint space",
+                fmt_fixed(p.measured_region_rms, 2),
+                fmt_fixed(p.workspace_rms, 2),
+                fmt_fixed(p.workspace_p95, 2)
+            ),
+        ),
+        (
+            "of which from noise / from parameters held at nominal".into(),
+            format!(
+                "{} µm / {} µm RMS over the joint space",
+                fmt_fixed(p.from_noise.workspace_rms, 2),
+                fmt_fixed(p.from_held.workspace_rms, 2)
+            ),
+        ),
+    ];
+    if !r.held.is_empty() {
+        facts.push(("held at the given value".into(), r.held.join(", ")));
+    }
+    let runs: Vec<Vec<String>> = r
+        .runs
+        .iter()
+        .enumerate()
+        .map(|(k, run)| {
+            let f = |v: [f64; 3]| {
+                format!(
+                    "{}, {}, {}",
+                    fmt_fixed(v[0], 3),
+                    fmt_fixed(v[1], 3),
+                    fmt_fixed(v[2], 3)
+                )
+            };
+            vec![
+                format!("{}", k + 1),
+                run.measured.clone(),
+                run.rows.to_string(),
+                f(run.fixture_mm),
+                run.fixture_fitted_mm.map(f).unwrap_or_default(),
+                fmt_fixed(run.rms_before_um, 3),
+                fmt_fixed(run.rms_after_um, 3),
+            ]
+        })
+        .collect();
+    let params: Vec<Vec<String>> = r
+        .params
+        .iter()
+        .map(|(k, v)| {
+            vec![
+                k.clone(),
+                v.get("value").map(num).unwrap_or_default(),
+                v.get("std").map(num).unwrap_or_default(),
+            ]
+        })
+        .collect();
+    let undetermined: Vec<Vec<String>> = r
+        .undetermined
+        .iter()
+        .map(|u| vec![u.param.clone(), u.why.clone()])
+        .collect();
+    let mut effects: Vec<Vec<String>> = Vec::new();
+    for e in &r.effects {
+        for (k, v) in &e.params {
+            effects.push(vec![
+                match e.joint {
+                    Some(j) => format!("{} (joint {j})", e.effect),
+                    None => e.effect.to_string(),
+                },
+                k.clone(),
+                num(v),
+                e.std.get(k).map(num).unwrap_or_default(),
+            ]);
+        }
+    }
+    let mut sections = vec![
+        Section {
+            heading: "Residual before and after (Fig. 12)".into(),
+            blocks: vec![Block::figure(
+                "fig-residual",
+                "Measured minus modelled bar length over time, per run: with the nominal model and with the calibrated one (geometry and effects fitted together).",
+                &plot::residuals(c),
+            )?],
+        },
+        Section {
+            heading: "Runs".into(),
+            blocks: vec![Block::table(
+                &[
+                    "run",
+                    "data",
+                    "rows",
+                    "fixture given [mm]",
+                    "fixture estimated [mm]",
+                    "RMS nominal [µm]",
+                    "RMS calibrated [µm]",
+                ],
+                runs,
+            )],
+        },
+        Section {
+            heading: "Calibrated parameters".into(),
+            blocks: vec![
+                Block::text(
+                    "Deviations from nominal of the parameters the data determine (lengths in mm, angles in degrees), with standard uncertainties (GUM Type A: the residual's noise, inflated for its lag-1 correlation, through the fit's covariance). A parameter is determined when the data bring its uncertainty below its prior divided by κ.",
+                ),
+                Block::table(&["parameter", "deviation", "std"], params),
+            ],
+        },
+        Section {
+            heading: "Held at nominal".into(),
+            blocks: vec![Block::table(&["parameter", "why"], undetermined)],
+        },
+    ];
+    if !effects.is_empty() {
+        sections.push(Section {
+            heading: "Effects fitted with the geometry".into(),
+            blocks: vec![
+                Block::text("Not part of the calibrated robot file: a DH table or a URDF has no place for them."),
+                Block::table(&["effect", "parameter", "value", "std"], effects),
+            ],
+        });
+    }
+    sections.push(Section {
+        heading: "Predicted position uncertainty".into(),
+        blocks: vec![Block::figure(
+            "fig-uncertainty",
+            "1σ MAP position uncertainty of the calibrated robot at random joint poses within the limits, after a best rigid registration, sorted: noise through the determined parameters combined with the prior uncertainty of the parameters held at nominal.",
+            &plot::uncertainty(c),
+        )?],
+    });
+    Ok(Page {
+        title: format!("edbbgen — calibration of {robot}"),
+        kind: "calibrate".into(),
+        tool_version: env!("CARGO_PKG_VERSION").to_string(),
+        inputs_sha256: inputs_sha256.to_string(),
+        facts,
+        warnings: r.warnings.clone(),
+        sections,
+    })
+}
