@@ -169,6 +169,15 @@ fn read(rel: &str) -> String {
     std::fs::read_to_string(root().join(rel)).expect(rel)
 }
 
+/// The NJ-130 cell's program in a dialect, from its insta snapshot (the body after the header).
+fn snapshot(d: &str) -> String {
+    let snap = read(&format!("snapshots/{d}@nj130_cell.snap"));
+    match snap.split_once("\n---\n") {
+        Some((_, body)) => body.to_string(),
+        None => snap,
+    }
+}
+
 fn one_line(msg: &str) {
     assert!(
         !msg.trim().is_empty() && !msg.contains('\n'),
@@ -225,8 +234,40 @@ proptest! {
     }
 
     #[test]
+    fn every_dialect_reader(
+        k in 0usize..6,
+        text in prop_oneof![
+            mutated(snapshot("ngc")),
+            mutated(snapshot("sinumerik")),
+            mutated(snapshot("krl")),
+            mutated(snapshot("rapid")),
+            mutated(snapshot("urscript")),
+            mutated(snapshot("fanuc")),
+        ],
+    ) {
+        // Any text through any reader (mostly the wrong one): a program or a one-line error.
+        let d = &edbbgen::dialect::all()[k];
+        let map = edbbgen::controller::ControllerMap {
+            sign: [1.0, -1.0, 1.0, 1.0, -1.0, 1.0],
+            offset_deg: [0.0, 90.0, -90.0, 0.0, 0.0, 0.0],
+            j3_coupling: -1.0,
+            units: d.units,
+            axis_names: d.axis_names.clone(),
+        };
+        match d.read(&text, &map) {
+            Ok(p) => { let _ = p.targets().count(); }
+            Err(e) => one_line(&e.to_string()),
+        }
+    }
+
+    #[test]
     fn user_template(text in mutated(read("templates/ngc.j2"))) {
-        if let Err(e) = edbbgen::emit::render(&text, &program()) {
+        let template = edbbgen::dialect::Template {
+            source: text,
+            dialect: edbbgen::dialect::by_name("ngc").unwrap(),
+            user: true,
+        };
+        if let Err(e) = edbbgen::emit::render(&template, &program()) {
             one_line(&e);
         }
     }

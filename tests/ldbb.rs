@@ -581,12 +581,13 @@ fn ldbb_circle_program_is_verified_read_back_golden_and_interpreted() {
     let r = ldbb_circle(&setup, &out, &["--step", "5"]);
     assert_eq!(r.code, 0, "{}", r.stderr);
     let text = std::fs::read_to_string(&out).unwrap();
-    let again = dir.path().join("again.nc");
+    // The program's name is the file's stem: the same name in another directory.
+    let dir2 = tempdir();
+    let again = dir2.path().join("ldbb.nc");
     assert_eq!(ldbb_circle(&setup, &again, &["--step", "5"]).code, 0);
-    assert_eq!(
-        text,
-        std::fs::read_to_string(&again).unwrap(),
-        "byte-identical"
+    assert!(
+        text == std::fs::read_to_string(&again).unwrap(),
+        "not byte-identical"
     );
     assert!(!text.contains("/work") && !text.contains(env!("CARGO_MANIFEST_DIR")));
     crate::snapshots::assert_golden("gcode@ldbb_circle", &text);
@@ -605,20 +606,28 @@ fn ldbb_circle_program_is_verified_read_back_golden_and_interpreted() {
     let want = Matrix3::new(-1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, -1.0);
     let mut travel = 0.0;
     let mut last: Option<f64> = None;
+    // The header's bound on how far the printed path takes the bar length from the circle's
+    // (chords, blends and the 0.001° grid of the printed joints) holds at every target.
+    let stated: f64 = text
+        .split("they change the bar length by at most ")
+        .nth(1)
+        .and_then(|r| r.split(' ').next())
+        .and_then(|v| v.parse().ok())
+        .expect("the header states the path deviation");
+    assert!(stated < 150.0, "{stated} um");
     for q in &poses {
         let q = q.map(|d| d.to_radians());
         let f = robot.fk(&q);
         let p = f.apply(&Vector3::new(0.0, 0.0, 0.15));
-        // 1e-4° of rounding moves the ball by up to ~4 µm on this arm.
+        let dl = ((p - table).norm() - 0.132582521).abs();
+        assert!(dl <= stated * 1e-6 + 1e-9, "bar length at {q:?}: {dl} m");
+        // 0.0005° of rounding per joint moves the ball by up to ~40 µm on this arm.
+        assert!(dl < 5e-5, "bar length at {q:?}: {dl} m");
         assert!(
-            ((p - table).norm() - 0.132582521).abs() < 1e-5,
-            "bar length at {q:?}"
+            (p.z - 1.25).abs() < 5e-5
+                && ((p.xy() - Vector3::new(1.35, -0.125, 0.0).xy()).norm() - 0.125).abs() < 5e-5
         );
-        assert!(
-            (p.z - 1.25).abs() < 1e-5
-                && ((p.xy() - Vector3::new(1.35, -0.125, 0.0).xy()).norm() - 0.125).abs() < 1e-5
-        );
-        assert!((f.r - want).abs().max() < 1e-5, "tool orientation");
+        assert!((f.r - want).abs().max() < 5e-5, "tool orientation");
         // Clockwise seen from +z: the angle of P(θ) = c + R[cos θ, −sin θ] grows clockwise.
         let theta = (-(p.y + 0.125)).atan2(p.x - 1.35);
         if let Some(l) = last {
@@ -629,9 +638,10 @@ fn ldbb_circle_program_is_verified_read_back_golden_and_interpreted() {
         }
         last = Some(theta);
     }
-    // Per load: 30° lead-in, one circle, 30° lead-out.
+    // Per load: 30° lead-in, one circle, 30° lead-out (the ends off by the grid's ~40 µm at
+    // most: 0.02° of the circle).
     assert!(
-        (travel.to_degrees() - 2.0 * 420.0).abs() < 1e-3,
+        (travel.to_degrees() - 2.0 * 420.0).abs() < 0.05,
         "{}",
         travel.to_degrees()
     );
@@ -657,7 +667,44 @@ fn ldbb_circle_program_is_verified_read_back_golden_and_interpreted() {
     // LinuxCNC's interpreter reads it as written.
     crate::linuxcnc::check("ldbb-circle", &text);
 
-    // The default step: the path keeps the bar within a few µm of its length.
+    // Every bundled dialect writes the loaded circle with its own pauses and messages, and
+    // the compiler's own read-back (verify) passes on it: the same targets to the grid.
+    for (dialect, file) in [
+        ("sinumerik", "LDBB.MPF"),
+        ("krl", "ldbb.src"),
+        ("rapid", "ldbb.mod"),
+        ("urscript", "ldbb.script"),
+        ("fanuc", "LDBB.LS"),
+    ] {
+        let p = dir2.path().join(file);
+        let r = ldbb_circle(&setup, &p, &["--step", "5", "--dialect", dialect]);
+        assert_eq!(r.code, 0, "{dialect}: {}", r.stderr);
+        let t = std::fs::read_to_string(&p).unwrap();
+        assert!(
+            t.contains("125 N") && t.contains("250 N"),
+            "{dialect}: the load changes"
+        );
+        assert!(
+            t.contains("LDBB") && !t.contains("EDBB"),
+            "{dialect}: the instrument"
+        );
+        let d = edbbgen::dialect::by_name(dialect).unwrap();
+        let map = edbbgen::controller::ControllerMap::resolve(None, &d.defaults(), &d.name, &robot)
+            .unwrap();
+        let parsed = d.read(&t, &map).unwrap();
+        let back: Vec<[f64; 6]> = parsed.targets().map(|(_, q)| *q).collect();
+        assert_eq!(back.len(), poses.len(), "{dialect}: every target");
+        for (a, b) in back.iter().zip(&poses) {
+            assert!(
+                (0..6).all(|i| (a[i] - b[i]).abs() < 1e-4),
+                "{dialect}: {a:?} against ngc's {b:?}"
+            );
+        }
+    }
+
+    // The default step: the path keeps the bar within ~20 µm of its length: the chords' share
+    // is ~1 µm at 0.5°, the rest is the 0.001° grid every dialect prints (the same joint values,
+    // hence the same deviation, at every load: load differences do not see it).
     let fine = dir.path().join("fine.nc");
     let r = ldbb_circle(&setup, &fine, &[]);
     assert_eq!(r.code, 0, "{}", r.stderr);
@@ -668,7 +715,7 @@ fn ldbb_circle_program_is_verified_read_back_golden_and_interpreted() {
         .and_then(|s| s.split(' ').next())
         .and_then(|s| s.parse().ok())
         .expect("the header states the path's deviation");
-    assert!(dev < 5.0, "{dev} um");
+    assert!(dev < 20.0, "{dev} um");
 }
 
 #[test]

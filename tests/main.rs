@@ -5,11 +5,14 @@
 
 mod common;
 
+mod architecture;
 mod calibrate;
+mod catalogue;
 mod cli;
 mod cli_errors;
 mod compile;
 mod diagnose;
+mod dialects;
 mod fuzz;
 mod ldbb;
 mod linuxcnc;
@@ -18,3 +21,4 @@ mod passive;
 mod report;
 mod safety;
 mod snapshots;
+mod structure;

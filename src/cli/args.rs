@@ -49,6 +49,8 @@ pub enum Command {
     /// LDBB digital twin: loaded circle data (and a laser-tracker reference) from a truth.
     #[command(allow_negative_numbers = true)]
     SimulateLdbb(SimulateLdbbArgs),
+    /// List the bundled controller dialects (templates) and what each approximates.
+    Dialects(DialectsArgs),
     /// Calibrate: from measured EDBB runs to a calibrated robot file, with the parameters the
     /// data determine, their uncertainties and the predicted MAP position accuracy.
     #[command(allow_negative_numbers = true)]
@@ -57,6 +59,16 @@ pub enum Command {
     Completions(CompletionsArgs),
     /// Print the manual page (roff, `man -l -` reads it) on stdout.
     Man(ManArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct DialectsArgs {
+    /// Print the list as JSON (schema edbbgen.dialects/1).
+    #[arg(long)]
+    pub json: bool,
+    /// Accepted like on every subcommand; this one prints no progress.
+    #[arg(short, long)]
+    pub quiet: bool,
 }
 
 #[derive(Args, Debug)]
@@ -152,11 +164,12 @@ pub struct CompileArgs {
     /// Start configuration, degrees: the tour starts at the selected pose nearest to it.
     #[arg(long, value_name = "Q1,..,Q6", allow_hyphen_values = true)]
     pub start: Option<String>,
-    /// Output dialect (a template under templates/).
+    /// Output dialect: ngc, sinumerik, krl, rapid, urscript, fanuc (`edbbgen dialects`).
     #[arg(long, value_name = "NAME", default_value = "ngc")]
     pub dialect: String,
-    /// Use this template file instead of a bundled dialect.
-    #[arg(long, value_name = "FILE")]
+    /// Use this template file instead of a bundled dialect; it must start with
+    /// {% extends "NAME" %} (the dialect its programs are read back as).
+    #[arg(long, value_name = "FILE", conflicts_with = "dialect")]
     pub template: Option<PathBuf>,
     /// Golden-file mode: compile, compare with the file at -o, write nothing; exit 1 with a
     /// unified diff when they differ.
@@ -185,6 +198,9 @@ pub struct VerifyArgs {
     /// Fixture ball centre, mm [default: the cell file's, else the program header's].
     #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true)]
     pub fixture: Option<String>,
+    /// The program's dialect [default: from the file extension, else from its text].
+    #[arg(long, value_name = "NAME")]
+    pub dialect: Option<String>,
     #[command(flatten)]
     pub cell: CellArgs,
     /// Print the summary as JSON.
@@ -218,9 +234,12 @@ pub struct SimulateArgs {
     /// Robot description: a .urdf or a .dh.toml file.
     #[arg(value_name = "ROBOT")]
     pub robot: PathBuf,
-    /// The program to run (ngc, as `edbbgen` or `edbbgen circle` emit it).
+    /// The program to run (any bundled dialect, as `edbbgen` or `edbbgen circle` emit it).
     #[arg(value_name = "PROGRAM.nc")]
     pub program: PathBuf,
+    /// The program's dialect [default: from the file extension, else from its text].
+    #[arg(long, value_name = "NAME")]
+    pub dialect: Option<String>,
     /// The real robot: geometric errors, effects and noise.
     #[arg(long, value_name = "TRUTH.toml")]
     pub truth: PathBuf,
@@ -233,7 +252,8 @@ pub struct SimulateArgs {
     /// MAP in the flange frame, mm [default: the program's header, else the robot file's tool].
     #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true)]
     pub tool: Option<String>,
-    /// Cell file (accepted for symmetry with the compiler; the twin needs only the fixture).
+    /// Cell file: its `[controller]` section maps the program's axes to the model's joints
+    /// (the twin needs nothing else from it).
     #[arg(long, value_name = "CELL.toml")]
     pub cell: Option<PathBuf>,
     /// Bar sample rate, Hz.

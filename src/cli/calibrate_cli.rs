@@ -113,6 +113,12 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
         .map(|f| xyz_mm("--fixture", f))
         .collect::<Result<_, _>>()?;
     let fixture_of = |k: usize| fixtures[if fixtures.len() == 1 { 0 } else { k }];
+    super::check_outputs(&[
+        Some(a.output.as_path()),
+        a.json.as_deref(),
+        a.plot.as_deref(),
+        a.html.as_deref(),
+    ])?;
     let urdf = is_urdf(&a.robot);
     match (urdf, is_urdf(&a.output), is_toml(&a.output)) {
         (true, true, _) | (false, _, true) => {}

@@ -181,12 +181,18 @@ pub fn circle(a: &LdbbCircleArgs) -> Result<i32, Error> {
         }
         Ok(x)
     };
-    let opts = program::ProgramOptions {
+    let mut opts = program::ProgramOptions {
         step: positive("--step", &a.step, 10.0)? * DEG,
         blend: positive("--blend", &a.blend, 50.0)? * MM,
         stroke: positive("--stroke", &a.stroke, 50.0)? * MM,
+        program_name: String::new(),
     };
     let template = resolve_template(&a.dialect, a.template.as_deref())?;
+    let dialect = crate::dialect::Template::from_source(&template)
+        .map_err(|e| usage(e.to_string()))?
+        .dialect;
+    opts.program_name = super::program_name(&a.output, dialect)?;
+    super::check_outputs(&[Some(a.output.as_path())])?;
     let (setup, setup_text) = load_setup(&a.setup)?;
     setup.tool().map_err(|e| file_err(&a.setup, e))?;
     let base = match &a.cell {
@@ -218,6 +224,8 @@ pub fn circle(a: &LdbbCircleArgs) -> Result<i32, Error> {
     }
     let robot = load_robot(Some(&a.robot), &setup, &a.setup, &a.package_path)?
         .ok_or_else(|| usage("ROBOT: required"))?;
+    // A mapping the cell's [controller] cannot give is the cell's error, named as such.
+    super::controller_map(&spec, a.cell.as_deref(), dialect, &robot)?;
     let h = hash(&[
         robot.digest.as_bytes(),
         setup_identity(&setup_text).as_bytes(),

@@ -11,7 +11,7 @@ use crate::model::{self, IdentifyOptions, MeasurementModel, Status};
 use crate::pipeline::{self, CompileOptions};
 use crate::robot::{self, LoadOptions, Robot};
 use crate::units::{fmt_fixed, to_mm, DEG, MM};
-use args::{CellArgs, Cli, Command, CompileArgs, ModelArgs, VerifyArgs};
+use args::{CellArgs, Cli, Command, CompileArgs, DialectsArgs, ModelArgs, VerifyArgs};
 use clap::Parser;
 use nalgebra::{DMatrix, Vector3};
 use std::io::{IsTerminal, Write};
@@ -32,6 +32,8 @@ pub enum Error {
     Plot(#[from] crate::plot::PlotError),
     #[error(transparent)]
     Report(#[from] crate::report::ReportError),
+    #[error(transparent)]
+    Controller(#[from] crate::controller::ControllerError),
     #[error("{path}: {msg}")]
     File { path: String, msg: String },
 }
@@ -68,6 +70,7 @@ pub fn run(argv: Vec<std::ffi::OsString>) -> Result<i32, Error> {
         Some(Command::Ldbb(a)) => ldbb_cli::ldbb(&a),
         Some(Command::LdbbCircle(a)) => ldbb_cli::circle(&a),
         Some(Command::SimulateLdbb(a)) => ldbb_cli::simulate(&a),
+        Some(Command::Dialects(a)) => run_dialects(&a),
         Some(Command::Calibrate(a)) => calibrate_cli::calibrate(&a),
         Some(Command::Completions(a)) => {
             let mut cmd = <Cli as clap::CommandFactory>::command();
@@ -291,14 +294,21 @@ impl crate::sample::Progress for Bar {
 /// The output template: a user's file (`--template`) or a bundled dialect (`--dialect`).
 fn resolve_template(dialect: &str, file: Option<&Path>) -> Result<String, Error> {
     match file {
-        Some(p) => read_input(p, "template", crate::files::Kind::Config),
+        Some(p) => {
+            let text = read_input(p, "template", crate::files::Kind::Config)?;
+            // The dialect it extends decides how its programs are read back: checked first.
+            crate::dialect::Template::from_source(&text).map_err(|e| Error::File {
+                path: p.display().to_string(),
+                msg: e.to_string(),
+            })?;
+            Ok(text)
+        }
         None => crate::emit::dialect(dialect)
             .map(str::to_string)
             .ok_or_else(|| {
-                let names: Vec<&str> = crate::emit::DIALECTS.iter().map(|d| d.0).collect();
                 usage(format!(
                     "--dialect: unknown dialect '{dialect}' (available: {})",
-                    names.join(", ")
+                    crate::dialect::names().join(", ")
                 ))
             }),
     }
@@ -326,6 +336,22 @@ fn run_compile(a: &CompileArgs) -> Result<i32, Error> {
         return Err(usage("--max-candidates: must be at least 30"));
     }
     let template = resolve_template(&a.dialect, a.template.as_deref())?;
+    let dialect = crate::dialect::Template::from_source(&template)
+        .map_err(|e| usage(e.to_string()))?
+        .dialect;
+    let program_name = program_name(output, dialect)?;
+    if a.check && !output.is_file() {
+        return Err(Error::File {
+            path: output.display().to_string(),
+            msg: "--check: the golden file does not exist (compile without --check to write it)"
+                .into(),
+        });
+    }
+    check_outputs(&[
+        (!a.check).then_some(output.as_path()),
+        a.report.as_deref(),
+        a.html.as_deref(),
+    ])?;
     if let Some(stage) = &a.emit {
         if !EMIT_STAGES.contains(&stage.as_str()) {
             return Err(usage(format!(
@@ -336,6 +362,7 @@ fn run_compile(a: &CompileArgs) -> Result<i32, Error> {
     }
     let step = steps(&a.step)?;
     let robot = load_robot(robot_path, &a.cell, &spec)?;
+    controller_map(&spec, a.cell.cell.as_deref(), dialect, &robot)?;
     let (lo, hi) = robot.limits();
     let start = std::array::from_fn(|i| f64::clamp(start[i], lo[i], hi[i]));
     let bar_noise = scalar("--bar-noise", &a.bar_noise)?;
@@ -359,6 +386,7 @@ fn run_compile(a: &CompileArgs) -> Result<i32, Error> {
         poses: a.poses,
         blend: blend * MM,
         start,
+        program_name,
         bar_noise: bar_noise * 1e-6,
         bar_rate,
     };
@@ -373,6 +401,18 @@ fn run_compile(a: &CompileArgs) -> Result<i32, Error> {
     };
     for w in &out.warnings {
         eprintln!("edbbgen: warning: {w}");
+    }
+    let ext = output
+        .extension()
+        .map(|e| e.to_string_lossy().to_ascii_lowercase());
+    if ext.as_ref().is_none_or(|e| !dialect.extensions.contains(e)) {
+        eprintln!(
+            "edbbgen: warning: {}: a {} program usually ends in .{}; verify and simulate then need --dialect {}",
+            output.display(),
+            dialect.name,
+            dialect.extensions[0],
+            dialect.name
+        );
     }
     if let Some(stage) = &a.emit {
         println!("{}", emit_stage(&out, stage));
@@ -440,6 +480,121 @@ fn run_compile(a: &CompileArgs) -> Result<i32, Error> {
     Ok(0)
 }
 
+/// The program name from the output file's stem; languages whose program name must equal the
+/// file name (KRL, FANUC) refuse a stem they cannot carry.
+fn program_name(output: &Path, dialect: &crate::dialect::Dialect) -> Result<String, Error> {
+    let stem = output
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    if dialect.name_must_match_file && !crate::dialect::valid_name(&stem, dialect.name_max) {
+        return Err(usage(format!(
+            "-o: '{}': a {} program's name is its file name, which must be letters, digits and _, a letter first, at most {} characters",
+            output.display(),
+            dialect.name,
+            dialect.name_max
+        )));
+    }
+    Ok(stem)
+}
+
+/// The controller mapping for `dialect`: the cell's `[controller]` over the dialect's defaults;
+/// an error names the cell file.
+pub(crate) fn controller_map(
+    spec: &CellSpec,
+    cell: Option<&Path>,
+    dialect: &crate::dialect::Dialect,
+    robot: &Robot,
+) -> Result<crate::controller::ControllerMap, Error> {
+    crate::controller::ControllerMap::resolve(
+        spec.controller.as_ref(),
+        &dialect.defaults(),
+        &dialect.name,
+        robot,
+    )
+    .map_err(|e| Error::File {
+        path: cell.map_or_else(
+            || format!("--dialect {}", dialect.name),
+            |p| p.display().to_string(),
+        ),
+        msg: e.to_string(),
+    })
+}
+
+/// The dialect of a program file to read: `--dialect`, else its extension, else its text.
+pub(crate) fn program_dialect(
+    flag: Option<&str>,
+    path: &Path,
+    text: &str,
+) -> Result<&'static crate::dialect::Dialect, Error> {
+    match flag {
+        Some(name) => crate::dialect::by_name(name).ok_or_else(|| {
+            usage(format!(
+                "--dialect: unknown dialect '{name}' (available: {})",
+                crate::dialect::names().join(", ")
+            ))
+        }),
+        None => crate::dialect::detect(path, text).ok_or_else(|| Error::File {
+            path: path.display().to_string(),
+            msg: format!(
+                "cannot tell the program's dialect from its name or text; give --dialect ({})",
+                crate::dialect::names().join(", ")
+            ),
+        }),
+    }
+}
+
+// ---- dialects -----------------------------------------------------------------------------
+
+fn run_dialects(a: &DialectsArgs) -> Result<i32, Error> {
+    let all = crate::dialect::all();
+    if a.json {
+        let list: Vec<serde_json::Value> = all
+            .iter()
+            .map(|d| {
+                serde_json::json!({
+                    "name": d.name,
+                    "title": d.title,
+                    "extensions": d.extensions,
+                    "units": d.units,
+                    "units_configurable": d.units_configurable,
+                    "axis_names": d.axis_names,
+                    "axis_names_configurable": d.axis_names_configurable,
+                    "j3_coupling": d.j3_coupling,
+                    "name_max": d.name_max,
+                    "name_must_match_file": d.name_must_match_file,
+                    "approximations": d.approximations,
+                })
+            })
+            .collect();
+        let doc = serde_json::json!({"schema": "edbbgen.dialects/1", "dialects": list});
+        println!("{}", serde_json::to_string_pretty(&doc).unwrap_or_default());
+        return Ok(0);
+    }
+    for d in all {
+        let coupling = match d.j3_coupling {
+            crate::controller::Coupling::Factor(0) => "no J2/J3 coupling".to_string(),
+            crate::controller::Coupling::Factor(k) => format!("J3 coupling {k}"),
+            crate::controller::Coupling::Auto(_) => {
+                "J3 measured from the horizontal (coupling from the robot's joint axes)".to_string()
+            }
+        };
+        println!(
+            "{:<10} .{:<8} {}; axes {} in {}; {}",
+            d.name,
+            d.extensions[0],
+            d.title,
+            d.axis_names.join(" "),
+            d.units.name(),
+            coupling
+        );
+        for ap in &d.approximations {
+            println!("{:<20}approximates: {ap}", "");
+        }
+    }
+    Ok(0)
+}
+
 const EMIT_STAGES: &[&str] = &[
     "model",
     "identifiability",
@@ -478,6 +633,30 @@ fn read_input(path: &Path, what: &str, kind: crate::files::Kind) -> Result<Strin
             other => other.to_string(),
         },
     })
+}
+
+/// Refuses, before any work, an output whose directory does not exist or is not a directory:
+/// a long compile must not end in "cannot write".
+pub(crate) fn check_outputs(paths: &[Option<&Path>]) -> Result<(), Error> {
+    for path in paths.iter().flatten() {
+        let dir = match path.parent() {
+            Some(d) if !d.as_os_str().is_empty() => d,
+            _ => Path::new("."),
+        };
+        if !dir.is_dir() {
+            return Err(Error::File {
+                path: path.display().to_string(),
+                msg: format!("cannot write: directory {} does not exist", dir.display()),
+            });
+        }
+        if path.is_dir() {
+            return Err(Error::File {
+                path: path.display().to_string(),
+                msg: "cannot write: it is a directory".into(),
+            });
+        }
+    }
+    Ok(())
 }
 
 fn write_atomic(path: &Path, text: &str) -> Result<(), Error> {
@@ -543,18 +722,20 @@ struct VerifyReport<'a> {
 fn run_verify(a: &VerifyArgs) -> Result<i32, Error> {
     let spec = resolve_cell(&a.cell)?;
     let text = read_input(&a.program, "program", crate::files::Kind::Program)?;
-    let parsed = crate::verify::gcode::parse(&text).map_err(|e| Error::File {
+    let dialect = program_dialect(a.dialect.as_deref(), &a.program, &text)?;
+    let robot = load_robot(&a.robot, &a.cell, &spec)?;
+    let axes = controller_map(&spec, a.cell.cell.as_deref(), dialect, &robot)?;
+    let parsed = dialect.read(&text, &axes).map_err(|e| Error::File {
         path: a.program.display().to_string(),
-        msg: e.to_string(),
+        msg: format!("{} program: {e}", dialect.name),
     })?;
     if parsed.targets().next().is_none() {
         return Err(Error::File {
             path: a.program.display().to_string(),
-            msg: "the program commands no motion (no G0/G1 line): nothing to verify".into(),
+            msg: "the program commands no motion: nothing to verify".into(),
         });
     }
     let fixture = resolve_fixture(a.fixture.as_deref(), &spec, parsed.header_value("fixture"))?;
-    let robot = load_robot(&a.robot, &a.cell, &spec)?;
     // MAP: flag or cell, else the program header's, else the robot file's.
     let header_map = match (spec.map, parsed.header_value("MAP")) {
         (None, Some(h)) => Some(xyz_mm(
@@ -568,7 +749,7 @@ fn run_verify(a: &VerifyArgs) -> Result<i32, Error> {
     let model = MeasurementModel::new(&robot, fixture, map);
     let (scene, scene_report) = pipeline::build_scene(&robot, &spec, &fixture, &map)?;
     let ck = crate::safety::Checker::new(&robot, &model, &cell, &scene, spec.margin);
-    match crate::verify::check_text(&ck, &robot, &text) {
+    match crate::verify::check(&ck, &robot, &parsed) {
         Ok(s) => {
             if a.json {
                 let report = VerifyReport {

@@ -48,7 +48,15 @@ pub fn simulate(a: &SimulateArgs) -> Result<i32, Error> {
     }
     let robot = load(&a.robot)?;
     let text = read(&a.program, "program", crate::files::Kind::Program)?;
-    let parsed = crate::verify::gcode::parse(&text).map_err(|e| file_err(&a.program, e))?;
+    let spec = match &a.cell {
+        Some(p) => crate::cell::load(p)?,
+        None => Default::default(),
+    };
+    let dialect = super::program_dialect(a.dialect.as_deref(), &a.program, &text)?;
+    let axes = super::controller_map(&spec, a.cell.as_deref(), dialect, &robot)?;
+    let parsed = dialect
+        .read(&text, &axes)
+        .map_err(|e| file_err(&a.program, format!("{} program: {e}", dialect.name)))?;
     let truth_text = read(&a.truth, "truth", crate::files::Kind::Config)?;
     let truth = Truth::from_toml(&truth_text).map_err(|e| file_err(&a.truth, e))?;
     let fixture = match &a.fixture {

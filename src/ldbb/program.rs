@@ -38,6 +38,9 @@ pub struct ProgramOptions {
     pub blend: f64,
     /// The LVDT's usable range either side of the nominal bar length (m).
     pub stroke: f64,
+    /// The program's name for the controller (the output file's stem; made a valid name for
+    /// the dialect when it is not one).
+    pub program_name: String,
 }
 
 impl Default for ProgramOptions {
@@ -46,6 +49,7 @@ impl Default for ProgramOptions {
             step: 0.5 * DEG,
             blend: 0.5 * MM,
             stroke: 2.0 * MM,
+            program_name: String::new(),
         }
     }
 }
@@ -209,6 +213,11 @@ pub fn compile(
             } else {
                 "release the load; the LDBB may stay mounted, the next move is a standstill".into()
             },
+            section: j + 1,
+            remove_before: j > 0,
+            mount_after: true,
+            axes: [0.0; 6],
+            speed_pct: 0.0,
         });
         for s in 1..=per_load {
             let k = start + s as i64;
@@ -254,6 +263,11 @@ pub fn compile(
                 note,
                 pause: String::new(),
                 pause_before: String::new(),
+                section: j + 1,
+                remove_before: false,
+                mount_after: false,
+                axes: [0.0; 6],
+                speed_pct: 0.0,
             });
         }
         start += per_load as i64;
@@ -345,9 +359,36 @@ pub fn compile(
         predicted_std_um: 0.0,
         bar_noise_um: 0.0,
         bar_rate_hz: 0.0,
+        program_name: opts.program_name.clone(),
+        dialect: String::new(),
+        controller: String::new(),
+        axis_names: Vec::new(),
+        axis_units: String::new(),
+        axis_decimals: 0,
     };
-    let program = Program { header, moves };
-    let text = crate::emit::render(template, &program).map_err(ProgramError::Template)?;
+    let base = Program { header, moves };
+    let template = crate::dialect::Template::from_source(template)
+        .map_err(|e| ProgramError::Template(e.to_string()))?;
+    let cmap = crate::controller::ControllerMap::resolve(
+        spec.controller.as_ref(),
+        &template.dialect.defaults(),
+        &template.dialect.name,
+        robot,
+    )
+    .map_err(|e| input(e.to_string()))?;
+    let mut program = crate::emit::target(&base, template.dialect, &cmap, &speeds);
+    let h = &mut program.header;
+    if !crate::dialect::valid_name(&h.program_name, template.dialect.name_max) {
+        h.program_name = crate::emit::ident(
+            if h.program_name.is_empty() {
+                "LDBB_CIRCLE"
+            } else {
+                &h.program_name
+            },
+            template.dialect.name_max,
+        );
+    }
+    let text = crate::emit::render(&template, &program).map_err(ProgramError::Template)?;
 
     // Check the text, not the memory: the same `verify` as every program.
     let (scene, _) = crate::pipeline::build_scene(robot, spec, &table, &map)
@@ -355,7 +396,7 @@ pub fn compile(
     let cellv =
         crate::pipeline::make_cell(robot, table, map, spec).map_err(|e| input(e.to_string()))?;
     let ck = crate::safety::Checker::new(robot, &model, &cellv, &scene, spec.margin);
-    let verified = crate::verify::check_text(&ck, robot, &text)
+    let verified = crate::verify::check_text(&ck, robot, &text, template.dialect, &cmap)
         .map_err(|f| ProgramError::Unsafe(f.to_string()))?;
     Ok(Compiled {
         program,
