@@ -155,7 +155,7 @@ pub fn knee(curve: &[(usize, f64)], m: usize) -> (usize, String) {
 /// 3. the exact score for those not ruled out either.
 ///
 /// A candidate is skipped only when a bound exceeds the best exact score of the step by a
-/// relative margin above rounding (see [`slack`]), so the skipped ones provably score worse and
+/// relative margin above rounding (see `slack`), so the skipped ones provably score worse and
 /// the choice, tie-break by index included, is the exhaustive one. The Gram matrix, its
 /// eigendecomposition and the exact scores use the reference's arithmetic (the same functions),
 /// so the curve is bit for bit the same. Greedy elimination makes the extreme eigenvalues
