@@ -11,6 +11,7 @@ mod catalogue;
 mod cli;
 mod cli_errors;
 mod compile;
+mod determinism;
 mod diagnose;
 mod dialects;
 mod fuzz;
