@@ -376,11 +376,6 @@ fn cases(f: &Fixtures) -> Vec<Case> {
             "-o",
         ),
         case(
-            "check without golden",
-            &[nj, "--fixture", fix, "--check", "-o", nc],
-            "out.nc",
-        ),
-        case(
             "output dir missing",
             &[nj, "--fixture", fix, "-o", &o("no/such/dir/p.nc")],
             "p.nc",

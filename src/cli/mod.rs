@@ -340,13 +340,6 @@ fn run_compile(a: &CompileArgs) -> Result<i32, Error> {
         .map_err(|e| usage(e.to_string()))?
         .dialect;
     let program_name = program_name(output, dialect)?;
-    if a.check && !output.is_file() {
-        return Err(Error::File {
-            path: output.display().to_string(),
-            msg: "--check: the golden file does not exist (compile without --check to write it)"
-                .into(),
-        });
-    }
     check_outputs(&[
         (!a.check).then_some(output.as_path()),
         a.report.as_deref(),
