@@ -33,6 +33,7 @@ pub mod ir;
 pub mod model;
 pub mod order;
 pub mod pipeline;
+pub mod place;
 pub mod plot;
 pub mod report;
 pub mod robot;

@@ -3,6 +3,7 @@
 
 pub mod args;
 mod calibrate_cli;
+mod place_cli;
 mod twin_cli;
 
 use crate::cell::CellSpec;
@@ -31,6 +32,8 @@ pub enum Error {
     Plot(#[from] crate::plot::PlotError),
     #[error(transparent)]
     Report(#[from] crate::report::ReportError),
+    #[error(transparent)]
+    Place(#[from] crate::place::PlaceError),
     #[error("{path}: {msg}")]
     File { path: String, msg: String },
 }
@@ -65,6 +68,7 @@ pub fn run(argv: Vec<std::ffi::OsString>) -> Result<i32, Error> {
         Some(Command::Diagnose(a)) => twin_cli::diagnose(&a),
         Some(Command::Circle(a)) => twin_cli::circle(&a),
         Some(Command::Calibrate(a)) => calibrate_cli::calibrate(&a),
+        Some(Command::Place(a)) => place_cli::place(&a),
         Some(Command::Completions(a)) => {
             let mut cmd = <Cli as clap::CommandFactory>::command();
             clap_complete::generate(a.shell, &mut cmd, "edbbgen", &mut std::io::stdout());
