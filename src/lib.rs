@@ -17,6 +17,8 @@
 //! - [`twin`]: the digital twin (truth model, effects library, program timing, simulation) and
 //!   the ISO 230-4 circle test; [`diagnose`]: measured vs simulated, calibration, effect
 //!   selection, report.
+//! - [`place`]: where the fixture goes: candidate positions scored by the MAP position
+//!   uncertainty a calibration from a program compiled there would reach; campaigns of K.
 //!
 //! Internally everything is SI (m, rad, s); millimetres and degrees exist only at the edges.
 

@@ -14,6 +14,7 @@ mod fuzz;
 mod linuxcnc;
 mod model_cmd;
 mod passive;
+mod place;
 mod report;
 mod safety;
 mod snapshots;

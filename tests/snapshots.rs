@@ -9,6 +9,7 @@ const CASES: &[&str] = &[
     "gcode@nj130_default",
     "html@nj130_default",
     "html@nj130_diagnosis",
+    "place@nj130_small",
 ];
 
 pub fn assert_golden(name: &str, text: &str) {

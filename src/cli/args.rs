@@ -45,7 +45,7 @@ pub enum Command {
     /// Where to put the fixture: candidate positions scored by the MAP position uncertainty a
     /// calibration from a program compiled there would reach; the best campaign of K positions.
     #[command(allow_negative_numbers = true)]
-    Place(PlaceArgs),
+    Place(Box<PlaceArgs>),
     /// Print a shell completion script (bash, zsh, fish, elvish, powershell) on stdout.
     Completions(CompletionsArgs),
     /// Print the manual page (roff, `man -l -` reads it) on stdout.

@@ -102,7 +102,8 @@ fn optimise<'a>(
         evals += trials.len();
         let (v, i) = best_of(&trials);
         // A swap must improve by more than rounding: no cycling between equals.
-        if !(v < value * (1.0 - 1e-9)) {
+        let improves = v < value * (1.0 - 1e-9);
+        if !improves {
             break;
         }
         value = v;

@@ -204,35 +204,6 @@ pub fn evaluate(ctx: &Context, fixture: &Vector3<f64>) -> Result<Found, Status> 
     })
 }
 
-/// Experiment: (selected-poses proxy, whole-pool proxy), µm.
-pub fn score_variants(ctx: &Context, fixture: &Vector3<f64>, search: &[[f64; 6]]) -> (f64, f64) {
-    match evaluate(ctx, fixture) {
-        Err(_) => (f64::INFINITY, f64::INFINITY),
-        Ok(f) => {
-            let chosen: Vec<[f64; N_PARAMS]> = f.selected.iter().map(|&i| f.rows[i]).collect();
-            let a = predict::expected(
-                &f.model,
-                &[&predict::readings_information(&chosen)],
-                ctx.noise,
-                &ctx.prior,
-                search,
-            );
-            let b = predict::expected(
-                &f.model,
-                &[&predict::readings_information(&f.rows)],
-                ctx.noise,
-                &ctx.prior,
-                search,
-            );
-            let rms = |e: &predict::Expected| predict::spread(&e.combined).rms * 1e6;
-            (
-                rms(&a),
-                rms(&b) * (f.rows.len() as f64 / f.selected.len() as f64).sqrt(),
-            )
-        }
-    }
-}
-
 /// The proxy of one fixture position.
 pub fn score(
     ctx: &Context,

@@ -472,12 +472,18 @@ pub fn text(rep: &Report, show: usize) -> String {
     t += "\n";
     let usable = rep.ranking.len();
     if let Some(b) = &rep.best {
+        let is_current = rep.current.as_ref().is_some_and(|c| c.index == b.index);
         t += &format!(
-            "best: {} mm, {} um (rank 1 of {usable})",
+            "best: {}{} mm, {} um (rank 1 of {usable})",
+            if is_current {
+                "the cell's fixture, "
+            } else {
+                ""
+            },
             f3(&b.fixture_mm),
             b.score_um.map_or_else(|| "-".into(), um)
         );
-        if let (Some(cur), Some(ratio)) = (&rep.current, b.ratio) {
+        if let (false, Some(cur), Some(ratio)) = (is_current, &rep.current, b.ratio) {
             t += &format!(
                 "; {} x better than the cell's fixture ({} um, rank {} of {usable})",
                 fmt_fixed(ratio, 2),

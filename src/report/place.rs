@@ -96,23 +96,28 @@ pub fn page(robot: &Robot, rep: &Report, show: usize) -> Result<Page, ReportErro
     let ring_r = 0.03 * (0..3).map(span).fold(0.0, f64::max).max(100.0);
 
     let panel = |name: &str, v: (usize, usize)| {
-        let mut series = vec![
-            Series {
-                label: "robot at q = 0".into(),
-                points: project(&sticks, v),
-                mark: Mark::Segments,
-                colour: GREY,
-            },
-            Series::dots("not usable", GREY, project(&unusable, v)),
-        ];
-        for (k, (_, colour, label)) in CLASSES.iter().enumerate().rev() {
-            series.push(Series::dots(*label, *colour, project(&classes[k], v)));
+        let mut series = vec![Series {
+            label: "robot at q = 0".into(),
+            points: project(&sticks, v),
+            mark: Mark::Segments,
+            colour: GREY,
+        }];
+        // Only the classes that occur: the legend names what is drawn.
+        if !unusable.is_empty() {
+            series.push(Series::dots("not usable", GREY, project(&unusable, v)));
         }
-        series.push(Series::dots(
-            "the cell's fixture",
-            BLACK,
-            project(&current, v),
-        ));
+        for (k, (_, colour, label)) in CLASSES.iter().enumerate().rev() {
+            if !classes[k].is_empty() {
+                series.push(Series::dots(*label, *colour, project(&classes[k], v)));
+            }
+        }
+        if !current.is_empty() {
+            series.push(Series::dots(
+                "the cell's fixture",
+                BLACK,
+                project(&current, v),
+            ));
+        }
         series.push(Series::line(
             if rep.campaign.is_some() {
                 "campaign"
@@ -183,10 +188,12 @@ pub fn page(robot: &Robot, rep: &Report, show: usize) -> Result<Page, ReportErro
                 fmt_fixed(b.fixture_mm[1], 1),
                 fmt_fixed(b.fixture_mm[2], 1),
                 b.score_um.map_or_else(|| "-".into(), um),
-                b.ratio.map_or_else(String::new, |r| format!(
-                    ", {}× better than the cell's fixture",
-                    fmt_fixed(r, 2)
-                ))
+                b.ratio
+                    .filter(|_| rep.current.as_ref().map(|c| c.index) != Some(b.index))
+                    .map_or_else(String::new, |r| format!(
+                        ", {}× better than the cell's fixture",
+                        fmt_fixed(r, 2)
+                    ))
             ),
         ));
     }
