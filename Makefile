@@ -2,7 +2,7 @@
 CARGO ?= cargo
 NJ130 := robots/comau_nj130/robot.dh.toml
 
-.PHONY: build run test check fmt clippy doc snapshots bench bench-peers bench-diagnose paper calibration ci fuzz
+.PHONY: build run test check fmt clippy doc snapshots bench bench-peers bench-diagnose paper calibration ci fuzz rapidchecker
 
 build:
 	$(CARGO) build --release --locked
@@ -10,6 +10,13 @@ build:
 # The main job: the error-sensitive program for the bundled NJ-130 cell (the paper's fixture).
 run: build
 	target/release/edbbgen $(NJ130) --fixture 258,1468,708 -o nj130.nc
+
+# ABB's RAPID grammar checker (PyPI: rapidchecker) in a venv under target/, where the tests look
+# for it (tests/dialects.rs; in CI a missing checker fails the test).
+RAPIDCHECKER_VENV := target/rapidchecker-venv
+rapidchecker:
+	test -x $(RAPIDCHECKER_VENV)/bin/python || python3 -m venv $(RAPIDCHECKER_VENV)
+	$(RAPIDCHECKER_VENV)/bin/python -c "import rapidchecker" 2>/dev/null || $(RAPIDCHECKER_VENV)/bin/pip install -q rapidchecker==0.1.5
 
 # The test command the README gives.
 test:
@@ -64,7 +71,7 @@ bench-peers: build
 # fuzz/artifacts/ (each one becomes a regression case in tests/fuzz.rs). Not part of CI: the
 # stable proptest side (tests/fuzz.rs) runs in `make test`.
 FUZZ_SECONDS ?= 600
-FUZZ_TARGETS := dh urdf mesh cell truth measured_csv gcode template
+FUZZ_TARGETS := dh urdf mesh cell truth measured_csv gcode template ldbb
 fuzz:
 	rustup toolchain list | grep -q nightly || rustup toolchain install nightly --profile minimal
 	command -v cargo-fuzz >/dev/null || $(CARGO) install cargo-fuzz --locked

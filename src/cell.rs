@@ -49,8 +49,15 @@
 //! [safety]
 //! margin = 10.0                       # minimum clearance between any two bodies (mm)
 //! joint_margin = 1.0                  # distance kept from every joint limit (deg)
+//! [controller]                        # model joints -> the controller's axes (every key
+//!                                     # optional; the dialect's defaults fill the rest)
+//! sign = [1, 1, 1, 1, 1, 1]           # +1 or -1 per joint
+//! offset = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0]   # controller value at model zero (deg)
+//! j3_coupling = 0                     # J3 = sign3*q3 + k*q2 + offset3: -1, 0, 1 or "auto"
+//! units = "deg"                       # "deg" | "rad", where the language leaves it open
 //! ```
 
+use crate::controller::ControllerSpec;
 use crate::robot::Frame;
 use crate::units::{DEG, MM};
 use nalgebra::Vector3;
@@ -112,7 +119,7 @@ pub struct CellSpec {
     pub ball: f64,
     pub map: Option<Vector3<f64>>,
     /// Unit cup axis in the flange frame; None = the joint-6 axis pointing away from the wrist
-    /// ([`crate::pipeline::default_cup_axis`]).
+    /// (the compiler's default).
     pub tool_axis: Option<Vector3<f64>>,
     pub tool_cone: f64,
     pub tool_shapes: Vec<Shape>,
@@ -129,8 +136,16 @@ pub struct CellSpec {
     /// Distance kept from every joint limit (rad): controllers enforce soft limits and
     /// overshoot slightly when blending, so no pose or motion may come closer.
     pub joint_margin: f64,
+    /// Model joints → controller axes (`[controller]`); None = the dialect's defaults.
+    /// Skipped when absent so that cells without it keep their input hash.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub controller: Option<ControllerSpec>,
 }
 
+/// Usable bar length (ball-centre distance) when neither the cell nor `--bar` gives one (mm).
+pub const DEFAULT_BAR_MM: (f64, f64) = (300.0, 520.0);
+/// Ball diameter assumed when none is given (precision ball-bar balls are 12.7–25.4 mm).
+pub const DEFAULT_BALL_MM: f64 = 25.0;
 pub const DEFAULT_CONE_DEG: f64 = 60.0;
 pub const DEFAULT_JOINT_MARGIN_DEG: f64 = 1.0;
 pub const DEFAULT_BAR_DIAMETER_MM: f64 = 30.0;
@@ -144,10 +159,10 @@ impl Default for CellSpec {
             fixture_axis: Vector3::z(),
             fixture_cone: DEFAULT_CONE_DEG * DEG,
             stand_radius: DEFAULT_STAND_RADIUS_MM * MM,
-            bar_min: crate::pipeline::DEFAULT_BAR_MM.0 * MM,
-            bar_max: crate::pipeline::DEFAULT_BAR_MM.1 * MM,
+            bar_min: DEFAULT_BAR_MM.0 * MM,
+            bar_max: DEFAULT_BAR_MM.1 * MM,
             bar_diameter: DEFAULT_BAR_DIAMETER_MM * MM,
-            ball: crate::pipeline::DEFAULT_BALL_MM * MM,
+            ball: DEFAULT_BALL_MM * MM,
             map: None,
             tool_axis: None,
             tool_cone: DEFAULT_CONE_DEG * DEG,
@@ -162,6 +177,7 @@ impl Default for CellSpec {
             speeds: None,
             margin: DEFAULT_MARGIN_MM * MM,
             joint_margin: DEFAULT_JOINT_MARGIN_DEG * DEG,
+            controller: None,
         }
     }
 }
@@ -199,6 +215,8 @@ struct File {
     robot: Option<RobotT>,
     #[serde(default)]
     safety: Option<SafetyT>,
+    #[serde(default)]
+    controller: Option<ControllerSpec>,
 }
 
 #[derive(Deserialize)]
@@ -290,9 +308,15 @@ struct ShapeT {
 
 /// Loads a cell file. Relative mesh paths resolve against the file's folder.
 pub fn load(path: &Path) -> Result<CellSpec, CellError> {
-    let text = std::fs::read_to_string(path).map_err(|source| CellError::Io {
-        path: path.display().to_string(),
-        source,
+    let text = crate::files::read_text(path, crate::files::Kind::Config).map_err(|e| match e {
+        crate::files::ReadError::Io(source) => CellError::Io {
+            path: path.display().to_string(),
+            source,
+        },
+        other => CellError::Invalid {
+            path: path.display().to_string(),
+            msg: other.to_string(),
+        },
     })?;
     from_str(&text, path)
 }
@@ -428,6 +452,7 @@ pub fn from_str(text: &str, path: &Path) -> Result<CellSpec, CellError> {
             c.joint_margin = m * DEG;
         }
     }
+    c.controller = f.controller;
     Ok(c)
 }
 

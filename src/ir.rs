@@ -45,10 +45,12 @@ pub enum Reason {
     SocketCone,
     CupCone,
     Collision,
+    /// The program text itself: unreadable, or written for another controller mapping.
+    Program,
 }
 
 impl Reason {
-    pub const ALL: [Reason; 8] = [
+    pub const ALL: [Reason; 9] = [
         Reason::JointLimit,
         Reason::JointSpeed,
         Reason::CableLimit,
@@ -57,6 +59,7 @@ impl Reason {
         Reason::SocketCone,
         Reason::CupCone,
         Reason::Collision,
+        Reason::Program,
     ];
 
     pub fn name(self) -> &'static str {
@@ -69,6 +72,7 @@ impl Reason {
             Reason::SocketCone => "socket_cone",
             Reason::CupCone => "cup_cone",
             Reason::Collision => "collision",
+            Reason::Program => "program",
         }
     }
 }
@@ -205,7 +209,10 @@ pub struct Path {
     pub time_sorted: f64,
 }
 
-/// Dialect-free program: what `emit` renders.
+/// The program: what `emit` renders, and the whole context of every template (`h` = the
+/// header, `moves`). The plan (poses, order, blends, times) is the same for every dialect;
+/// [`crate::emit::target`] fills the fields that depend on the controller (the dialect, the
+/// mapping, each move's axis values and speed percentage) before rendering.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Program {
     pub header: Header,
@@ -214,6 +221,15 @@ pub struct Program {
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Header {
+    /// The program's first line: what it is ("EDBB error-sensitive measurement program").
+    #[serde(default = "edbb_title")]
+    pub title: String,
+    /// The instrument the pauses mount and remove ("EDBB", "LDBB").
+    #[serde(default = "edbb_instrument")]
+    pub instrument: String,
+    /// Further header lines a program kind adds (each one comment line), after the standard ones.
+    #[serde(default)]
+    pub notes: Vec<String>,
     pub tool_version: String,
     pub robot: String,
     pub robot_file: String,
@@ -240,6 +256,23 @@ pub struct Header {
     pub predicted_std_um: f64,
     pub bar_noise_um: f64,
     pub bar_rate_hz: f64,
+    /// The program's name (the output file's stem): KRL's DEF, FANUC's /PROG, RAPID's MODULE.
+    #[serde(default)]
+    pub program_name: String,
+    /// The dialect the program is written in (`ngc`, `krl`, ...).
+    #[serde(default)]
+    pub dialect: String,
+    /// The controller mapping in one line (`J1 = q1, ..., J3 = q3 - q2, ..., in deg`):
+    /// `verify` refuses a program whose mapping differs from the one in force.
+    #[serde(default)]
+    pub controller: String,
+    /// The controller's axis names, their unit (`deg` or `rad`) and printed decimals.
+    #[serde(default)]
+    pub axis_names: Vec<String>,
+    #[serde(default)]
+    pub axis_units: String,
+    #[serde(default)]
+    pub axis_decimals: usize,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -258,4 +291,40 @@ pub struct Move {
     pub time_s: f64,
     /// Predicted bar length at the target (mm).
     pub length_mm: f64,
+    /// The annotation of the move's line when not empty (else pose, length and time).
+    #[serde(default)]
+    pub note: String,
+    /// A transit's instruction at the pause after it, when not empty (else: mount the bar).
+    #[serde(default)]
+    pub pause: String,
+    /// A transit's instruction at the pause before it, when not empty (else: remove the bar).
+    #[serde(default)]
+    pub pause_before: String,
+    /// Section (1-based): the bar is remounted between sections.
+    #[serde(default)]
+    pub section: usize,
+    /// The operator removes the bar before this move (the transit to the next section).
+    #[serde(default)]
+    pub remove_before: bool,
+    /// The operator mounts the bar after this move (its target is a section's first pose).
+    #[serde(default)]
+    pub mount_after: bool,
+    /// The target as controller axis values (the header's units), exactly as printed.
+    #[serde(default)]
+    pub axes: [f64; 6],
+    /// The percentage of every controller axis's maximum speed that makes this move take
+    /// `time_s`, the slowest axis leading (100 for the approach; above 100 where the move
+    /// cannot be that fast on the controller's axes: the template caps it).
+    #[serde(default)]
+    pub speed_pct: f64,
+}
+
+pub const EDBB_TITLE: &str = "EDBB error-sensitive measurement program";
+
+fn edbb_title() -> String {
+    EDBB_TITLE.to_string()
+}
+
+fn edbb_instrument() -> String {
+    "EDBB".to_string()
 }

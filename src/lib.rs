@@ -19,6 +19,8 @@
 //!   selection, report.
 //! - [`place`]: where the fixture goes: candidate positions scored by the MAP position
 //!   uncertainty a calibration from a program compiled there would reach; campaigns of K.
+//! - [`ldbb`]: the loaded double ball bar (Sections 2.2, 3.2, 4.2): compliance along the bar,
+//!   Eq. 8 and 9, the kinematic remainder, joint stiffness; its circle program and simulator.
 //!
 //! Internally everything is SI (m, rad, s); millimetres and degrees exist only at the edges.
 
@@ -29,9 +31,13 @@ pub mod calibrate;
 pub mod cell;
 pub mod cli;
 pub mod collision;
+pub mod controller;
 pub mod diagnose;
+pub mod dialect;
 pub mod emit;
+pub mod files;
 pub mod ir;
+pub mod ldbb;
 pub mod model;
 pub mod order;
 pub mod pipeline;

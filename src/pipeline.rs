@@ -6,6 +6,8 @@
 
 use crate::cell::CellSpec;
 use crate::collision::{self, Scene, SceneReport};
+use crate::controller::ControllerMap;
+use crate::dialect::Template;
 use crate::emit;
 use crate::ir::{Cell, Header, Move, Path, Pool, Program, Reason, Selection};
 use crate::model::{self, Identifiability, IdentifyOptions, MeasurementModel, N_PARAMS};
@@ -41,6 +43,10 @@ pub struct CompileOptions {
     /// calibration uncertainty assumes.
     pub bar_noise: f64,
     pub bar_rate: f64,
+    /// The program's name (KRL's DEF, FANUC's /PROG, RAPID's MODULE): the output file's stem.
+    /// Not part of the input hash: the text carries it.
+    #[serde(skip)]
+    pub program_name: String,
 }
 
 impl CompileOptions {
@@ -57,11 +63,12 @@ impl CompileOptions {
             start: [0.0; 6],
             bar_noise: DEFAULT_BAR_NOISE_UM * 1e-6,
             bar_rate: DEFAULT_BAR_RATE_HZ,
+            program_name: DEFAULT_PROGRAM_NAME.to_string(),
         }
     }
 }
 
-pub const DEFAULT_BAR_MM: (f64, f64) = (300.0, 520.0);
+pub use crate::cell::{DEFAULT_BALL_MM, DEFAULT_BAR_MM};
 pub const DEFAULT_STEP_DEG: f64 = 10.0;
 pub const DEFAULT_MAX_CANDIDATES: usize = 3400;
 pub const DEFAULT_SEED: u64 = 1;
@@ -71,8 +78,8 @@ pub const DEFAULT_BAR_NOISE_UM: f64 = 1.0;
 pub const DEFAULT_BAR_RATE_HZ: f64 = 50.0;
 /// Random joint poses over which predicted accuracies are stated (seeded).
 pub const PREDICTION_POSES: usize = 2000;
-/// Ball diameter assumed when none is given (precision ball-bar balls are 12.7–25.4 mm).
-pub const DEFAULT_BALL_MM: f64 = 25.0;
+/// The program name when none is given.
+pub const DEFAULT_PROGRAM_NAME: &str = "EDBB";
 /// Measurement poses keep this far from the bar's ends and the cone edges, so that the joint
 /// moves between them (which bow) have room; moves are checked against the full limits.
 pub const POSE_INSET_BAR_MM: f64 = 5.0;
@@ -130,6 +137,14 @@ pub enum PipelineError {
     AllRejected(String),
     #[error("only {0} valid poses in the cell, too few to identify the robot's parameters (30 or more are needed): refine --step, widen --bar or the cones, or move the fixture")]
     TooFewPoses(usize),
+    #[error(
+        "--step: {step_deg} deg gives {points:.1e} grid points on joints 2-6, more than the {GRID_LIMIT:.0e} the sampler enumerates in reasonable time: use a step of at least {min_step_deg:.2} deg"
+    )]
+    GridTooLarge {
+        step_deg: String,
+        points: f64,
+        min_step_deg: f64,
+    },
     #[error("collision model: {0}")]
     Collision(String),
     #[error(transparent)]
@@ -138,6 +153,8 @@ pub enum PipelineError {
     Order(#[from] order::OrderError),
     #[error("template: {0}")]
     Template(String),
+    #[error(transparent)]
+    Controller(#[from] crate::controller::ControllerError),
     #[error("refusing to write an unsafe program: {0}")]
     Unsafe(String),
 }
@@ -431,6 +448,10 @@ pub fn compile(
     template: &str,
     progress: &dyn Progress,
 ) -> Result<Compiled, PipelineError> {
+    // The template and its controller mapping are checked before the long work starts.
+    let template =
+        Template::from_source(template).map_err(|e| PipelineError::Template(e.to_string()))?;
+    let axes = controller_map(robot, opts, &template)?;
     let (map, mut warnings) = resolve_map(robot, opts.cell.map);
     warnings.extend(robot.notes.iter().cloned());
     let cell = make_cell(robot, opts.fixture, map, &opts.cell)?;
@@ -446,6 +467,7 @@ pub fn compile(
         seed: opts.seed,
         movable,
     };
+    check_grid_size(robot, &cell, &scfg)?;
     let (sampled, sample) = sample::run(robot, &model, &inset_cell(&cell), &scfg, progress);
     let (candidates, collision_checked, collisions) =
         collision_filter(&ck, sampled.candidates, opts.max_candidates);
@@ -580,7 +602,7 @@ pub fn compile(
             "the program has {sections} sections: the bar is removed and remounted between them (no safe motion joins their poses with the bar in place)"
         ));
     }
-    // The program carries joint values rounded to its 4 decimals of a degree: time the moves on
+    // The program carries joint values on the 0.001 deg grid every dialect prints: time the moves on
     // exactly those values, so the emitted feed never asks an axis for more than its speed.
     let wq: Vec<[f64; 6]> = plan
         .waypoints
@@ -627,6 +649,9 @@ pub fn compile(
         .find(|c| c.0 == selection.indices.len())
         .map_or(f64::NAN, |c| c.1);
     let header = Header {
+        title: crate::ir::EDBB_TITLE.to_string(),
+        instrument: "EDBB".to_string(),
+        notes: Vec::new(),
         tool_version: env!("CARGO_PKG_VERSION").to_string(),
         robot: robot.name.clone(),
         robot_file: robot.source.clone(),
@@ -643,20 +668,33 @@ pub fn compile(
         cond,
         time_unsorted_s: path.time_unsorted,
         time_s: path.time_sorted,
-        inputs_sha256: inputs_hash(robot, opts, template),
+        inputs_sha256: String::new(),
         joint_names: robot.joints.iter().map(|j| j.name.clone()).collect(),
         predicted_std_um: predicted_um.workspace_rms,
         bar_noise_um: predicted_um.bar_noise_um,
         bar_rate_hz: predicted_um.bar_rate_hz,
+        program_name: opts.program_name.clone(),
+        dialect: String::new(),
+        controller: String::new(),
+        axis_names: Vec::new(),
+        axis_units: String::new(),
+        axis_decimals: 0,
     };
-    let mut pose_no = 0;
-    let moves = plan
-        .waypoints
+    let (mut pose_no, mut section) = (0, 0);
+    let wps = &plan.waypoints;
+    let moves = wps
         .iter()
         .zip(&path.move_times)
-        .map(|(w, &t)| {
+        .enumerate()
+        .map(|(k, (w, &t))| {
             if !w.support {
                 pose_no += 1;
+            }
+            // A transit's target without support flag is a section's first pose: the bar goes
+            // in there; it comes out before the first transit move after a mounted stretch.
+            let mount_after = w.transit && !w.support;
+            if mount_after {
+                section += 1;
             }
             Move {
                 q_deg: w.q.map(|r| emit::round_deg(to_deg(r))),
@@ -666,15 +704,20 @@ pub fn compile(
                 blend_mm: to_mm(w.blend),
                 time_s: t,
                 length_mm: to_mm(model.length(&model.nominal, &w.q)),
+                note: String::new(),
+                pause: String::new(),
+                pause_before: String::new(),
+                section: section.max(1),
+                remove_before: k > 0 && w.transit && !(wps[k - 1].transit && wps[k - 1].support),
+                mount_after,
+                axes: [0.0; 6],
+                speed_pct: 0.0,
             }
         })
         .collect();
-    let program = Program { header, moves };
-    let text = emit::render(template, &program).map_err(PipelineError::Template)?;
-
-    // The compiler does not trust its own memory either: re-read the text and check it.
-    let verified =
-        verify::check_text(&ck, robot, &text).map_err(|f| PipelineError::Unsafe(f.to_string()))?;
+    let base = Program { header, moves };
+    // The compiler does not trust its own memory either: `finish` re-reads the text and checks it.
+    let (program, text, verified) = finish(&ck, robot, opts, &base, &template, &axes)?;
 
     let report = Report {
         schema: "edbbgen.report/1",
@@ -736,6 +779,115 @@ pub fn recorded_segments(path: &Path, plan: &Plan) -> Vec<([f64; 6], [f64; 6], f
         .filter(|((_, w), _)| !w.transit)
         .map(|((q, _), &t)| (q[0], q[1], t))
         .collect()
+}
+
+/// The controller mapping a template's programs use: the cell's `[controller]` over the
+/// dialect's defaults.
+pub fn controller_map(
+    robot: &Robot,
+    opts: &CompileOptions,
+    template: &Template,
+) -> Result<ControllerMap, PipelineError> {
+    let d = template.dialect;
+    Ok(ControllerMap::resolve(
+        opts.cell.controller.as_ref(),
+        &d.defaults(),
+        &d.name,
+        robot,
+    )?)
+}
+
+/// Writes the planned `base` program for one controller: fills the dialect's fields, renders
+/// the template and checks the text with `verify` (the compiler refuses to hand out a program
+/// that fails). Returns the program, its text and the verify summary.
+pub fn finish(
+    ck: &Checker,
+    robot: &Robot,
+    opts: &CompileOptions,
+    base: &Program,
+    template: &Template,
+    map: &ControllerMap,
+) -> Result<(Program, String, verify::Summary), PipelineError> {
+    let mut program = emit::target(base, template.dialect, map, &robot.max_speeds());
+    let h = &mut program.header;
+    if !crate::dialect::valid_name(&h.program_name, template.dialect.name_max) {
+        h.program_name = emit::ident(
+            if h.program_name.is_empty() {
+                DEFAULT_PROGRAM_NAME
+            } else {
+                &h.program_name
+            },
+            template.dialect.name_max,
+        );
+    }
+    h.inputs_sha256 = inputs_hash(robot, opts, &template.source);
+    let text = emit::render(template, &program).map_err(PipelineError::Template)?;
+    let verified = verify::check_text(ck, robot, &text, template.dialect, map)
+        .map_err(|f| PipelineError::Unsafe(f.to_string()))?;
+    Ok((program, text, verified))
+}
+
+/// The compiled plan written for another dialect (or template): the same poses, order, blends
+/// and times, verified like [`compile`]'s own text.
+pub fn retarget(
+    robot: &Robot,
+    opts: &CompileOptions,
+    compiled: &Compiled,
+    template: &str,
+) -> Result<(Program, String), PipelineError> {
+    let template =
+        Template::from_source(template).map_err(|e| PipelineError::Template(e.to_string()))?;
+    let map = controller_map(robot, opts, &template)?;
+    let (scene, _) = build_scene(robot, &opts.cell, &opts.fixture, &compiled.cell.map)?;
+    let ck = Checker::new(
+        robot,
+        &compiled.model,
+        &compiled.cell,
+        &scene,
+        opts.cell.margin,
+    );
+    let (program, text, _) = finish(&ck, robot, opts, &compiled.program, &template, &map)?;
+    Ok((program, text))
+}
+
+/// Grid points on joints 2-6 the sampler enumerates at most (joint 1 is solved in closed form).
+/// Measured on the NJ-130 cell, 2 cores: 5° = 2.7e8 points in 16 s, 3° = 3.4e9 in 233 s; the
+/// limit is ~6 minutes there (a step of ~2.7°).
+pub const GRID_LIMIT: f64 = 5e9;
+
+/// Refuses, before any work, a grid too fine to enumerate: the product of the grid sizes of
+/// joints 2-6 (the nested enumeration; held joints count once) against [`GRID_LIMIT`], with the
+/// uniform step that would fit.
+fn check_grid_size(robot: &Robot, cell: &Cell, cfg: &SampleConfig) -> Result<(), PipelineError> {
+    let (lo, hi) = robot.limits();
+    let m = cell.joint_margin;
+    let lens: Vec<f64> = (1..6)
+        .map(|i| {
+            sample::joint_grid(lo[i] + m, hi[i] - m, cfg.step[i], cfg.movable[i], true).len() as f64
+        })
+        .collect();
+    let points: f64 = lens.iter().product();
+    if points <= GRID_LIMIT {
+        return Ok(());
+    }
+    // The grid shrinks like step^-k in the k joints that are enumerated.
+    let k = lens.iter().filter(|&&n| n > 1.0).count().max(1) as f64;
+    let coarsest = (1..6)
+        .filter(|&i| cfg.movable[i])
+        .map(|i| cfg.step[i])
+        .fold(0.0, f64::max);
+    let min_step = coarsest * (points / GRID_LIMIT).powf(1.0 / k);
+    let step = cfg.step.map(to_deg);
+    let step_deg = if step.iter().all(|s| *s == step[0]) {
+        crate::units::fmt_fixed(step[0], 3)
+    } else {
+        step.map(|s| crate::units::fmt_fixed(s, 3)).join(",")
+    };
+    Err(PipelineError::GridTooLarge {
+        step_deg,
+        points,
+        min_step_deg: to_deg(min_step).max(0.01),
+    })
 }
 
 /// Splits the chosen poses (pool indices) into sections by group and orders them: the section

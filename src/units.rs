@@ -3,8 +3,10 @@
 pub const MM: f64 = 1e-3;
 pub const DEG: f64 = std::f64::consts::PI / 180.0;
 
-/// Joint values are printed with this many decimals of a degree in every program text.
-pub const DEG_DECIMALS: i32 = 4;
+/// The plan's joint grid: every joint value lies on 10^-DEG_DECIMALS degrees, so that every
+/// degree dialect prints it exactly (FANUC LS positions and SINUMERIK rotary axes resolve
+/// 0.001°; RAPID and KRL store 32-bit floats, within 1e-5° of it).
+pub const DEG_DECIMALS: i32 = 3;
 
 /// The nearest printable joint value (rad) at or inside `[lo, hi]` from `v`: a limit that a
 /// program may reach must survive the rounding of the text ([`DEG_DECIMALS`]).

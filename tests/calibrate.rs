@@ -61,6 +61,38 @@ pub fn registered_um(a: &[Vector3<f64>], b: &[Vector3<f64>]) -> f64 {
     predict::register(a, b).0 * 1e6
 }
 
+/// What the bar and the encoders record when the cell's program runs on `truth` (50 Hz).
+fn record(c: &Cell, truth: &Truth, seed: u64) -> twin::Measured {
+    twin::simulate(
+        &c.robot,
+        &c.model,
+        &c.program,
+        truth,
+        &SimOptions { rate: 50.0, seed },
+    )
+    .expect("simulates")
+}
+
+/// The library's calibration of one run with its defaults.
+fn calibrate_one(
+    model: &MeasurementModel,
+    robot: &Robot,
+    m: &twin::Measured,
+    fixture: Vector3<f64>,
+) -> calibrate::Calibration {
+    calibrate::run(
+        model,
+        robot,
+        &[Run {
+            measured: m,
+            fixture,
+        }],
+        &["m.csv".into()],
+        &CalibrateOptions::default(),
+    )
+    .expect("calibrates")
+}
+
 /// A scratch folder for calibrated files of `robot_file`: URDF mesh paths are relative to the
 /// robot's folder, so its `meshes` are linked in.
 pub fn workdir(robot_file: &Path) -> tempfile::TempDir {
@@ -90,14 +122,7 @@ fn round_trip(
     tag: &str,
     extra: &[&str],
 ) -> Trip {
-    let m = twin::simulate(
-        &c.robot,
-        &c.model,
-        &c.program,
-        truth,
-        &SimOptions { rate: 50.0, seed },
-    )
-    .expect("simulates");
+    let m = record(c, truth, seed);
     let csv = dir.join(format!("{tag}.csv"));
     std::fs::write(&csv, m.to_csv()).unwrap();
     let ext = if robot_file.extension().unwrap() == "urdf" {
@@ -302,17 +327,7 @@ fn iso_circle_moves_only_what_it_determines_and_never_makes_the_robot_worse() {
             },
         )
         .unwrap();
-        let cal = calibrate::run(
-            &model,
-            &robot,
-            &[Run {
-                measured: &m,
-                fixture,
-            }],
-            &["circle.csv".into()],
-            &CalibrateOptions::default(),
-        )
-        .unwrap();
+        let cal = calibrate_one(&model, &robot, &m, fixture);
         let p = cal.params();
         // Only determined parameters moved: every other DH value is exactly nominal.
         let names = &cal.report.determined;
@@ -389,17 +404,7 @@ fn a_campaign_at_three_fixtures_calibrates_and_estimates_its_fixtures() {
             noise: 1e-6,
             ..Truth::default()
         };
-        let m = twin::simulate(
-            &c.robot,
-            &c.model,
-            &c.program,
-            &truth,
-            &SimOptions {
-                rate: 50.0,
-                seed: k as u64,
-            },
-        )
-        .unwrap();
+        let m = record(&c, &truth, k as u64);
         let csv = dir.path().join(format!("run{k}.csv"));
         std::fs::write(&csv, m.to_csv()).unwrap();
         args.extend([
@@ -618,14 +623,7 @@ fn a_calibrated_dh_file_is_exact_and_keeps_comments_names_and_limits() {
 fn calibrate_refuses_bad_input_with_one_line_and_writes_nothing() {
     let c = nj130_cell();
     let dir = tempdir();
-    let m = twin::simulate(
-        &c.robot,
-        &c.model,
-        &c.program,
-        &Truth::default(),
-        &SimOptions::default(),
-    )
-    .unwrap();
+    let m = record(&c, &Truth::default(), 1);
     let csv = dir.path().join("m.csv");
     std::fs::write(&csv, m.to_csv()).unwrap();
     let short = dir.path().join("short.csv");
@@ -777,17 +775,7 @@ fn calibrated_dh_file_of_a_fixed_dataset_is_golden() {
     truth.geometric[THETA + 2] = 0.01 * DEG;
     truth.geometric[D + 3] = -0.12e-3;
     truth.geometric[ALPHA + 4] = 0.015 * DEG;
-    let m = twin::simulate(
-        &c.robot,
-        &c.model,
-        &c.program,
-        &truth,
-        &SimOptions {
-            rate: 50.0,
-            seed: 3,
-        },
-    )
-    .unwrap();
+    let m = record(&c, &truth, 3);
     let csv = dir.path().join("measured.csv");
     std::fs::write(&csv, m.to_csv()).unwrap();
     let out = dir.path().join("nj130.dh.toml");
@@ -841,28 +829,8 @@ fn the_compiler_states_what_its_program_buys_and_the_calibration_delivers_it() {
             noise: 1e-6,
             ..Truth::default()
         };
-        let m = twin::simulate(
-            &c.robot,
-            &c.model,
-            &c.program,
-            &truth,
-            &SimOptions {
-                rate: 50.0,
-                seed: r,
-            },
-        )
-        .unwrap();
-        let cal = calibrate::run(
-            &c.model,
-            &c.robot,
-            &[Run {
-                measured: &m,
-                fixture: c.model.nominal.fix,
-            }],
-            &["m".into()],
-            &CalibrateOptions::default(),
-        )
-        .unwrap();
+        let m = record(&c, &truth, r);
+        let cal = calibrate_one(&c.model, &c.robot, &m, c.model.nominal.fix);
         let qs = joint_space(&c.robot, 2000, r);
         let p = cal.params();
         let got: Vec<_> = qs.iter().map(|q| c.model.map_position(&p, q)).collect();

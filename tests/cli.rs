@@ -9,6 +9,9 @@ const SUBCOMMANDS: &[&str] = &[
     "simulate",
     "diagnose",
     "circle",
+    "ldbb",
+    "ldbb-circle",
+    "simulate-ldbb",
     "completions",
     "man",
 ];
@@ -48,7 +51,16 @@ fn manual_pages_for_the_compiler_and_each_subcommand() {
     assert_eq!(r.code, 0, "{}", r.stderr);
     assert!(r.stdout.contains(".TH edbbgen 1"));
     assert!(r.stdout.contains("fixture"));
-    for sub in ["model", "verify", "simulate", "diagnose", "circle"] {
+    for sub in [
+        "model",
+        "verify",
+        "simulate",
+        "diagnose",
+        "circle",
+        "ldbb",
+        "ldbb-circle",
+        "simulate-ldbb",
+    ] {
         let r = edbbgen(["man", sub]);
         assert_eq!(r.code, 0, "{sub}: {}", r.stderr);
         assert!(

@@ -228,3 +228,50 @@ fn negative_coordinates_are_accepted_in_every_form() {
         );
     }
 }
+
+/// Inputs far larger than any real one are refused by their size, before they are read
+/// (sparse files: nothing is written to disk).
+#[test]
+fn oversized_inputs_are_refused_before_reading() {
+    let dir = tempdir();
+    let csv = dir.path().join("huge.csv");
+    std::fs::File::create(&csv)
+        .unwrap()
+        .set_len(90 << 30)
+        .unwrap();
+    let r = edbbgen([
+        "diagnose",
+        nj130_dh().to_str().unwrap(),
+        "--fixture",
+        "258,1468,708",
+        "--measured",
+        csv.to_str().unwrap(),
+    ]);
+    assert_eq!(r.code, 2, "{}", r.stderr);
+    assert_eq!(r.stderr.lines().count(), 1, "{}", r.stderr);
+    assert!(
+        r.stderr.contains("huge.csv") && r.stderr.contains("90.0 GiB"),
+        "{}",
+        r.stderr
+    );
+    // A URDF whose collision mesh claims 5 GB.
+    let stl = dir.path().join("link.stl");
+    std::fs::File::create(&stl)
+        .unwrap()
+        .set_len(5 << 30)
+        .unwrap();
+    let urdf = std::fs::read_to_string(nj130_urdf()).unwrap();
+    let first_box = urdf.find("<box").expect("a box to replace");
+    let end = first_box + urdf[first_box..].find("/>").unwrap() + 2;
+    let with_mesh = format!(
+        "{}<mesh filename=\"link.stl\"/>{}",
+        &urdf[..first_box],
+        &urdf[end..]
+    );
+    let p = dir.path().join("robot.urdf");
+    std::fs::write(&p, with_mesh).unwrap();
+    check_rejected(
+        &[p.to_str().unwrap(), "--fixture", "258,1468,708"],
+        "link.stl",
+    );
+}

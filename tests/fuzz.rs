@@ -96,6 +96,13 @@ const TOKENS: &[&str] = &[
     "∞",
     "µm",
     "t_s,q1_deg,q2_deg,q3_deg,q4_deg,q5_deg,q6_deg,length_mm",
+    "run,load_n,angle_deg,q1_deg,q2_deg,q3_deg,q4_deg,q5_deg,q6_deg,deflection_um",
+    "[loads]",
+    "[circle]",
+    "repeats = 0",
+    "loads_n = []",
+    "1,125,",
+    ",,,,,,",
 ];
 
 #[derive(Clone, Debug)]
@@ -162,6 +169,15 @@ fn read(rel: &str) -> String {
     std::fs::read_to_string(root().join(rel)).expect(rel)
 }
 
+/// The NJ-130 cell's program in a dialect, from its insta snapshot (the body after the header).
+fn snapshot(d: &str) -> String {
+    let snap = read(&format!("snapshots/{d}@nj130_cell.snap"));
+    match snap.split_once("\n---\n") {
+        Some((_, body)) => body.to_string(),
+        None => snap,
+    }
+}
+
 fn one_line(msg: &str) {
     assert!(
         !msg.trim().is_empty() && !msg.contains('\n'),
@@ -218,11 +234,119 @@ proptest! {
     }
 
     #[test]
+    fn every_dialect_reader(
+        k in 0usize..6,
+        text in prop_oneof![
+            mutated(snapshot("ngc")),
+            mutated(snapshot("sinumerik")),
+            mutated(snapshot("krl")),
+            mutated(snapshot("rapid")),
+            mutated(snapshot("urscript")),
+            mutated(snapshot("fanuc")),
+        ],
+    ) {
+        // Any text through any reader (mostly the wrong one): a program or a one-line error.
+        let d = &edbbgen::dialect::all()[k];
+        let map = edbbgen::controller::ControllerMap {
+            sign: [1.0, -1.0, 1.0, 1.0, -1.0, 1.0],
+            offset_deg: [0.0, 90.0, -90.0, 0.0, 0.0, 0.0],
+            j3_coupling: -1.0,
+            units: d.units,
+            axis_names: d.axis_names.clone(),
+        };
+        match d.read(&text, &map) {
+            Ok(p) => { let _ = p.targets().count(); }
+            Err(e) => one_line(&e.to_string()),
+        }
+    }
+
+    #[test]
     fn user_template(text in mutated(read("templates/ngc.j2"))) {
-        if let Err(e) = edbbgen::emit::render(&text, &program()) {
+        let template = edbbgen::dialect::Template {
+            source: text,
+            dialect: edbbgen::dialect::by_name("ngc").unwrap(),
+            user: true,
+        };
+        if let Err(e) = edbbgen::emit::render(&template, &program()) {
             one_line(&e);
         }
     }
+}
+
+/// A small loaded-circle recording (two loads, one run each, 90 samples) in the CSV contract,
+/// and a setup that matches it.
+fn ldbb_seed() -> (String, String) {
+    let mut csv = String::from(edbbgen::ldbb::data::LOADED_HEADER);
+    for (load, start) in [(125.0, 10.0), (250.0, 200.0)] {
+        for k in 0..90 {
+            let a: f64 = start + 4.0 * k as f64;
+            csv += &format!(
+                "\n1,{load},{a},,,,,,,{:.3}",
+                300.0 * (a.to_radians() - 1.0).sin() + 0.4 * load
+            );
+        }
+    }
+    let setup = read("examples/ldbb/setup.toml")
+        .replace("[125.0, 250.0, 375.0, 500.0, 625.0]", "[125.0, 250.0]")
+        .replace("repeats = 3", "repeats = 1");
+    (csv + "\n", setup)
+}
+
+proptest! {
+    #![proptest_config(config(200))]
+
+    #[test]
+    fn ldbb_setup(text in mutated(read("examples/ldbb/setup.toml"))) {
+        if let Err(e) = edbbgen::ldbb::setup::Setup::from_toml(&text, Path::new(".")) {
+            one_line(&e);
+        }
+    }
+
+    #[test]
+    fn ldbb_truth(text in mutated(read("examples/ldbb/truth.toml"))) {
+        if let Err(e) = edbbgen::ldbb::sim::Truth::from_toml(&text) {
+            one_line(&e);
+        }
+    }
+
+    #[test]
+    fn ldbb_loaded_csv_through_the_analysis(text in mutated(ldbb_seed().0)) {
+        let setup = edbbgen::ldbb::setup::Setup::from_toml(&ldbb_seed().1, Path::new(".")).unwrap();
+        match edbbgen::ldbb::data::parse_loaded(&text) {
+            Ok(data) => {
+                let opts = edbbgen::ldbb::Options { grid_step: 10f64.to_radians(), ..Default::default() };
+                if let Err(e) = edbbgen::ldbb::run(&data, &setup, None, None, &opts) {
+                    one_line(&e.to_string());
+                }
+            }
+            Err(e) => one_line(&e.to_string()),
+        }
+    }
+
+    #[test]
+    fn ldbb_reference_csv(text in mutated("angle_deg,error_um\n0,1.5\n90,-2\n180,0.25\n270,3\n".to_string())) {
+        if let Err(e) = edbbgen::ldbb::data::parse_reference(&text) {
+            one_line(&e.to_string());
+        }
+    }
+}
+
+#[test]
+fn the_ldbb_seed_analyses() {
+    // The property above means something only if the unmutated seed gets through.
+    let (csv, setup) = ldbb_seed();
+    let setup = edbbgen::ldbb::setup::Setup::from_toml(&setup, Path::new(".")).unwrap();
+    let data = edbbgen::ldbb::data::parse_loaded(&csv).unwrap();
+    let opts = edbbgen::ldbb::Options {
+        grid_step: 10f64.to_radians(),
+        ..Default::default()
+    };
+    let a = edbbgen::ldbb::run(&data, &setup, None, None, &opts).unwrap();
+    assert!(
+        (a.compliance[0] - 0.4e-6).abs() < 1e-9,
+        "{}",
+        a.compliance[0]
+    );
 }
 
 proptest! {

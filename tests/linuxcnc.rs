@@ -143,7 +143,7 @@ fn read_program(text: &str) -> (Vec<Line>, f64, usize) {
 }
 
 /// Interprets `text` with rs274 and checks its canonical commands against the program text.
-fn check(label: &str, text: &str) {
+pub fn check(label: &str, text: &str) {
     let (lines, blend, stops) = read_program(text);
     assert!(
         lines.len() > 10 && lines[0].kind == Kind::Traverse,
@@ -315,14 +315,8 @@ fn rs274_accepts_the_golden_program() {
     check("golden NJ-130", &golden());
 }
 
-#[test]
-fn rs274_accepts_every_shared_robot_program() {
-    for name in SHARED_ROBOTS {
-        let mut extra = vec!["--fixture", "1400,400,700", "--tool", "60,30,120"];
-        extra.extend(FAST);
-        check(name, &compile(&shared_robot(name), &extra));
-    }
-}
+// The ngc programs of every shipped cell (the shared robots' included) go through `check` in
+// tests/dialects.rs, compiled once with the other dialects.
 
 /// The checker itself: what rs274 rejects fails the test, with the interpreter's message.
 #[test]

@@ -5,12 +5,17 @@
 
 mod common;
 
+mod architecture;
 mod calibrate;
+mod catalogue;
 mod cli;
 mod cli_errors;
 mod compile;
+mod determinism;
 mod diagnose;
+mod dialects;
 mod fuzz;
+mod ldbb;
 mod linuxcnc;
 mod model_cmd;
 mod passive;
@@ -18,3 +23,4 @@ mod place;
 mod report;
 mod safety;
 mod snapshots;
+mod structure;

@@ -22,6 +22,11 @@ fn program() -> &'static Program {
 
 fuzz_target!(|data: &[u8]| {
     if let Ok(text) = std::str::from_utf8(data) {
-        let _ = edbbgen::emit::render(text, program());
+        let template = edbbgen::dialect::Template {
+            source: text.to_string(),
+            dialect: edbbgen::dialect::by_name("ngc").expect("ngc"),
+            user: true,
+        };
+        let _ = edbbgen::emit::render(&template, program());
     }
 });

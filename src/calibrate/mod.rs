@@ -30,7 +30,7 @@ pub mod predict;
 
 use crate::diagnose::fit::{self, accumulate, model_cols, score, structural};
 use crate::diagnose::{
-    self, effect_report, geometry_report, noise_variance, Basis, DiagnoseOptions, EffectReport,
+    self, effects_report, geometry_report, noise_variance, Basis, DiagnoseOptions, EffectReport,
     Estimate, Fitted, Param, Problem, Run,
 };
 use crate::model::{MeasurementModel, Params, Status, N_PARAMS};
@@ -203,6 +203,18 @@ impl Calibration {
     pub fn params(&self) -> Params {
         self.estimate.params(0)
     }
+}
+
+/// The robot's own parameters among the free ones: (column in the fit, Eq. 6 index). Fixtures
+/// do not move the MAP.
+fn shared_columns(free: &[Param]) -> Vec<(usize, usize)> {
+    free.iter()
+        .enumerate()
+        .filter_map(|(a, q)| match q {
+            Param::Shared(i) => Some((a, *i)),
+            Param::Fixture { .. } => None,
+        })
+        .collect()
 }
 
 fn round(v: f64, d: i32) -> f64 {
@@ -429,36 +441,13 @@ pub fn run(
         e.insert("std".into(), stds[name].clone());
         params.insert(name.clone(), e.into());
     }
-    let mut k = g;
-    let effect_reports: Vec<EffectReport> = est
-        .effects
-        .iter()
-        .map(|t| {
-            let n = t.coef.len();
-            let r = effect_report(
-                t.effect,
-                t.basis,
-                &t.coef,
-                &var[k..k + n],
-                problem.m.temp.is_some(),
-            );
-            k += n;
-            r
-        })
-        .collect();
+    let effect_reports = effects_report(&problem, &est, &var[g..]);
     // Type A: the determined parameters (fixtures do not move the MAP), from the noise.
     let calibrated = est.params(0);
     let stride = problem.rows().div_ceil(REGION_POSES).max(1);
     let region: Vec<[f64; 6]> = problem.m.q.iter().step_by(stride).copied().collect();
     let space = predict::workspace(robot, opts.workspace_poses, opts.seed);
-    let shared: Vec<(usize, usize)> = free
-        .iter()
-        .enumerate()
-        .filter_map(|(a, q)| match q {
-            Param::Shared(i) => Some((a, *i)),
-            Param::Fixture { .. } => None,
-        })
-        .collect();
+    let shared = shared_columns(&free);
     let idx: Vec<usize> = shared.iter().map(|s| s.1).collect();
     let cov_a = DMatrix::from_fn(shared.len(), shared.len(), |a, b| {
         cov[(shared[a].0, shared[b].0)]
@@ -685,14 +674,7 @@ fn confounding(
         return None;
     }
     let poses: Vec<[f64; 6]> = space.iter().step_by(4).copied().collect();
-    let shared: Vec<(usize, usize)> = free
-        .iter()
-        .enumerate()
-        .filter_map(|(a, q)| match q {
-            Param::Shared(i) => Some((a, *i)),
-            Param::Fixture { .. } => None,
-        })
-        .collect();
+    let shared = shared_columns(free);
     let idx: Vec<usize> = shared.iter().map(|s| s.1).collect();
     let w = predict::selection(&idx);
     // Type A workspace RMS from the normal matrix on the columns `keep`.

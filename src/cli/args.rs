@@ -38,6 +38,19 @@ pub enum Command {
     /// The extended circle test after ISO 230-4 as a program (the baseline for comparison).
     #[command(allow_negative_numbers = true)]
     Circle(CircleArgs),
+    /// Loaded double ball bar: compliance along the bar, the centring sine, the kinematic
+    /// remainder and joint stiffness from loaded circle data (LOADED.csv).
+    #[command(allow_negative_numbers = true)]
+    Ldbb(LdbbArgs),
+    /// The LDBB loaded circle test as a program (every load, lead-in, measured circles,
+    /// lead-out), checked by verify.
+    #[command(allow_negative_numbers = true)]
+    LdbbCircle(LdbbCircleArgs),
+    /// LDBB digital twin: loaded circle data (and a laser-tracker reference) from a truth.
+    #[command(allow_negative_numbers = true)]
+    SimulateLdbb(SimulateLdbbArgs),
+    /// List the bundled controller dialects (templates) and what each approximates.
+    Dialects(DialectsArgs),
     /// Calibrate: from measured EDBB runs to a calibrated robot file, with the parameters the
     /// data determine, their uncertainties and the predicted MAP position accuracy.
     #[command(allow_negative_numbers = true)]
@@ -50,6 +63,16 @@ pub enum Command {
     Completions(CompletionsArgs),
     /// Print the manual page (roff, `man -l -` reads it) on stdout.
     Man(ManArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct DialectsArgs {
+    /// Print the list as JSON (schema edbbgen.dialects/1).
+    #[arg(long)]
+    pub json: bool,
+    /// Accepted like on every subcommand; this one prints no progress.
+    #[arg(short, long)]
+    pub quiet: bool,
 }
 
 #[derive(Args, Debug)]
@@ -145,11 +168,12 @@ pub struct CompileArgs {
     /// Start configuration, degrees: the tour starts at the selected pose nearest to it.
     #[arg(long, value_name = "Q1,..,Q6", allow_hyphen_values = true)]
     pub start: Option<String>,
-    /// Output dialect (a template under templates/).
+    /// Output dialect: ngc, sinumerik, krl, rapid, urscript, fanuc (`edbbgen dialects`).
     #[arg(long, value_name = "NAME", default_value = "ngc")]
     pub dialect: String,
-    /// Use this template file instead of a bundled dialect.
-    #[arg(long, value_name = "FILE")]
+    /// Use this template file instead of a bundled dialect; it must start with
+    /// {% extends "NAME" %} (the dialect its programs are read back as).
+    #[arg(long, value_name = "FILE", conflicts_with = "dialect")]
     pub template: Option<PathBuf>,
     /// Golden-file mode: compile, compare with the file at -o, write nothing; exit 1 with a
     /// unified diff when they differ.
@@ -178,6 +202,9 @@ pub struct VerifyArgs {
     /// Fixture ball centre, mm [default: the cell file's, else the program header's].
     #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true)]
     pub fixture: Option<String>,
+    /// The program's dialect [default: from the file extension, else from its text].
+    #[arg(long, value_name = "NAME")]
+    pub dialect: Option<String>,
     #[command(flatten)]
     pub cell: CellArgs,
     /// Print the summary as JSON.
@@ -211,9 +238,12 @@ pub struct SimulateArgs {
     /// Robot description: a .urdf or a .dh.toml file.
     #[arg(value_name = "ROBOT")]
     pub robot: PathBuf,
-    /// The program to run (ngc, as `edbbgen` or `edbbgen circle` emit it).
+    /// The program to run (any bundled dialect, as `edbbgen` or `edbbgen circle` emit it).
     #[arg(value_name = "PROGRAM.nc")]
     pub program: PathBuf,
+    /// The program's dialect [default: from the file extension, else from its text].
+    #[arg(long, value_name = "NAME")]
+    pub dialect: Option<String>,
     /// The real robot: geometric errors, effects and noise.
     #[arg(long, value_name = "TRUTH.toml")]
     pub truth: PathBuf,
@@ -226,7 +256,8 @@ pub struct SimulateArgs {
     /// MAP in the flange frame, mm [default: the program's header, else the robot file's tool].
     #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true)]
     pub tool: Option<String>,
-    /// Cell file (accepted for symmetry with the compiler; the twin needs only the fixture).
+    /// Cell file: its `[controller]` section maps the program's axes to the model's joints
+    /// (the twin needs nothing else from it).
     #[arg(long, value_name = "CELL.toml")]
     pub cell: Option<PathBuf>,
     /// Bar sample rate, Hz.
@@ -288,6 +319,121 @@ pub struct CircleArgs {
     /// MAP speed along the circle, mm/s.
     #[arg(long, value_name = "MM_S", default_value = "50")]
     pub speed: String,
+    /// No progress output.
+    #[arg(short, long)]
+    pub quiet: bool,
+}
+
+#[derive(Args, Debug)]
+pub struct LdbbArgs {
+    /// Loaded circle data: run,load_n,angle_deg,q1_deg..q6_deg,deflection_um.
+    #[arg(value_name = "LOADED.csv")]
+    pub loaded: PathBuf,
+    /// The setup: circle, table ball, tool, loads (mm, deg, N, s).
+    #[arg(long, value_name = "SETUP.toml")]
+    pub setup: PathBuf,
+    /// Robot description for the stiffness (.urdf or .dh.toml) [default: the setup's robot].
+    #[arg(long, value_name = "ROBOT")]
+    pub robot: Option<PathBuf>,
+    /// Laser-tracker reference: angle_deg,error_um (unloaded kinematic error along the bar).
+    #[arg(long, value_name = "LT.csv")]
+    pub reference: Option<PathBuf>,
+    /// Write the report as JSON (schema edbbgen.ldbb/1).
+    #[arg(long, value_name = "REPORT.json")]
+    pub json: Option<PathBuf>,
+    /// Write the figures (Figs. 13-15 and the compliance) as one SVG.
+    #[arg(long, value_name = "LDBB.svg")]
+    pub plot: Option<PathBuf>,
+    /// Write a self-contained HTML report.
+    #[arg(long, value_name = "REPORT.html")]
+    pub html: Option<PathBuf>,
+    /// Angle grid the runs are resampled onto, deg (must divide 360).
+    #[arg(long, value_name = "DEG", default_value = "1")]
+    pub grid_step: String,
+    /// The sine the kinematic remainder subtracts: linear (b = 1, the centring offset's) or
+    /// nonlinear (the paper's Eq. 9 with b free).
+    #[arg(long, value_name = "MODEL", default_value = "linear", value_parser = ["linear", "nonlinear"])]
+    pub sine: String,
+    /// Start of the nonlinear fit: the linear solution, or the paper's guess (a = 0.8 mm,
+    /// b = 1, phi = 22.5 deg).
+    #[arg(long, value_name = "START", default_value = "linear", value_parser = ["linear", "paper"])]
+    pub sine_start: String,
+    /// URDF: directory searched for package:// paths (repeatable).
+    #[arg(long = "package-path", value_name = "DIR")]
+    pub package_path: Vec<PathBuf>,
+    /// No progress output (the analysis draws none; accepted like on every subcommand).
+    #[arg(short, long)]
+    pub quiet: bool,
+}
+
+#[derive(Args, Debug)]
+pub struct LdbbCircleArgs {
+    /// Robot description: a .urdf or a .dh.toml file.
+    #[arg(value_name = "ROBOT")]
+    pub robot: PathBuf,
+    /// The setup: circle, table ball, tool, loads.
+    #[arg(long, value_name = "SETUP.toml")]
+    pub setup: PathBuf,
+    /// Output program.
+    #[arg(short, long, value_name = "PROGRAM")]
+    pub output: PathBuf,
+    /// Cell file (environment, tool shapes, hoses, floor, cables, speeds, margins); the
+    /// instrument's geometry comes from the setup.
+    #[arg(long, value_name = "CELL.toml")]
+    pub cell: Option<PathBuf>,
+    /// Angle between programmed points along the circle, deg.
+    #[arg(long, value_name = "DEG", default_value = "0.5")]
+    pub step: String,
+    /// Corner blend distance at the tool ball, mm.
+    #[arg(long, value_name = "MM", default_value = "0.5")]
+    pub blend: String,
+    /// The LVDT's range either side of the nominal bar length, mm.
+    #[arg(long, value_name = "MM", default_value = "2")]
+    pub stroke: String,
+    /// Safety margin: minimum clearance between any two bodies, mm [default: the cell's, 10].
+    #[arg(long, value_name = "MM")]
+    pub margin: Option<String>,
+    /// Distance kept from every joint limit, deg [default: the cell's, 1].
+    #[arg(long, value_name = "DEG")]
+    pub joint_margin: Option<String>,
+    /// Output dialect (a template under templates/).
+    #[arg(long, value_name = "NAME", default_value = "ngc")]
+    pub dialect: String,
+    /// Use this template file instead of a bundled dialect.
+    #[arg(long, value_name = "FILE")]
+    pub template: Option<PathBuf>,
+    /// URDF: directory searched for package:// paths (repeatable).
+    #[arg(long = "package-path", value_name = "DIR")]
+    pub package_path: Vec<PathBuf>,
+    /// No progress output.
+    #[arg(short, long)]
+    pub quiet: bool,
+}
+
+#[derive(Args, Debug)]
+pub struct SimulateLdbbArgs {
+    /// The setup: circle, table ball, tool, loads, samples per circle.
+    #[arg(long, value_name = "SETUP.toml")]
+    pub setup: PathBuf,
+    /// The real robot and instrument: stiffness, centring offset, joint-origin errors, gear
+    /// nonlinearity, gravity, per-circle offsets, noise.
+    #[arg(long, value_name = "LDBB_TRUTH.toml")]
+    pub truth: PathBuf,
+    /// Output: loaded circle data (the LOADED.csv contract).
+    #[arg(short, long, value_name = "LOADED.csv")]
+    pub output: PathBuf,
+    /// Also write the laser-tracker reference (angle_deg,error_um).
+    #[arg(long, value_name = "LT.csv")]
+    pub reference: Option<PathBuf>,
+    /// Robot description [default: the setup's robot].
+    #[arg(long, value_name = "ROBOT")]
+    pub robot: Option<PathBuf>,
+    /// Noise seed.
+    #[arg(long, value_name = "N", default_value_t = 1)]
+    pub seed: u64,
+    /// URDF: directory searched for package:// paths (repeatable).
+    #[arg(long = "package-path", value_name = "DIR")]
+    pub package_path: Vec<PathBuf>,
     /// No progress output.
     #[arg(short, long)]
     pub quiet: bool,

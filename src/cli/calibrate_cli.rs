@@ -113,6 +113,12 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
         .map(|f| xyz_mm("--fixture", f))
         .collect::<Result<_, _>>()?;
     let fixture_of = |k: usize| fixtures[if fixtures.len() == 1 { 0 } else { k }];
+    super::check_outputs(&[
+        Some(a.output.as_path()),
+        a.json.as_deref(),
+        a.plot.as_deref(),
+        a.html.as_deref(),
+    ])?;
     let urdf = is_urdf(&a.robot);
     match (urdf, is_urdf(&a.output), is_toml(&a.output)) {
         (true, true, _) | (false, _, true) => {}
@@ -149,10 +155,9 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
     let load_opts = LoadOptions {
         flange_link: a.flange.clone(),
         package_paths: a.package_path.clone(),
-        speeds: None,
+        ..LoadOptions::default()
     };
-    let robot_text = std::fs::read_to_string(&a.robot)
-        .map_err(|e| file_err(&a.robot, format!("cannot read: {e}")))?;
+    let robot_text = super::read_input(&a.robot, "robot", crate::files::Kind::Robot)?;
     let robot = robot::load(&a.robot, &load_opts)?;
     let map = match &a.tool {
         Some(s) => xyz_mm("--tool", s)?,
@@ -160,8 +165,7 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
     };
     let mut data: Vec<(Measured, String)> = Vec::with_capacity(runs_n);
     for path in &a.measured {
-        let text = std::fs::read_to_string(path)
-            .map_err(|e| file_err(path, format!("cannot read measured data: {e}")))?;
+        let text = super::read_input(path, "measured data", crate::files::Kind::Measured)?;
         let m = twin::parse_csv(&text, calibrate::MIN_ROWS).map_err(|e| file_err(path, e))?;
         data.push((m, robot::sha256_hex(text.as_bytes())));
     }

@@ -3,6 +3,7 @@
 
 pub mod args;
 mod calibrate_cli;
+mod ldbb_cli;
 mod place_cli;
 mod twin_cli;
 
@@ -11,7 +12,7 @@ use crate::model::{self, IdentifyOptions, MeasurementModel, Status};
 use crate::pipeline::{self, CompileOptions};
 use crate::robot::{self, LoadOptions, Robot};
 use crate::units::{fmt_fixed, to_mm, DEG, MM};
-use args::{CellArgs, Cli, Command, CompileArgs, ModelArgs, VerifyArgs};
+use args::{CellArgs, Cli, Command, CompileArgs, DialectsArgs, ModelArgs, VerifyArgs};
 use clap::Parser;
 use nalgebra::{DMatrix, Vector3};
 use std::io::{IsTerminal, Write};
@@ -34,6 +35,8 @@ pub enum Error {
     Report(#[from] crate::report::ReportError),
     #[error(transparent)]
     Place(#[from] crate::place::PlaceError),
+    #[error(transparent)]
+    Controller(#[from] crate::controller::ControllerError),
     #[error("{path}: {msg}")]
     File { path: String, msg: String },
 }
@@ -67,6 +70,10 @@ pub fn run(argv: Vec<std::ffi::OsString>) -> Result<i32, Error> {
         Some(Command::Simulate(a)) => twin_cli::simulate(&a),
         Some(Command::Diagnose(a)) => twin_cli::diagnose(&a),
         Some(Command::Circle(a)) => twin_cli::circle(&a),
+        Some(Command::Ldbb(a)) => ldbb_cli::ldbb(&a),
+        Some(Command::LdbbCircle(a)) => ldbb_cli::circle(&a),
+        Some(Command::SimulateLdbb(a)) => ldbb_cli::simulate(&a),
+        Some(Command::Dialects(a)) => run_dialects(&a),
         Some(Command::Calibrate(a)) => calibrate_cli::calibrate(&a),
         Some(Command::Place(a)) => place_cli::place(&a),
         Some(Command::Completions(a)) => {
@@ -174,6 +181,7 @@ fn load_robot(path: &Path, cell: &CellArgs, spec: &CellSpec) -> Result<Robot, Er
         flange_link: cell.flange.clone(),
         package_paths: cell.package_path.clone(),
         speeds: spec.speeds,
+        ..LoadOptions::default()
     };
     Ok(robot::load(path, &opts)?)
 }
@@ -287,6 +295,29 @@ impl crate::sample::Progress for Bar {
 
 // ---- the compiler -------------------------------------------------------------------------
 
+/// The output template: a user's file (`--template`) or a bundled dialect (`--dialect`).
+fn resolve_template(dialect: &str, file: Option<&Path>) -> Result<String, Error> {
+    match file {
+        Some(p) => {
+            let text = read_input(p, "template", crate::files::Kind::Config)?;
+            // The dialect it extends decides how its programs are read back: checked first.
+            crate::dialect::Template::from_source(&text).map_err(|e| Error::File {
+                path: p.display().to_string(),
+                msg: e.to_string(),
+            })?;
+            Ok(text)
+        }
+        None => crate::emit::dialect(dialect)
+            .map(str::to_string)
+            .ok_or_else(|| {
+                usage(format!(
+                    "--dialect: unknown dialect '{dialect}' (available: {})",
+                    crate::dialect::names().join(", ")
+                ))
+            }),
+    }
+}
+
 fn run_compile(a: &CompileArgs) -> Result<i32, Error> {
     // Required by clap; the Options only exist because subcommands negate the requirement.
     let (Some(robot_path), Some(output)) = (&a.robot, &a.output) else {
@@ -308,22 +339,16 @@ fn run_compile(a: &CompileArgs) -> Result<i32, Error> {
     if a.max_candidates < 30 {
         return Err(usage("--max-candidates: must be at least 30"));
     }
-    let template = match &a.template {
-        Some(p) => std::fs::read_to_string(p).map_err(|e| Error::File {
-            path: p.display().to_string(),
-            msg: format!("cannot read template: {e}"),
-        })?,
-        None => crate::emit::dialect(&a.dialect)
-            .ok_or_else(|| {
-                let names: Vec<&str> = crate::emit::DIALECTS.iter().map(|d| d.0).collect();
-                usage(format!(
-                    "--dialect: unknown dialect '{}' (available: {})",
-                    a.dialect,
-                    names.join(", ")
-                ))
-            })?
-            .to_string(),
-    };
+    let template = resolve_template(&a.dialect, a.template.as_deref())?;
+    let dialect = crate::dialect::Template::from_source(&template)
+        .map_err(|e| usage(e.to_string()))?
+        .dialect;
+    let program_name = program_name(output, dialect)?;
+    check_outputs(&[
+        (!a.check).then_some(output.as_path()),
+        a.report.as_deref(),
+        a.html.as_deref(),
+    ])?;
     if let Some(stage) = &a.emit {
         if !EMIT_STAGES.contains(&stage.as_str()) {
             return Err(usage(format!(
@@ -334,6 +359,7 @@ fn run_compile(a: &CompileArgs) -> Result<i32, Error> {
     }
     let step = steps(&a.step)?;
     let robot = load_robot(robot_path, &a.cell, &spec)?;
+    controller_map(&spec, a.cell.cell.as_deref(), dialect, &robot)?;
     let (lo, hi) = robot.limits();
     let start = std::array::from_fn(|i| f64::clamp(start[i], lo[i], hi[i]));
     let bar_noise = scalar("--bar-noise", &a.bar_noise)?;
@@ -357,6 +383,7 @@ fn run_compile(a: &CompileArgs) -> Result<i32, Error> {
         poses: a.poses,
         blend: blend * MM,
         start,
+        program_name,
         bar_noise: bar_noise * 1e-6,
         bar_rate,
     };
@@ -371,6 +398,18 @@ fn run_compile(a: &CompileArgs) -> Result<i32, Error> {
     };
     for w in &out.warnings {
         eprintln!("edbbgen: warning: {w}");
+    }
+    let ext = output
+        .extension()
+        .map(|e| e.to_string_lossy().to_ascii_lowercase());
+    if ext.as_ref().is_none_or(|e| !dialect.extensions.contains(e)) {
+        eprintln!(
+            "edbbgen: warning: {}: a {} program usually ends in .{}; verify and simulate then need --dialect {}",
+            output.display(),
+            dialect.name,
+            dialect.extensions[0],
+            dialect.name
+        );
     }
     if let Some(stage) = &a.emit {
         println!("{}", emit_stage(&out, stage));
@@ -438,6 +477,121 @@ fn run_compile(a: &CompileArgs) -> Result<i32, Error> {
     Ok(0)
 }
 
+/// The program name from the output file's stem; languages whose program name must equal the
+/// file name (KRL, FANUC) refuse a stem they cannot carry.
+fn program_name(output: &Path, dialect: &crate::dialect::Dialect) -> Result<String, Error> {
+    let stem = output
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    if dialect.name_must_match_file && !crate::dialect::valid_name(&stem, dialect.name_max) {
+        return Err(usage(format!(
+            "-o: '{}': a {} program's name is its file name, which must be letters, digits and _, a letter first, at most {} characters",
+            output.display(),
+            dialect.name,
+            dialect.name_max
+        )));
+    }
+    Ok(stem)
+}
+
+/// The controller mapping for `dialect`: the cell's `[controller]` over the dialect's defaults;
+/// an error names the cell file.
+pub(crate) fn controller_map(
+    spec: &CellSpec,
+    cell: Option<&Path>,
+    dialect: &crate::dialect::Dialect,
+    robot: &Robot,
+) -> Result<crate::controller::ControllerMap, Error> {
+    crate::controller::ControllerMap::resolve(
+        spec.controller.as_ref(),
+        &dialect.defaults(),
+        &dialect.name,
+        robot,
+    )
+    .map_err(|e| Error::File {
+        path: cell.map_or_else(
+            || format!("--dialect {}", dialect.name),
+            |p| p.display().to_string(),
+        ),
+        msg: e.to_string(),
+    })
+}
+
+/// The dialect of a program file to read: `--dialect`, else its extension, else its text.
+pub(crate) fn program_dialect(
+    flag: Option<&str>,
+    path: &Path,
+    text: &str,
+) -> Result<&'static crate::dialect::Dialect, Error> {
+    match flag {
+        Some(name) => crate::dialect::by_name(name).ok_or_else(|| {
+            usage(format!(
+                "--dialect: unknown dialect '{name}' (available: {})",
+                crate::dialect::names().join(", ")
+            ))
+        }),
+        None => crate::dialect::detect(path, text).ok_or_else(|| Error::File {
+            path: path.display().to_string(),
+            msg: format!(
+                "cannot tell the program's dialect from its name or text; give --dialect ({})",
+                crate::dialect::names().join(", ")
+            ),
+        }),
+    }
+}
+
+// ---- dialects -----------------------------------------------------------------------------
+
+fn run_dialects(a: &DialectsArgs) -> Result<i32, Error> {
+    let all = crate::dialect::all();
+    if a.json {
+        let list: Vec<serde_json::Value> = all
+            .iter()
+            .map(|d| {
+                serde_json::json!({
+                    "name": d.name,
+                    "title": d.title,
+                    "extensions": d.extensions,
+                    "units": d.units,
+                    "units_configurable": d.units_configurable,
+                    "axis_names": d.axis_names,
+                    "axis_names_configurable": d.axis_names_configurable,
+                    "j3_coupling": d.j3_coupling,
+                    "name_max": d.name_max,
+                    "name_must_match_file": d.name_must_match_file,
+                    "approximations": d.approximations,
+                })
+            })
+            .collect();
+        let doc = serde_json::json!({"schema": "edbbgen.dialects/1", "dialects": list});
+        println!("{}", serde_json::to_string_pretty(&doc).unwrap_or_default());
+        return Ok(0);
+    }
+    for d in all {
+        let coupling = match d.j3_coupling {
+            crate::controller::Coupling::Factor(0) => "no J2/J3 coupling".to_string(),
+            crate::controller::Coupling::Factor(k) => format!("J3 coupling {k}"),
+            crate::controller::Coupling::Auto(_) => {
+                "J3 measured from the horizontal (coupling from the robot's joint axes)".to_string()
+            }
+        };
+        println!(
+            "{:<10} .{:<8} {}; axes {} in {}; {}",
+            d.name,
+            d.extensions[0],
+            d.title,
+            d.axis_names.join(" "),
+            d.units.name(),
+            coupling
+        );
+        for ap in &d.approximations {
+            println!("{:<20}approximates: {ap}", "");
+        }
+    }
+    Ok(0)
+}
+
 const EMIT_STAGES: &[&str] = &[
     "model",
     "identifiability",
@@ -467,6 +621,41 @@ fn emit_stage(c: &pipeline::Compiled, stage: &str) -> String {
 }
 
 /// Writes the whole file or nothing: a temp file beside the target, then rename.
+/// An input file's text, within the limit of its kind (see [`crate::files`]).
+fn read_input(path: &Path, what: &str, kind: crate::files::Kind) -> Result<String, Error> {
+    crate::files::read_text(path, kind).map_err(|e| Error::File {
+        path: path.display().to_string(),
+        msg: match e {
+            crate::files::ReadError::Io(e) => format!("cannot read {what}: {e}"),
+            other => other.to_string(),
+        },
+    })
+}
+
+/// Refuses, before any work, an output whose directory does not exist or is not a directory:
+/// a long compile must not end in "cannot write".
+pub(crate) fn check_outputs(paths: &[Option<&Path>]) -> Result<(), Error> {
+    for path in paths.iter().flatten() {
+        let dir = match path.parent() {
+            Some(d) if !d.as_os_str().is_empty() => d,
+            _ => Path::new("."),
+        };
+        if !dir.is_dir() {
+            return Err(Error::File {
+                path: path.display().to_string(),
+                msg: format!("cannot write: directory {} does not exist", dir.display()),
+            });
+        }
+        if path.is_dir() {
+            return Err(Error::File {
+                path: path.display().to_string(),
+                msg: "cannot write: it is a directory".into(),
+            });
+        }
+    }
+    Ok(())
+}
+
 fn write_atomic(path: &Path, text: &str) -> Result<(), Error> {
     write_all_atomic(&[(path, text)])
 }
@@ -529,22 +718,21 @@ struct VerifyReport<'a> {
 
 fn run_verify(a: &VerifyArgs) -> Result<i32, Error> {
     let spec = resolve_cell(&a.cell)?;
-    let text = std::fs::read_to_string(&a.program).map_err(|e| Error::File {
+    let text = read_input(&a.program, "program", crate::files::Kind::Program)?;
+    let dialect = program_dialect(a.dialect.as_deref(), &a.program, &text)?;
+    let robot = load_robot(&a.robot, &a.cell, &spec)?;
+    let axes = controller_map(&spec, a.cell.cell.as_deref(), dialect, &robot)?;
+    let parsed = dialect.read(&text, &axes).map_err(|e| Error::File {
         path: a.program.display().to_string(),
-        msg: format!("cannot read: {e}"),
-    })?;
-    let parsed = crate::verify::gcode::parse(&text).map_err(|e| Error::File {
-        path: a.program.display().to_string(),
-        msg: e.to_string(),
+        msg: format!("{} program: {e}", dialect.name),
     })?;
     if parsed.targets().next().is_none() {
         return Err(Error::File {
             path: a.program.display().to_string(),
-            msg: "the program commands no motion (no G0/G1 line): nothing to verify".into(),
+            msg: "the program commands no motion: nothing to verify".into(),
         });
     }
     let fixture = resolve_fixture(a.fixture.as_deref(), &spec, parsed.header_value("fixture"))?;
-    let robot = load_robot(&a.robot, &a.cell, &spec)?;
     // MAP: flag or cell, else the program header's, else the robot file's.
     let header_map = match (spec.map, parsed.header_value("MAP")) {
         (None, Some(h)) => Some(xyz_mm(
@@ -558,7 +746,7 @@ fn run_verify(a: &VerifyArgs) -> Result<i32, Error> {
     let model = MeasurementModel::new(&robot, fixture, map);
     let (scene, scene_report) = pipeline::build_scene(&robot, &spec, &fixture, &map)?;
     let ck = crate::safety::Checker::new(&robot, &model, &cell, &scene, spec.margin);
-    match crate::verify::check_text(&ck, &robot, &text) {
+    match crate::verify::check(&ck, &robot, &parsed) {
         Ok(s) => {
             if a.json {
                 let report = VerifyReport {

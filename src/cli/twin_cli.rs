@@ -9,11 +9,8 @@ use crate::units::MM;
 use nalgebra::Vector3;
 use std::path::Path;
 
-fn read(path: &Path, what: &str) -> Result<String, Error> {
-    std::fs::read_to_string(path).map_err(|e| Error::File {
-        path: path.display().to_string(),
-        msg: format!("cannot read {what}: {e}"),
-    })
+fn read(path: &Path, what: &str, kind: crate::files::Kind) -> Result<String, Error> {
+    super::read_input(path, what, kind)
 }
 
 fn file_err(path: &Path, msg: impl std::fmt::Display) -> Error {
@@ -50,9 +47,17 @@ pub fn simulate(a: &SimulateArgs) -> Result<i32, Error> {
         return Err(usage(format!("--rate: {rate} Hz is outside 1..10000 Hz")));
     }
     let robot = load(&a.robot)?;
-    let text = read(&a.program, "program")?;
-    let parsed = crate::verify::gcode::parse(&text).map_err(|e| file_err(&a.program, e))?;
-    let truth_text = read(&a.truth, "truth")?;
+    let text = read(&a.program, "program", crate::files::Kind::Program)?;
+    let spec = match &a.cell {
+        Some(p) => crate::cell::load(p)?,
+        None => Default::default(),
+    };
+    let dialect = super::program_dialect(a.dialect.as_deref(), &a.program, &text)?;
+    let axes = super::controller_map(&spec, a.cell.as_deref(), dialect, &robot)?;
+    let parsed = dialect
+        .read(&text, &axes)
+        .map_err(|e| file_err(&a.program, format!("{} program: {e}", dialect.name)))?;
+    let truth_text = read(&a.truth, "truth", crate::files::Kind::Config)?;
     let truth = Truth::from_toml(&truth_text).map_err(|e| file_err(&a.truth, e))?;
     let fixture = match &a.fixture {
         Some(s) => xyz_mm("--fixture", s)?,
@@ -86,7 +91,7 @@ pub fn diagnose(a: &DiagnoseArgs) -> Result<i32, Error> {
     let fixture = xyz_mm("--fixture", &a.fixture)?;
     let robot = load(&a.robot)?;
     let map = tool_or_robot(a.tool.as_deref(), &robot)?;
-    let text = read(&a.measured, "measured data")?;
+    let text = read(&a.measured, "measured data", crate::files::Kind::Measured)?;
     let m = twin::parse_csv(&text, N_PARAMS + 2).map_err(|e| file_err(&a.measured, e))?;
     let model = MeasurementModel::new(&robot, fixture, map);
     let opts = crate::diagnose::DiagnoseOptions {

@@ -18,9 +18,12 @@ pub(super) fn vertices(path: &Path, scale: [f64; 3]) -> Result<Vec<Point<f64>>, 
         .and_then(|e| e.to_str())
         .unwrap_or("")
         .to_ascii_lowercase();
-    let bytes = std::fs::read(path).map_err(|source| CollisionError::Io {
-        path: shown.clone(),
-        source,
+    let bytes = crate::files::read(path, crate::files::Kind::Mesh).map_err(|e| match e {
+        crate::files::ReadError::Io(source) => CollisionError::Io {
+            path: shown.clone(),
+            source,
+        },
+        other => bad(&other.to_string()),
     })?;
     let raw: Vec<[f64; 3]> = match ext.as_str() {
         "stl" => {

@@ -239,17 +239,11 @@ pub fn geometry_report(
     (params, std)
 }
 
-/// The report of a fitted model: geometry and effects with standard uncertainties from the
-/// residual's noise (correlation-inflated) and the pseudo-inverse of the normal matrix.
-pub fn model_report(problem: &Problem, est: &Estimate, fitted: &Fitted) -> ModelReport {
-    let (sigma, _, inflate) = noise_variance(&fitted.residual, fitted.coefficients());
-    let cov = fit::inverse(&fitted.normal) * (sigma * sigma * inflate);
-    let var: Vec<f64> = (0..cov.nrows()).map(|k| cov[(k, k)]).collect();
-    let g = fitted.free.len();
-    let (params, std) = geometry_report(problem, est, &fitted.free, &var[..g]);
-    let mut k = g;
-    let effects = est
-        .effects
+/// Every effect of the estimate with its parameters, their variances `var` following the
+/// effects' coefficients in order.
+pub fn effects_report(problem: &Problem, est: &Estimate, var: &[f64]) -> Vec<EffectReport> {
+    let mut k = 0;
+    est.effects
         .iter()
         .map(|t| {
             let n = t.coef.len();
@@ -263,7 +257,18 @@ pub fn model_report(problem: &Problem, est: &Estimate, fitted: &Fitted) -> Model
             k += n;
             r
         })
-        .collect();
+        .collect()
+}
+
+/// The report of a fitted model: geometry and effects with standard uncertainties from the
+/// residual's noise (correlation-inflated) and the pseudo-inverse of the normal matrix.
+pub fn model_report(problem: &Problem, est: &Estimate, fitted: &Fitted) -> ModelReport {
+    let (sigma, _, inflate) = noise_variance(&fitted.residual, fitted.coefficients());
+    let cov = fit::inverse(&fitted.normal) * (sigma * sigma * inflate);
+    let var: Vec<f64> = (0..cov.nrows()).map(|k| cov[(k, k)]).collect();
+    let g = fitted.free.len();
+    let (params, std) = geometry_report(problem, est, &fitted.free, &var[..g]);
+    let effects = effects_report(problem, est, &var[g..]);
     ModelReport {
         params,
         std,

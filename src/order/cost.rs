@@ -44,9 +44,14 @@ impl Costs {
     #[inline]
     pub(crate) fn get(&self, i: usize, j: usize) -> f64 {
         let (a, b) = (&self.poses[i], &self.poses[j]);
+        // Poses are finite (checked by `solve`), so a plain comparison is `f64::max` without
+        // its NaN handling, which costs more than the rest of this function.
         let mut t = 0.0_f64;
         for k in 0..6 {
-            t = t.max((a[k] - b[k]).abs());
+            let d = (a[k] - b[k]).abs();
+            if d > t {
+                t = d;
+            }
         }
         t
     }
@@ -81,38 +86,55 @@ impl Costs {
         let n = self.n;
         let k = k.min(n.saturating_sub(1));
         let mut list = vec![0usize; n * k];
+        let mut cost = vec![0.0; n * k];
         if k > 0 {
-            list.par_chunks_mut(k).enumerate().for_each(|(i, out)| {
-                // One sweep keeping the k best seen so far, sorted by (cost, index). Scanning j
-                // upwards, a newcomer goes after every kept entry of equal cost: lower index wins.
-                let mut best: Vec<(f64, usize)> = Vec::with_capacity(k + 1);
-                for j in 0..n {
-                    let cost = self.get(i, j);
-                    if j == i || (best.len() == k && cost >= best[k - 1].0) {
-                        continue;
+            list.par_chunks_mut(k)
+                .zip(cost.par_chunks_mut(k))
+                .enumerate()
+                .for_each(|(i, (out, out_cost))| {
+                    // One sweep keeping the k best seen so far, sorted by (cost, index). Scanning j
+                    // upwards, a newcomer goes after every kept entry of equal cost: lower index wins.
+                    let mut best: Vec<(f64, usize)> = Vec::with_capacity(k + 1);
+                    for j in 0..n {
+                        let cost = self.get(i, j);
+                        if j == i || (best.len() == k && cost >= best[k - 1].0) {
+                            continue;
+                        }
+                        let at = best.partition_point(|&(kept, _)| kept <= cost);
+                        best.insert(at, (cost, j));
+                        best.truncate(k);
                     }
-                    let at = best.partition_point(|&(kept, _)| kept <= cost);
-                    best.insert(at, (cost, j));
-                    best.truncate(k);
-                }
-                for (slot, &(_, j)) in out.iter_mut().zip(&best) {
-                    *slot = j;
-                }
-            });
+                    for ((slot, c), &(d, j)) in out.iter_mut().zip(out_cost.iter_mut()).zip(&best) {
+                        *slot = j;
+                        *c = d;
+                    }
+                });
         }
-        Neighbours { k, list }
+        Neighbours { k, list, cost }
     }
 }
 
-/// Candidate lists: row `i` holds the `k` nearest other poses of pose `i`, nearest first.
+/// Candidate lists: row `i` holds the `k` nearest other poses of pose `i`, nearest first, with
+/// their costs (exactly `Costs::get(i, j)`, kept so the search need not recompute them).
 pub(crate) struct Neighbours {
     k: usize,
     list: Vec<usize>,
+    cost: Vec<f64>,
 }
 
 impl Neighbours {
     #[inline]
     pub(crate) fn of(&self, i: usize) -> &[usize] {
         &self.list[i * self.k..(i + 1) * self.k]
+    }
+
+    /// The candidates of `i` with their costs, nearest first.
+    #[inline]
+    pub(crate) fn with_cost(&self, i: usize) -> impl Iterator<Item = (usize, f64)> + '_ {
+        let r = i * self.k..(i + 1) * self.k;
+        self.list[r.clone()]
+            .iter()
+            .copied()
+            .zip(self.cost[r].iter().copied())
     }
 }

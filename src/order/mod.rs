@@ -4,8 +4,9 @@
 //!
 //! The cost of a move is the time of its slowest axis (Eq. 7), a weighted Chebyshev distance, so
 //! it is symmetric and obeys the triangle inequality. The tour is built by nearest neighbour and
-//! then improved by 2-opt and Or-opt over candidate lists (`cost.rs`, `local.rs`); everything is
-//! deterministic (ties go to the lowest index, work queues are FIFO, no hashing, no randomness).
+//! then improved by 2-opt, Or-opt and sequential 3-opt moves over candidate lists (`cost.rs`,
+//! `local.rs`) and seeded kicks; everything is deterministic (ties go to the lowest index, work
+//! queues are FIFO, no hashing, a fixed-seed generator).
 //!
 //! **Architecture Invariant:** no I/O, no printing, no threads whose scheduling can change the
 //! result (rayon only fills the cost matrix and candidate lists, entry by entry).
@@ -25,9 +26,9 @@ pub use cost::move_time;
 const EPS: f64 = 1e-12;
 
 /// Perturbations tried per 100 poses after the first local optimum (see `local::perturb`). On
-/// NJ-130 pools 1,000 take the gap to LKH-3 from 0.7-2.1 % (at 50) to 0-0.8 %, and keep a
-/// 3,400-pose tour under 1 s on 2 cores (BENCHMARKS.md).
-const KICKS_PER_100_POSES: usize = 1000;
+/// NJ-130 pools 1,500 take the gap to LKH-3 to 0.15-0.35 % and keep a 3,400-pose tour near 1 s
+/// on 2 cores (BENCHMARKS.md).
+const KICKS_PER_100_POSES: usize = 1500;
 /// Fixed seed of the perturbation generator: the tour is a function of the input alone.
 const KICK_SEED: u64 = 0x6564_6262;
 
@@ -67,11 +68,13 @@ pub enum OrderError {
     },
 }
 
-/// Open tour starting at `start` (an index into `poses`): nearest neighbour, then 2-opt and
-/// Or-opt (segment moves of length 1..=3, or 1..=10 up to 1,000 poses, both orientations) until no improving move remains,
-/// then a fixed number of seeded perturbations (segment swaps) each followed by the same local
-/// search and kept only if the tour got strictly shorter. The result is a local optimum for
-/// 2-opt and Or-opt over the candidate lists, and never longer than the nearest-neighbour tour.
+/// Open tour starting at `start` (an index into `poses`): nearest neighbour, then 2-opt, Or-opt
+/// of single poses and sequential 3-opt moves ("Or-3opt": a segment of any length moved, with or
+/// without reversal, or two adjacent reversals, found LK-style from candidate lists) until no
+/// improving move remains, then a fixed number of seeded perturbations (segment swaps) each
+/// followed by the same local search and kept only if the tour got strictly shorter. The result
+/// is a local optimum for these moves over the candidate lists, and never longer than the
+/// nearest-neighbour tour.
 ///
 /// With no poses every `start` is out of range, so `poses` must be non-empty. One or two poses
 /// have a single open path from `start`, returned as is.

@@ -179,6 +179,9 @@ pub struct Robot {
 pub struct LoadOptions {
     /// URDF: the link that ends the chain (default: `flange`, `tool0`, or the chain's last link).
     pub flange_link: Option<String>,
+    /// URDF: the link whose frame is the robot base frame (default: the root link). It must be
+    /// rigid with the root (fixed joints only).
+    pub base_link: Option<String>,
     /// URDF: directories searched for `package://NAME/...` mesh paths.
     pub package_paths: Vec<PathBuf>,
     /// Joint speeds (rad/s) that replace the file's (e.g. from the cell file, for URDFs
@@ -209,9 +212,12 @@ impl LoadError {
 
 /// Loads a robot from a `.urdf` or a `.dh.toml` (any `.toml`) file.
 pub fn load(path: &Path, opts: &LoadOptions) -> Result<Robot, LoadError> {
-    let text = std::fs::read_to_string(path).map_err(|source| LoadError::Io {
-        path: path.display().to_string(),
-        source,
+    let text = crate::files::read_text(path, crate::files::Kind::Robot).map_err(|e| match e {
+        crate::files::ReadError::Io(source) => LoadError::Io {
+            path: path.display().to_string(),
+            source,
+        },
+        other => LoadError::invalid(path, other.to_string()),
     })?;
     let ext = path
         .extension()

@@ -84,7 +84,23 @@ fn convert(text: &str, path: &Path, opts: &LoadOptions) -> Result<Robot, String>
         .fold(flange0.t.norm(), f64::max)
         .max(1e-3);
     let (dh, frames) = dh_from_axes(&axes, &flange0, size);
-    let base = frames[0];
+    // The robot base frame: the root link's, or a link rigid with it (e.g. ROS-I `base`).
+    let base = match &opts.base_link {
+        None => frames[0],
+        Some(name) => {
+            let l = *tree
+                .link_of
+                .get(name.as_str())
+                .ok_or_else(|| format!("base link {name}: no link of that name in the URDF"))?;
+            if group[l] != Some(0) {
+                return Err(format!(
+                    "base link {name}: it moves with the joints; the base must be the root link {} or fixed to it",
+                    doc.links[tree.root].name
+                ));
+            }
+            pose0[l].inverse().mul(&frames[0])
+        }
+    };
     let flange = frames[6].inverse().mul(&flange0);
 
     let joints: [Joint; 6] = std::array::from_fn(|k| {
@@ -1437,6 +1453,43 @@ mod tests {
     }
 
     #[test]
+    fn a_base_link_fixed_to_the_root_moves_the_base_frame() {
+        // `world` is 1 m above the root and turned 90° about z: the same arm seen from it.
+        let extra = "<link name=\"world\"/><joint name=\"w\" type=\"fixed\"><parent link=\"l0\"/>\
+                     <child link=\"world\"/><origin xyz=\"0 0 1\" rpy=\"0 0 1.5707963267948966\"/></joint>";
+        let path = Path::new("inline.urdf");
+        let six = LoadOptions {
+            flange_link: Some("l6".into()),
+            ..LoadOptions::default()
+        };
+        let plain = from_str(&arm(6, extra), path, &six).unwrap();
+        let moved = from_str(
+            &arm(6, extra),
+            path,
+            &LoadOptions {
+                base_link: Some("world".into()),
+                ..six.clone()
+            },
+        )
+        .unwrap();
+        let q = [0.1, -0.2, 0.3, 0.4, -0.5, 0.6];
+        let (a, b) = (plain.fk(&q).t, moved.fk(&q).t);
+        // In the world frame: x_w = y_root, y_w = −x_root, z_w = z_root − 1.
+        assert!(
+            (b - V3::new(a.y, -a.x, a.z - 1.0)).norm() < 1e-12,
+            "{a} {b}"
+        );
+        let m = error(
+            &arm(6, extra),
+            &LoadOptions {
+                base_link: Some("l2".into()),
+                ..six
+            },
+        );
+        assert!(m.contains("base link l2: it moves with the joints"), "{m}");
+    }
+
+    #[test]
     fn errors_are_one_line_and_name_the_problem() {
         let o = LoadOptions::default();
         let m = error("<robot name=\"x\"><link name=\"a\">", &o);
@@ -1695,9 +1748,8 @@ mod tests {
         let want = pkg.join("meshes/a.stl");
         for dir in [tmp.path().to_path_buf(), pkg.clone()] {
             let opts = LoadOptions {
-                flange_link: None,
                 package_paths: vec![dir],
-                speeds: None,
+                ..LoadOptions::default()
             };
             assert_eq!(
                 resolve_mesh("package://pkg/meshes/a.stl", Path::new("/x"), &opts),

@@ -283,7 +283,7 @@ impl<'a> Checker<'a> {
                     fmt_fixed(to_deg(c.tool_cone_cos.acos()), 1)
                 )
             }
-            Reason::JointLimit | Reason::JointSpeed | Reason::Collision => {
+            Reason::JointLimit | Reason::JointSpeed | Reason::Collision | Reason::Program => {
                 reason.name().to_string()
             }
         }

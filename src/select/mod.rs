@@ -137,140 +137,90 @@ pub fn knee(curve: &[(usize, f64)], m: usize) -> (usize, String) {
 /// the curve (n, cond) from n = rows down to n = m.
 ///
 /// It makes exactly the choices of [`eliminate_reference`] (which scores every candidate by the
-/// secular equation at every step) but scores most candidates only by cheap lower bounds. In the
-/// eigenbasis of G a candidate is z = Vᵀr and G − r·rᵀ ≅ diag(λ) − z·zᵀ; by Rayleigh-Ritz, for
-/// any orthonormal U the smallest eigenvalue of Uᵀ(G − r·rᵀ)U bounds λ'min from above and, for
-/// another U, the largest bounds λ'max from below. So the score λ'max/λ'min has a lower bound:
-/// 1. for every candidate, from two low and two high directions in closed form (2×2 matrices).
-///    U is the eigenbasis of a step at most `REFRESH` − 1 removals ago, so the projections Uᵀr
-///    are reused and a step costs a few flops per candidate;
-/// 2. for those not ruled out, visited in ascending order of bound 1, the sharper `ritz_bound`
-///    (k directions at each end of the current eigenbasis, the rest lumped);
+/// secular equation at every step) but scores most candidates only by cheap lower bounds. The
+/// score of removing row r is λ'max/λ'min, the extreme eigenvalues of G − r·rᵀ. By Rayleigh-Ritz,
+/// for any orthonormal U the smallest eigenvalue of Uᵀ(G − r·rᵀ)U bounds λ'min from above and,
+/// for another U, the largest bounds λ'max from below; and so does any Rayleigh quotient of those
+/// compressions. Three tiers of lower bounds on the score:
+/// 1. U holds two low and two high eigenvectors of a recent step (refreshed when the bounds grow
+///    weak), so the projections Uᵀr are computed once per refresh. For every candidate the
+///    extreme eigenvectors x, y of its two 2×2 compressions are kept from the step they were last
+///    computed; the Rayleigh quotients yᵀ(H − b·bᵀ)y / xᵀ(L − a·aᵀ)x with this step's blocks H, L
+///    of UᵀGU are a lower bound for 8 multiply-adds and no square root. Quotients are stationary
+///    at eigenvectors, so a kept vector stays nearly as good as a fresh one for many steps;
+/// 2. where that does not rule a candidate out, the 2×2 compressions are solved afresh (closed
+///    form), which also renews its kept vectors; those still not ruled out are visited in
+///    ascending order of this bound and get the sharper `ritz_bound` (k directions at each end of
+///    the current eigenbasis, the rest lumped), a block at a time in parallel;
 /// 3. the exact score for those not ruled out either.
 ///
 /// A candidate is skipped only when a bound exceeds the best exact score of the step by a
-/// relative margin far above rounding, so the skipped ones provably score worse and the choice,
-/// tie-break by index included, is the exhaustive one. The Gram matrix, its eigendecomposition
-/// and the exact scores use the reference's arithmetic, so the curve is bit for bit the same.
-/// Greedy elimination makes the extreme eigenvalues cluster, which is why bound 1 looks at two
-/// directions at each end and bound 2 at `RITZ_K`.
+/// relative margin above rounding (see `slack`), so the skipped ones provably score worse and
+/// the choice, tie-break by index included, is the exhaustive one. The Gram matrix, its
+/// eigendecomposition and the exact scores use the reference's arithmetic (the same functions),
+/// so the curve is bit for bit the same. Greedy elimination makes the extreme eigenvalues
+/// cluster, which is why tier 1 looks at two directions at each end and tier 2 at `RITZ_K`.
 pub fn eliminate(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
     let n0 = j.len() / m;
     let row = |i: usize| &j[i * m..(i + 1) * m];
     let mut alive = vec![true; n0];
-    // Active rows, column-major (cols[k][p] = J[ids[p], k]) so the bound pass streams each
-    // column once; removal is swap_remove, the order of positions carries no meaning.
+    // Active rows by position; removal is swap_remove, positions carry no meaning. `at` maps a
+    // row to its position.
     let mut ids: Vec<usize> = (0..n0).collect();
-    let mut cols: Vec<Vec<f64>> = (0..m)
-        .map(|k| (0..n0).map(|i| j[i * m + k]).collect())
-        .collect();
-    let mut removed = Vec::with_capacity(n0.saturating_sub(m));
-    let mut curve = Vec::with_capacity(n0 - m + 1);
-    // Ascending index order, exactly as the reference sums.
-    let gram = |alive: &[bool]| {
-        let mut g = DMatrix::<f64>::zeros(m, m);
-        for i in (0..n0).filter(|&i| alive[i]) {
-            let r = row(i);
-            for a in 0..m {
-                for b in a..m {
-                    g[(a, b)] += r[a] * r[b];
-                }
-            }
-        }
-        for a in 0..m {
-            for b in 0..a {
-                g[(a, b)] = g[(b, a)];
-            }
-        }
-        g
-    };
-    let mut g = gram(&alive);
-    let mut lbs: Vec<f64> = Vec::with_capacity(n0);
-    let mut queue: Vec<(f64, usize)> = Vec::new();
-    let mut sharp: Vec<f64> = Vec::new();
+    let mut at: Vec<usize> = (0..n0).collect();
     let norms: Vec<f64> = (0..n0)
         .map(|i| row(i).iter().map(|v| v * v).sum())
         .collect();
+    let mut removed = Vec::with_capacity(n0.saturating_sub(m));
+    let mut curve = Vec::with_capacity(n0 - m + 1);
+    let mut g = gram(j, m, &(0..n0).collect::<Vec<_>>());
     let ritz_k = RITZ_K.min(m.saturating_sub(1));
-    // The bound basis (4 directions, row-major) and every active row's projections on it.
+    // The bound basis (4 directions, row-major) and, per position, the tier-1 data.
     let mut basis = vec![0.0; 4 * m];
-    let mut proj: Vec<[f64; 4]> = vec![[0.0; 4]; n0];
-    let mut since_refresh = REFRESH;
+    let mut cand: Vec<Tier1> = vec![Tier1::default(); n0];
+    let mut age = usize::MAX;
+    let mut max_age = REFRESH_MIN;
+    let mut leaders: Vec<usize> = Vec::new();
+    let mut queue: Vec<(f64, usize)> = Vec::new();
+    let mut sharp: Vec<f64> = Vec::new();
+    let mut scored: Vec<(f64, usize, usize)> = Vec::new();
+    let mut z = vec![0.0; m];
     loop {
-        let eig = SymmetricEigen::new(g.clone());
-        let mut order: Vec<usize> = (0..m).collect();
-        order.sort_by(|&a, &b| eig.eigenvalues[a].total_cmp(&eig.eigenvalues[b]));
-        let lam: Vec<f64> = order.iter().map(|&k| eig.eigenvalues[k]).collect();
-        let vt: Vec<f64> = order
-            .iter()
-            .flat_map(|&k| {
-                eig.eigenvectors
-                    .column(k)
-                    .iter()
-                    .copied()
-                    .collect::<Vec<_>>()
-            })
-            .collect();
+        let (lam, vt) = spectrum(&g);
         let n = ids.len();
         curve.push((n, cond_of(lam[0], lam[m - 1])));
         if n == m {
             break;
         }
-        // The exact score, with the reference's arithmetic.
-        let exact = |p: usize, z: &mut [f64]| {
-            let r = row(ids[p]);
-            for k in 0..m {
-                z[k] = vt[k * m..(k + 1) * m]
-                    .iter()
-                    .zip(r)
-                    .map(|(v, x)| v * x)
-                    .sum();
-            }
-            let (lo, hi) = downdated_extremes(&lam, z);
-            if lo > 0.0 {
-                hi / lo
-            } else {
-                f64::INFINITY
-            }
-        };
-        // Lower bounds for every active candidate (see the doc comment): Rayleigh-Ritz on two
-        // low and two high directions U, in closed form. U is the eigenbasis of some recent
-        // step; the bound holds for any orthonormal U, it is only sharpest for the current one,
-        // and a stale U lets the projections Uᵀr be reused instead of recomputed every step.
-        if since_refresh >= REFRESH {
-            since_refresh = 0;
-            let two = m >= 2;
-            let dirs = if two { [0, 1, m - 2, m - 1] } else { [0; 4] };
+        let slack = slack(&lam);
+        if age >= max_age {
+            age = 0;
+            let dirs = if m >= 2 { [0, 1, m - 2, m - 1] } else { [0; 4] };
             for (slot, &e) in basis.chunks_mut(m).zip(&dirs) {
                 slot.copy_from_slice(&vt[e * m..(e + 1) * m]);
             }
-            let basis = &basis;
-            let cols = &cols;
-            let refresh = |start: usize, zs: &mut [[f64; 4]]| {
-                let len = zs.len();
-                for z in zs.iter_mut() {
-                    *z = [0.0; 4];
-                }
-                for k in 0..m {
-                    let c = &cols[k][start..start + len];
-                    let u = [basis[k], basis[m + k], basis[2 * m + k], basis[3 * m + k]];
-                    for (z, &y) in zs.iter_mut().zip(c) {
-                        for d in 0..4 {
-                            z[d] += u[d] * y;
-                        }
+            let (basis, ids) = (&basis, &ids);
+            let refresh = |start: usize, cs: &mut [Tier1]| {
+                for (k, c) in cs.iter_mut().enumerate() {
+                    let r = row(ids[start + k]);
+                    let mut s = [0.0; 4];
+                    for (d, sd) in s.iter_mut().enumerate() {
+                        *sd = basis[d * m..(d + 1) * m]
+                            .iter()
+                            .zip(r)
+                            .map(|(u, x)| u * x)
+                            .sum();
                     }
+                    *c = Tier1 {
+                        proj: s,
+                        ..Tier1::default()
+                    };
                 }
             };
-            if n >= PARALLEL_BOUND {
-                proj.par_chunks_mut(BOUND_CHUNK)
-                    .enumerate()
-                    .for_each(|(c, zs)| refresh(c * BOUND_CHUNK, zs));
-            } else {
-                refresh(0, &mut proj[..]);
-            }
+            for_chunks(&mut cand[..n], n >= PARALLEL_BOUND, refresh);
         }
-        since_refresh += 1;
-        // UᵀGU on each pair, once per step.
+        age += 1;
+        // UᵀGU on each pair of directions, once per step: the low and the high 2×2 block.
         let quad = |x: usize, y: usize| -> f64 {
             let (u, v) = (&basis[x * m..(x + 1) * m], &basis[y * m..(y + 1) * m]);
             let mut s = 0.0;
@@ -283,65 +233,91 @@ pub fn eliminate(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
             }
             s
         };
-        let (la, lb_, lc) = (quad(0, 0), quad(0, 1), quad(1, 1));
-        let (ha, hb, hc) = (quad(2, 2), quad(2, 3), quad(3, 3));
-        lbs.clear();
-        lbs.resize(n, 0.0);
-        let bound_chunk = |start: usize, out: &mut [f64]| {
-            let len = out.len();
-            for (o, z) in out.iter_mut().zip(&proj[start..start + len]) {
-                let [a1, a2, b1, b2] = *z;
-                // Smallest eigenvalue of [[la, lb], [lb, lc]] − a·aᵀ, via its determinant (the
-                // z⁴ terms cancel exactly), and the largest of the high pair.
-                let (p1, p2, off) = (la - a1 * a1, lc - a2 * a2, lb_ - a1 * a2);
-                let det = la * lc - lb_ * lb_ - la * a2 * a2 - lc * a1 * a1 + 2.0 * lb_ * a1 * a2;
-                let rad = (0.25 * (p1 - p2) * (p1 - p2) + off * off).sqrt();
-                // A nearly singular downdate: too much cancellation to trust; score exactly.
-                let lmin = if det > DET_FLOOR * la * lc {
-                    det / (0.5 * (p1 + p2) + rad)
-                } else {
-                    0.0
-                };
-                let (q1, q2, hoff) = (ha - b1 * b1, hc - b2 * b2, hb - b1 * b2);
-                let hmax = 0.5 * (q1 + q2) + (0.25 * (q1 - q2) * (q1 - q2) + hoff * hoff).sqrt();
-                *o = if lmin > 0.0 { hmax / lmin } else { 0.0 };
+        let blocks = [
+            quad(0, 0),
+            quad(0, 1),
+            quad(1, 1),
+            quad(2, 2),
+            quad(2, 3),
+            quad(3, 3),
+        ];
+        let floor = DET_FLOOR * blocks[0].abs().max(blocks[2].abs());
+        // The exact extremes (λ'min, λ'max), with the reference's arithmetic.
+        let exact = |i: usize, z: &mut [f64]| -> (f64, f64) {
+            let r = row(i);
+            for k in 0..m {
+                z[k] = vt[k * m..(k + 1) * m]
+                    .iter()
+                    .zip(r)
+                    .map(|(v, x)| v * x)
+                    .sum();
             }
+            downdated_extremes(&lam, z)
         };
-        if n >= PARALLEL_BOUND {
-            lbs.par_chunks_mut(BOUND_CHUNK)
-                .enumerate()
-                .for_each(|(c, out)| bound_chunk(c * BOUND_CHUNK, out));
-        } else {
-            bound_chunk(0, &mut lbs[..]);
+        let score = |(lo, hi): (f64, f64)| if lo > 0.0 { hi / lo } else { f64::INFINITY };
+        // The cut: the best exact score among the previous step's leaders (any candidate would
+        // do; these usually come close to the best).
+        scored.clear();
+        for &i in leaders.iter().filter(|&&i| alive[i]) {
+            scored.push((score(exact(i, &mut z)), i, at[i]));
         }
-        // A first exact score from the most promising candidate sets the cut; the candidates
-        // whose bound does not exceed it are then visited in ascending bound order, each getting
-        // the sharper Ritz bound and, if that does not rule it out either, its exact score,
-        // which tightens the cut for the rest.
-        let pick = |a: (f64, usize, usize), b: (f64, usize, usize)| {
-            if (b.0, b.1) < (a.0, a.1) {
-                b
-            } else {
-                a
+        if scored.is_empty() {
+            scored.push((score(exact(ids[0], &mut z)), ids[0], 0));
+        }
+        let mut best = scored.iter().copied().fold(scored[0], pick);
+        let mut cut = best.0 * (1.0 + slack);
+        // One pass: tier 1 where it rules a candidate out, the fresh 2×2 bound otherwise; the
+        // queue holds those whose fresh bound does not exceed the cut.
+        let known: Vec<usize> = scored.iter().map(|s| s.2).collect();
+        let pass = |start: usize, cs: &mut [Tier1], out: &mut Vec<(f64, usize)>| {
+            for (k, c) in cs.iter_mut().enumerate() {
+                if c.rules_out(&blocks, cut, floor) {
+                    continue;
+                }
+                let lb = c.renew(&blocks, floor);
+                let p = start + k;
+                if lb.partial_cmp(&cut) != Some(std::cmp::Ordering::Greater) && !known.contains(&p)
+                {
+                    out.push((lb, p));
+                }
             }
         };
-        let first = (0..n)
-            .min_by(|&a, &b| lbs[a].total_cmp(&lbs[b]))
-            .unwrap_or(0);
-        let mut z = vec![0.0; m];
-        let mut best = (exact(first, &mut z), ids[first], first);
-        let mut cut = best.0 * (1.0 + BOUND_MARGIN);
         queue.clear();
-        queue.extend(
-            (0..n)
-                .filter(|&p| {
-                    p != first && lbs[p].partial_cmp(&cut) != Some(std::cmp::Ordering::Greater)
+        if n >= PARALLEL_BOUND {
+            let parts: Vec<Vec<(f64, usize)>> = cand[..n]
+                .par_chunks_mut(BOUND_CHUNK)
+                .enumerate()
+                .map(|(c, cs)| {
+                    let mut out = Vec::new();
+                    pass(c * BOUND_CHUNK, cs, &mut out);
+                    out
                 })
-                .map(|p| (lbs[p], p)),
-        );
+                .collect();
+            for p in parts {
+                queue.extend(p);
+            }
+        } else {
+            pass(0, &mut cand[..n], &mut queue);
+        }
+        // The candidate with the lowest bound usually scores best: its exact score tightens
+        // the cut before the rest are looked at.
+        let by_bound = |a: &(f64, usize), b: &(f64, usize)| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1));
+        if let Some(k) = (0..queue.len()).min_by(|&a, &b| by_bound(&queue[a], &queue[b])) {
+            let (_, p) = queue.swap_remove(k);
+            let this = (score(exact(ids[p], &mut z)), ids[p], p);
+            scored.push(this);
+            best = pick(best, this);
+            cut = best.0 * (1.0 + slack);
+        }
+        queue.retain(|&(lb, _)| lb <= cut);
+        // Weak bounds: refresh the basis sooner; strong ones: later.
+        if queue.len() > QUEUE_TOLERANCE + n / 256 {
+            max_age = (max_age / 2).max(REFRESH_MIN);
+        } else if age == max_age {
+            max_age = (max_age * 2).min(REFRESH_MAX);
+        }
         // Visit in ascending bound order, a block at a time: partial sorting, and the Ritz
         // bounds of a block computed in parallel.
-        let by_bound = |a: &(f64, usize), b: &(f64, usize)| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1));
         let mut start = 0;
         'visit: while start < queue.len() {
             let end = (start + RITZ_BLOCK).min(queue.len());
@@ -352,14 +328,19 @@ pub fn eliminate(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
             if queue[start].0 > cut {
                 break;
             }
-            let ritz = |&(lb, p): &(f64, usize)| {
+            let ritz = |&(lb, p): &(f64, usize)| -> f64 {
                 if lb > cut || ritz_k == 0 {
                     lb
                 } else {
-                    ritz_bound(&lam, &vt, row(ids[p]), norms[ids[p]], ritz_k)
+                    let (h, l) = ritz_bound(&lam, &vt, row(ids[p]), norms[ids[p]], ritz_k);
+                    if l > 0.0 {
+                        h / l
+                    } else {
+                        0.0
+                    }
                 }
             };
-            if end - start >= 64 && n >= PARALLEL_BOUND {
+            if end - start >= PARALLEL_RITZ {
                 queue[start..end]
                     .par_iter()
                     .map(ritz)
@@ -375,51 +356,245 @@ pub fn eliminate(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
                 if r2 > cut {
                     continue;
                 }
-                best = pick(best, (exact(p, &mut z), ids[p], p));
-                cut = best.0 * (1.0 + BOUND_MARGIN);
+                let this = (score(exact(ids[p], &mut z)), ids[p], p);
+                scored.push(this);
+                best = pick(best, this);
+                cut = best.0 * (1.0 + slack);
             }
             start = end;
         }
+        // The next step's first guesses: the best few of this step after the one removed.
+        scored.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        leaders.clear();
+        leaders.extend(scored.iter().skip(1).take(LEADERS).map(|s| s.1));
         let (_, i, p) = best;
         ids.swap_remove(p);
-        proj.swap_remove(p);
-        for c in cols.iter_mut() {
-            c.swap_remove(p);
+        cand.swap_remove(p);
+        if p < ids.len() {
+            at[ids[p]] = p;
         }
         alive[i] = false;
         removed.push(i);
         // Same schedule of rebuilds and downdates as the reference.
         if ids.len() < 3 * m || removed.len() % 64 == 0 {
-            g = gram(&alive);
+            let active: Vec<usize> = (0..n0).filter(|&k| alive[k]).collect();
+            g = gram(j, m, &active);
         } else {
-            let r = row(i);
-            for a in 0..m {
-                for b in 0..m {
-                    g[(a, b)] -= r[a] * r[b];
-                }
-            }
+            downdate(&mut g, row(i));
         }
     }
     (removed, curve)
 }
 
+/// Runs `f(start, chunk)` over chunks of `BOUND_CHUNK` items, in parallel if asked.
+fn for_chunks<T: Send>(items: &mut [T], parallel: bool, f: impl Fn(usize, &mut [T]) + Sync) {
+    if parallel {
+        items
+            .par_chunks_mut(BOUND_CHUNK)
+            .enumerate()
+            .for_each(|(c, ch)| f(c * BOUND_CHUNK, ch));
+    } else {
+        f(0, items);
+    }
+}
+
+/// Tier 1 of [`eliminate`] for one candidate: its projections on the bound basis U and the
+/// Rayleigh-quotient weights of its kept eigenvectors (see there).
+#[derive(Clone, Copy, Default)]
+struct Tier1 {
+    /// [a1, a2, b1, b2] = Uᵀr: two low, two high directions.
+    proj: [f64; 4],
+    /// yᵀ(H − b·bᵀ)y / yᵀy = hi[0]·H11 + hi[1]·H12 + hi[2]·H22 + hi[3] (a lower bound on λ'max).
+    hi: [f64; 4],
+    /// xᵀ(L − a·aᵀ)x / xᵀx, likewise (an upper bound on λ'min). All zero: nothing kept.
+    lo: [f64; 4],
+}
+
+impl Tier1 {
+    /// True when the kept quotients put the score above `cut`.
+    #[inline]
+    fn rules_out(&self, b: &[f64; 6], cut: f64, floor: f64) -> bool {
+        let num = self.hi[0] * b[3] + self.hi[1] * b[4] + self.hi[2] * b[5] + self.hi[3];
+        let den = self.lo[0] * b[0] + self.lo[1] * b[1] + self.lo[2] * b[2] + self.lo[3];
+        den > floor && num > cut * den
+    }
+
+    /// Solves both 2×2 compressions afresh, keeps their extreme eigenvectors, and returns the
+    /// bound λmax(H − b·bᵀ)/λmin(L − a·aᵀ) (0 = no information: a nearly singular downdate,
+    /// too much cancellation to trust).
+    #[inline]
+    fn renew(&mut self, b: &[f64; 6], floor: f64) -> f64 {
+        let [la, lb, lc, ha, hb, hc] = *b;
+        let [a1, a2, b1, b2] = self.proj;
+        // Smallest eigenvalue of L − a·aᵀ via its determinant (the z⁴ terms cancel exactly), and
+        // the largest of H − b·bᵀ.
+        let (p1, p2, off) = (la - a1 * a1, lc - a2 * a2, lb - a1 * a2);
+        let det = la * lc - lb * lb - la * a2 * a2 - lc * a1 * a1 + 2.0 * lb * a1 * a2;
+        let rad = (0.25 * (p1 - p2) * (p1 - p2) + off * off).sqrt();
+        let lmin = if det > DET_FLOOR * la * lc && det > 0.0 {
+            det / (0.5 * (p1 + p2) + rad)
+        } else {
+            0.0
+        };
+        let (q1, q2, hoff) = (ha - b1 * b1, hc - b2 * b2, hb - b1 * b2);
+        let hrad = (0.25 * (q1 - q2) * (q1 - q2) + hoff * hoff).sqrt();
+        let hmax = 0.5 * (q1 + q2) + hrad;
+        self.hi = weights(eigvec(q1, q2, hoff, hmax), [b1, b2]);
+        self.lo = if lmin > floor {
+            weights(eigvec(p1, p2, off, lmin), [a1, a2])
+        } else {
+            [0.0; 4]
+        };
+        if lmin > 0.0 {
+            hmax / lmin
+        } else {
+            0.0
+        }
+    }
+}
+
+/// An eigenvector of [[p, o], [o, q]] for its eigenvalue `l` (the better conditioned of the two
+/// formulas). Any vector gives a valid Rayleigh quotient; this one makes it sharp.
+#[inline]
+fn eigvec(p: f64, q: f64, o: f64, l: f64) -> [f64; 2] {
+    let (u, v) = ([o, l - p], [l - q, o]);
+    let nu = u[0] * u[0] + u[1] * u[1];
+    let nv = v[0] * v[0] + v[1] * v[1];
+    if nu >= nv && nu > 0.0 {
+        u
+    } else if nv > 0.0 {
+        v
+    } else {
+        [1.0, 0.0]
+    }
+}
+
+/// The Rayleigh quotient xᵀ(M − a·aᵀ)x / xᵀx as weights on M11, M12, M22 and a constant.
+#[inline]
+fn weights(x: [f64; 2], a: [f64; 2]) -> [f64; 4] {
+    let inv = 1.0 / (x[0] * x[0] + x[1] * x[1]);
+    let (w1, w2, w3) = (
+        x[0] * x[0] * inv,
+        2.0 * x[0] * x[1] * inv,
+        x[1] * x[1] * inv,
+    );
+    [
+        w1,
+        w2,
+        w3,
+        -(w1 * a[0] * a[0] + w2 * a[0] * a[1] + w3 * a[1] * a[1]),
+    ]
+}
+
+/// The lower (score, index) pair: the greedy's choice with its tie-break.
+#[inline]
+fn pick(a: (f64, usize, usize), b: (f64, usize, usize)) -> (f64, usize, usize) {
+    if (b.0, b.1) < (a.0, a.1) {
+        b
+    } else {
+        a
+    }
+}
+
+/// Relative margin by which a bound must exceed the best exact score before a candidate is
+/// skipped. The bounds are carried from earlier eigendecompositions, so besides a fixed margin far
+/// above rounding it covers the eigenvalue error of a symmetric eigensolver (a few ε·λmax in
+/// absolute terms, so ε·λmax/λmin relative to λ'min), generously.
+fn slack(lam: &[f64]) -> f64 {
+    let m = lam.len();
+    if lam[0] > 0.0 {
+        BOUND_MARGIN + 1024.0 * f64::EPSILON * lam[m - 1] / lam[0]
+    } else {
+        f64::INFINITY
+    }
+}
+
+/// The Gram matrix JᵀJ of the given rows (ascending), each entry summed in row order: the same
+/// arithmetic for the reference and the bounded search. Entries are independent sums, so rows
+/// of the triangle are computed in parallel without changing a bit.
+fn gram(j: &[f64], m: usize, rows: &[usize]) -> DMatrix<f64> {
+    let tri = |a: usize| -> Vec<f64> {
+        let mut acc = vec![0.0; m - a];
+        for &i in rows {
+            let r = &j[i * m..(i + 1) * m];
+            let ra = r[a];
+            for (s, &rb) in acc.iter_mut().zip(&r[a..]) {
+                *s += ra * rb;
+            }
+        }
+        acc
+    };
+    let upper: Vec<Vec<f64>> = if rows.len() * m >= PARALLEL_GRAM {
+        (0..m).into_par_iter().map(tri).collect()
+    } else {
+        (0..m).map(tri).collect()
+    };
+    let mut g = DMatrix::<f64>::zeros(m, m);
+    for (a, acc) in upper.iter().enumerate() {
+        for (k, &v) in acc.iter().enumerate() {
+            g[(a, a + k)] = v;
+            g[(a + k, a)] = v;
+        }
+    }
+    g
+}
+
+/// G ← G − r·rᵀ.
+fn downdate(g: &mut DMatrix<f64>, r: &[f64]) {
+    let m = r.len();
+    for a in 0..m {
+        for b in 0..m {
+            g[(a, b)] -= r[a] * r[b];
+        }
+    }
+}
+
+/// Eigenvalues ascending and the eigenvectors as rows in the same order (row-major m × m).
+fn spectrum(g: &DMatrix<f64>) -> (Vec<f64>, Vec<f64>) {
+    let m = g.nrows();
+    let eig = SymmetricEigen::new(g.clone());
+    let mut order: Vec<usize> = (0..m).collect();
+    order.sort_by(|&a, &b| eig.eigenvalues[a].total_cmp(&eig.eigenvalues[b]));
+    let lam: Vec<f64> = order.iter().map(|&k| eig.eigenvalues[k]).collect();
+    let vt: Vec<f64> = order
+        .iter()
+        .flat_map(|&k| {
+            eig.eigenvectors
+                .column(k)
+                .iter()
+                .copied()
+                .collect::<Vec<_>>()
+        })
+        .collect();
+    (lam, vt)
+}
+
 /// Relative margin by which a lower bound must exceed the best exact score before a candidate is
-/// skipped: far above the rounding of either (both come from the same λ and V), far below any
-/// difference that matters.
+/// skipped: far above the rounding of either, far below any difference that matters.
 const BOUND_MARGIN: f64 = 1e-9;
-/// Below this relative size of the 2×2 determinant the closed-form bound is not trusted.
-const DET_FLOOR: f64 = 1e-6;
 /// Eigen-directions at each end of the spectrum that the sharper (Ritz) bound resolves; greedy
 /// elimination clusters the extreme eigenvalues, where the one-direction bound is weak.
 const RITZ_K: usize = 3;
+/// Below this relative size of the 2×2 determinant the closed-form bound is not trusted.
+const DET_FLOOR: f64 = 1e-6;
+/// Steps between recomputations of the bound basis and the projections on it: at least
+/// `REFRESH_MIN`, doubling up to `REFRESH_MAX` while the bounds stay strong (a queue of at most
+/// `QUEUE_TOLERANCE` + n/256 candidates), halving when they do not.
+const REFRESH_MIN: usize = 8;
+const REFRESH_MAX: usize = 64;
+const QUEUE_TOLERANCE: usize = 16;
+/// How many of a step's best candidates seed the next step's cut.
+const LEADERS: usize = 10;
+/// Blocks of the ascending-bound visit at least this long get their Ritz bounds in parallel.
+const PARALLEL_RITZ: usize = 64;
 /// Candidates per block of the ascending-bound visit.
 const RITZ_BLOCK: usize = 256;
-/// Steps between recomputations of the bound basis and the projections on it.
-const REFRESH: usize = 4;
-/// Candidates per block of the bound pass (stack buffers, one rayon task each).
+/// Candidates per chunk of the bound pass (one rayon task each).
 const BOUND_CHUNK: usize = 1024;
 /// Below this size a step is too short to pay for rayon.
-const PARALLEL_BOUND: usize = 4096;
+const PARALLEL_BOUND: usize = 2048;
+/// Below this many row × column products a Gram rebuild is too short to pay for rayon.
+const PARALLEL_GRAM: usize = 20_000;
 
 /// The reference for [`eliminate`]: the same greedy, scoring every candidate exactly at every
 /// step (one secular solve pair per candidate). Kept for tests and the benchmark.
@@ -430,39 +605,9 @@ pub fn eliminate_reference(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)
     let mut active: Vec<usize> = (0..n0).collect();
     let mut removed = Vec::with_capacity(n0.saturating_sub(m));
     let mut curve = Vec::with_capacity(n0 - m + 1);
-    let gram = |active: &[usize]| {
-        let mut g = DMatrix::<f64>::zeros(m, m);
-        for &i in active {
-            let r = row(i);
-            for a in 0..m {
-                for b in a..m {
-                    g[(a, b)] += r[a] * r[b];
-                }
-            }
-        }
-        for a in 0..m {
-            for b in 0..a {
-                g[(a, b)] = g[(b, a)];
-            }
-        }
-        g
-    };
-    let mut g = gram(&active);
+    let mut g = gram(j, m, &active);
     loop {
-        let eig = SymmetricEigen::new(g.clone());
-        let mut order: Vec<usize> = (0..m).collect();
-        order.sort_by(|&a, &b| eig.eigenvalues[a].total_cmp(&eig.eigenvalues[b]));
-        let lam: Vec<f64> = order.iter().map(|&k| eig.eigenvalues[k]).collect();
-        let vt: Vec<f64> = order
-            .iter()
-            .flat_map(|&k| {
-                eig.eigenvectors
-                    .column(k)
-                    .iter()
-                    .copied()
-                    .collect::<Vec<_>>()
-            })
-            .collect();
+        let (lam, vt) = spectrum(&g);
         curve.push((active.len(), cond_of(lam[0], lam[m - 1])));
         if active.len() == m {
             break;
@@ -486,10 +631,7 @@ pub fn eliminate_reference(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)
                     (score, i, pos)
                 },
             )
-            .reduce(
-                || (f64::INFINITY, usize::MAX, usize::MAX),
-                |a, b| if (b.0, b.1) < (a.0, a.1) { b } else { a },
-            );
+            .reduce(|| (f64::INFINITY, usize::MAX, usize::MAX), pick);
         let (_, i, pos) = if best.2 == usize::MAX {
             (0.0, active[active.len() - 1], active.len() - 1)
         } else {
@@ -500,26 +642,22 @@ pub fn eliminate_reference(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)
         // Downdate; rebuild from scratch now and then (and always when few rows remain, where
         // the Gram matrix is least well conditioned) so rounding cannot accumulate.
         if active.len() < 3 * m || removed.len() % 64 == 0 {
-            g = gram(&active);
+            g = gram(j, m, &active);
         } else {
-            let r = row(i);
-            for a in 0..m {
-                for b in 0..m {
-                    g[(a, b)] -= r[a] * r[b];
-                }
-            }
+            downdate(&mut g, row(i));
         }
     }
     (removed, curve)
 }
 
-/// A lower bound on the score λ'max/λ'min of removing row `r` (‖r‖² = `rr`), sharper than the
-/// Rayleigh one: the k eigen-directions at each end are kept exactly and the rest of z is lumped
-/// into one extra direction on the far pole. With t = ‖r‖² − Σ_{i≤k} zᵢ², the term
-/// Σ_{i>k} zᵢ²/(λᵢ − x) of the secular function is at least t/(λₘ − x) for x < λ₁, so the smallest
-/// root of the lumped (k+1)-term equation lies above λ'min; at the top, Σ_{i≤m−k} zᵢ²/(x − λᵢ) is
-/// at least t'/(x − λ₁), so the largest lumped root lies below λ'max. 0 = no information.
-fn ritz_bound(lam: &[f64], vt: &[f64], r: &[f64], rr: f64, k: usize) -> f64 {
+/// Bounds on the extremes after removing row `r` (‖r‖² = `rr`): (h, l) with λ'max ≥ h and
+/// λ'min ≤ l, sharper than Rayleigh's: the k eigen-directions at each end are kept exactly and
+/// the rest of z is lumped into one extra direction on the far pole. With t = ‖r‖² − Σ_{i≤k} zᵢ²,
+/// the term Σ_{i>k} zᵢ²/(λᵢ − x) of the secular function is at least t/(λₘ − x) for x < λ₁, so the
+/// smallest root of the lumped (k+1)-term equation lies above λ'min; at the top,
+/// Σ_{i≤m−k} zᵢ²/(x − λᵢ) is at least t'/(x − λ₁), so the largest lumped root lies below λ'max.
+/// l ≤ 0 = no information.
+fn ritz_bound(lam: &[f64], vt: &[f64], r: &[f64], rr: f64, k: usize) -> (f64, f64) {
     let m = lam.len();
     let dot = |e: usize| -> f64 {
         vt[e * m..(e + 1) * m]
@@ -548,11 +686,7 @@ fn ritz_bound(lam: &[f64], vt: &[f64], r: &[f64], rr: f64, k: usize) -> f64 {
     z[0] = (rr - tail).max(0.0).sqrt();
     let zz: f64 = z[..=k].iter().map(|v| v * v).sum();
     let hi = secular_root(&l[..=k], &z[..=k], l[k - 1].max(l[k] - zz), l[k], k);
-    if lo > 0.0 {
-        hi / lo
-    } else {
-        0.0
-    }
+    (hi, lo)
 }
 
 fn cond_of(lmin: f64, lmax: f64) -> f64 {
@@ -754,6 +888,20 @@ mod tests {
         let mut dup = random_matrix(40, 5, 9);
         dup.extend_from_within(0..20 * 5);
         check_against_reference(&dup, 5, "duplicated rows");
+    }
+
+    /// Pools above `PARALLEL_BOUND` take the chunked, parallel passes; on one thread and on
+    /// several they must still make the exhaustive choices.
+    #[test]
+    fn bounded_elimination_equals_exhaustive_greedy_in_parallel() {
+        let j = random_matrix(PARALLEL_BOUND + BOUND_CHUNK / 2, 8, 11);
+        for threads in [1, 2] {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .expect("thread pool");
+            pool.install(|| check_against_reference(&j, 8, &format!("{threads} threads")));
+        }
     }
 
     #[test]

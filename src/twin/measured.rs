@@ -81,6 +81,10 @@ fn err(line: usize, column: impl Into<String>, msg: impl Into<String>) -> CsvErr
 }
 
 /// Parses measured data. `min_rows`: the fit needs at least this many rows.
+/// The most rows a run may have (about 11 hours at 500 Hz): memory stays bounded (a few GB
+/// through the fit) whatever the file claims.
+pub const MAX_ROWS: usize = 20_000_000;
+
 pub fn parse_csv(text: &str, min_rows: usize) -> Result<Measured, CsvError> {
     let mut lines = text
         .lines()
@@ -111,6 +115,13 @@ pub fn parse_csv(text: &str, min_rows: usize) -> Result<Measured, CsvError> {
     };
     for (l, raw) in lines {
         let line = l + 1;
+        if m.t.len() >= MAX_ROWS {
+            return Err(err(
+                line,
+                "1",
+                format!("more than {MAX_ROWS} rows: split the run, or record at a lower rate"),
+            ));
+        }
         let cells: Vec<&str> = raw.split(',').map(str::trim).collect();
         if cells.len() != names.len() {
             return Err(err(

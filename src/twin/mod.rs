@@ -18,9 +18,9 @@ pub use measured::{parse_csv, CsvError, Measured};
 pub use trajectory::Trajectory;
 pub use truth::Truth;
 
+use crate::dialect::Parsed;
 use crate::model::{MeasurementModel, Params, A, D, N_PARAMS};
 use crate::robot::Robot;
-use crate::verify::gcode::Parsed;
 use rand::{Rng, SeedableRng};
 
 #[derive(Clone, Debug)]

@@ -3,9 +3,10 @@
 //!
 //! - Each move is a synchronous joint-space line with a cycloidal speed profile
 //!   s(u) = u − sin(2πu)/2π (smooth acceleration, zero speed at both ends; peak speed twice the
-//!   mean). Its duration is the commanded one (G93: 60/F s; G94: joint path length / F; G0:
-//!   Eq. 7, the slowest axis at its maximum speed), stretched where needed so the peak speed
-//!   stays within every joint's limit (the controller is velocity-limited).
+//!   mean). Its duration is the commanded one, read the dialect's way ([`crate::dialect::Timing`]: G93 60/F s,
+//!   RAPID `\T`, URScript `t`, a speed percentage of the axes, G0: the slowest axis at its
+//!   maximum speed), stretched where needed so the peak speed stays within every joint's limit
+//!   (the controller is velocity-limited).
 //! - Blends (G64 P mm): the next move starts while the previous one still runs — the
 //!   controller superposes the two (overlapping blend). The overlap is the time in which the
 //!   MAP is within the blend distance of the corner (straight-line MAP distance along the move),
@@ -16,9 +17,9 @@
 //!   no M0).
 
 use super::SimError;
+use crate::dialect::{Parsed, Step};
 use crate::model::MeasurementModel;
 use crate::robot::Robot;
-use crate::verify::gcode::{commanded_duration, Parsed, Step};
 use std::f64::consts::TAU;
 
 #[derive(Clone, Debug)]
@@ -61,6 +62,7 @@ impl Trajectory {
         let vmax = robot.max_speeds();
         let mut start: Option<[f64; 6]> = None;
         let mut cur = [0.0; 6];
+        let mut cur_axes = [0.0; 6];
         let mut segs: Vec<Seg> = Vec::new();
         let mut t_end = 0.0f64;
         // Blend distance (m) of the corner at the end of the last segment, if it may blend.
@@ -68,16 +70,17 @@ impl Trajectory {
         let mut pauses: Vec<f64> = Vec::new();
         for l in &program.lines {
             match &l.step {
-                Step::Move {
-                    rapid,
+                step @ Step::Move {
                     target,
-                    feed,
+                    axes,
                     blend,
+                    ..
                 } => {
                     let target: [f64; 6] = target.map(f64::to_radians);
                     let Some(_) = start else {
                         start = Some(target);
                         cur = target;
+                        cur_axes = *axes;
                         continue;
                     };
                     let delta: [f64; 6] = std::array::from_fn(|i| target[i] - cur[i]);
@@ -86,9 +89,8 @@ impl Trajectory {
                     if eq7 == 0.0 {
                         continue;
                     }
-                    let from_deg = cur.map(f64::to_degrees);
-                    let to_deg = target.map(f64::to_degrees);
-                    let commanded = commanded_duration(&from_deg, &to_deg, *rapid, *feed, eq7);
+                    // A move whose speed is left to the controller runs at the axes' maximum.
+                    let commanded = program.duration(&cur_axes, step, &vmax).unwrap_or(eq7);
                     if !(commanded.is_finite() && commanded > 0.0) {
                         return Err(SimError::Program {
                             line: l.line,
@@ -111,6 +113,7 @@ impl Trajectory {
                     segs.push(Seg { t0, dur, delta });
                     t_end = t_end.max(t0 + dur);
                     cur = target;
+                    cur_axes = *axes;
                     pending_blend = blend.filter(|b| *b > 0.0).map(|b| b * 1e-3);
                 }
                 Step::Dwell(s) => {

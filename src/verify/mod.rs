@@ -1,22 +1,34 @@
 //! Verification: in = program text, robot and cell; out = a [`Summary`] of what the program
 //! really does, or the first [`Failure`] (line, time, what hit what or which limit).
 //!
-//! `verify` never looks at the compiler's memory: it re-reads the text with [`gcode`],
-//! reconstructs the motion the controller will execute — straight joint moves, and at every
-//! corner the blend of [`crate::safety::blend`] with the blend distance in force — and checks
-//! every pose, move and blend continuously with [`crate::safety::Checker`]. The bar is mounted at
-//! the first pause (M0), removed at the next, and so on; moves without it (the approach,
-//! transits between sections) are checked for the robot's collisions, limits and harness.
+//! `verify` never looks at the compiler's memory: it re-reads the text with the dialect's
+//! reader ([`crate::dialect`]), undoing the controller mapping, reconstructs the motion the
+//! controller will execute — straight joint moves, and at every corner the blend of
+//! [`crate::safety::blend`] with the blend distance in force — and checks every pose, move and
+//! blend continuously with [`crate::safety::Checker`]. The bar is mounted at the first pause,
+//! removed at the next, and so on; moves without it (the approach, transits between sections)
+//! are checked for the robot's collisions, limits and harness. A program whose header declares
+//! a controller mapping other than the one in force fails before anything else.
 
-pub mod gcode;
+/// The RS274/NGC reader under its old path (`verify::gcode::parse` reads ngc text with the
+/// identity mapping); the readers live in [`crate::dialect`].
+pub mod gcode {
+    pub use crate::dialect::{Line, ParseError, Parsed, Step, Timing};
+
+    /// Reads RS274/NGC text with model joints as X Y Z A B C (degrees).
+    pub fn parse(text: &str) -> Result<Parsed, ParseError> {
+        crate::dialect::ngc::parse(text, &Parsed::default().map)
+    }
+}
 
 use crate::collision::Contact;
+use crate::controller::ControllerMap;
+use crate::dialect::{Dialect, Parsed, Step};
 use crate::ir::Reason;
 use crate::order::move_time;
 use crate::robot::Robot;
 use crate::safety::{blend, describe_contact, Checker, Extremes, Violation};
 use crate::units::{fmt_fixed, to_mm, DEG};
-use gcode::Step;
 use serde::{Deserialize, Serialize};
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -77,47 +89,92 @@ struct Motion {
     mounted: bool,
 }
 
-/// Checks program text against the checker's robot and cell.
-pub fn check_text(ck: &Checker, robot: &Robot, text: &str) -> Result<Summary, Failure> {
-    let parsed = gcode::parse(text).map_err(|e| {
+/// Checks program text in `dialect`, read with the controller mapping `map`, against the
+/// checker's robot and cell.
+pub fn check_text(
+    ck: &Checker,
+    robot: &Robot,
+    text: &str,
+    dialect: &Dialect,
+    map: &ControllerMap,
+) -> Result<Summary, Failure> {
+    let parsed = dialect.read(text, map).map_err(|e| {
         fail(
             e.line,
             0.0,
-            Reason::JointLimit,
+            Reason::Program,
             format!("cannot read the program: {}", e.msg),
         )
     })?;
+    check(ck, robot, &parsed)
+}
+
+/// Checks a parsed program (any dialect) against the checker's robot and cell.
+pub fn check(ck: &Checker, robot: &Robot, parsed: &Parsed) -> Result<Summary, Failure> {
+    // The joint values only mean what the mapping says: a program written for another
+    // mapping (a wrong J2/J3 coupling, sign or offset) is refused before its poses are read.
+    if let Some(declared) = parsed.header_value("controller") {
+        let in_force = parsed.map.describe();
+        if declared != in_force {
+            return Err(fail(
+                0,
+                0.0,
+                Reason::Program,
+                format!(
+                    "the program was written for the controller axes \"{declared}\", but the mapping in force is \"{in_force}\" (the cell's [controller] section, else the dialect's default)"
+                ),
+            ));
+        }
+    }
     let speeds = robot.max_speeds();
     // Collect the motions; the bar is mounted at the first pause, removed at the next, and so
     // on: a motion made while it is in place is checked with it.
     let mut motions: Vec<Motion> = Vec::new();
     let mut mounted = false;
     let mut mount_at: Vec<usize> = Vec::new();
-    let mut prev: Option<[f64; 6]> = None;
+    let mut prev: Option<([f64; 6], [f64; 6])> = None;
     for (k, l) in parsed.lines.iter().enumerate() {
         match &l.step {
-            Step::Move {
-                rapid,
+            step @ Step::Move {
                 target,
-                feed,
+                axes,
                 blend,
+                ..
             } => {
                 let q = target.map(|d| d * DEG);
-                let min_time = prev.map_or(0.0, |p| move_time(&p, &q, &speeds));
-                let from = prev.map_or(*target, |p| p.map(|r| r / DEG));
-                let duration = gcode::commanded_duration(&from, target, *rapid, *feed, min_time);
-                if duration < min_time * (1.0 - 1e-6) {
-                    return Err(fail(
-                        l.line,
-                        0.0,
-                        Reason::JointSpeed,
-                        format!(
-                            "move takes {} s but the slowest axis needs {} s at its maximum speed",
-                            fmt_fixed(duration, 3),
-                            fmt_fixed(min_time, 3)
-                        ),
-                    ));
-                }
+                let duration = match prev {
+                    None => 0.0,
+                    Some((p, from_axes)) => {
+                        let min_time = move_time(&p, &q, &speeds);
+                        // A standstill (the same target again, e.g. a pause for a load
+                        // change) takes no time at any speed.
+                        let standstill = (min_time == 0.0).then_some(0.0);
+                        let duration = parsed
+                            .duration(&from_axes, step, &speeds)
+                            .or(standstill)
+                            .ok_or_else(|| {
+                                fail(
+                                    l.line,
+                                    0.0,
+                                    Reason::JointSpeed,
+                                    "the move's speed is left to the controller: only the approach (the first move) may do that".into(),
+                                )
+                            })?;
+                        if duration < min_time * (1.0 - 1e-6) {
+                            return Err(fail(
+                                l.line,
+                                0.0,
+                                Reason::JointSpeed,
+                                format!(
+                                    "move takes {} s but the slowest axis needs {} s at its maximum speed",
+                                    fmt_fixed(duration, 3),
+                                    fmt_fixed(min_time, 3)
+                                ),
+                            ));
+                        }
+                        duration
+                    }
+                };
                 let flows_on = matches!(
                     parsed.lines.get(k + 1).map(|n| &n.step),
                     Some(Step::Move { .. })
@@ -132,7 +189,7 @@ pub fn check_text(ck: &Checker, robot: &Robot, text: &str) -> Result<Summary, Fa
                     flows_on,
                     mounted,
                 });
-                prev = Some(q);
+                prev = Some((q, *axes));
             }
             Step::Pause => {
                 mounted = !mounted;

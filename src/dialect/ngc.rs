@@ -1,116 +1,37 @@
-//! RS274/NGC reader for edbbgen's joint-space programs: in = program text; out = the motions it
-//! commands ([`Line`]s), in program order, with the modal state that shapes each one.
+//! RS274/NGC reader (`templates/ngc.j2` writes it): in = program text and the controller
+//! mapping; out = the motions it commands ([`Line`]s), in program order, with the modal state
+//! that shapes each one.
 //!
 //! This reader is deliberately independent of the emitter: `verify` and `simulate` must judge a
 //! program by its text, not by what the compiler meant. It understands the subset of RS274/NGC
 //! that a joint-space measurement program needs and rejects the rest with the line number:
-//! - axis words X Y Z A B C = joints 1-6 (degrees), absolute (G90) or incremental (G91);
+//! - axis words X Y Z A B C = controller axes 1-6 (the mapping's units, degrees by default),
+//!   absolute (G90) or incremental (G91);
 //! - G0 (rapid, at the joints' maximum speeds) and G1 with feed in G94 (units/min along the
 //!   joint-space path) or G93 (inverse time: the move takes 1/F minutes);
 //! - G64 P (blend distance, mm) and G61 (exact stop); G4 P (dwell, s);
 //! - M0/M1 (pause), M2/M30 (end); comments in parentheses or after ';'; optional N words;
 //! - G21 only (millimetre mode; G20 is refused: degrees do not scale with inches).
 
-use serde::{Deserialize, Serialize};
+use super::{Line, ParseError, Parsed, Step, Timing};
+use crate::controller::ControllerMap;
 
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-pub enum FeedMode {
+const AXES: &str = "XYZABC";
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum FeedMode {
     /// G94: F is the path speed in units per minute.
     UnitsPerMinute,
     /// G93: F is 1 / (duration in minutes).
     InverseTime,
 }
 
-/// What one program line commands.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub enum Step {
-    /// A joint-space move to `target` (degrees).
-    Move {
-        rapid: bool,
-        target: [f64; 6],
-        /// G1 only: the feed word in force and its mode.
-        feed: Option<(FeedMode, f64)>,
-        /// Blend distance in force (mm); None = exact stop (G61).
-        blend: Option<f64>,
-    },
-    /// G4: stand still for this many seconds.
-    Dwell(f64),
-    /// M0/M1: program pause (operator action).
-    Pause,
-    /// M2/M30.
-    End,
-}
-
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct Line {
-    /// 1-based line number in the text.
-    pub line: usize,
-    pub step: Step,
-    /// The comment on the line, if any (e.g. edbbgen's pose annotations).
-    pub comment: Option<String>,
-}
-
-/// A parsed program: its steps and the header comments (lines before the first code word).
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
-pub struct Parsed {
-    pub header: Vec<String>,
-    pub lines: Vec<Line>,
-}
-
-impl Parsed {
-    /// Targets of all moves, in order.
-    pub fn targets(&self) -> impl Iterator<Item = (usize, &[f64; 6])> {
-        self.lines.iter().filter_map(|l| match &l.step {
-            Step::Move { target, .. } => Some((l.line, target)),
-            _ => None,
-        })
-    }
-
-    /// The value of a `(key: value)` header comment, e.g. `header_value("fixture")`.
-    pub fn header_value(&self, key: &str) -> Option<&str> {
-        self.header.iter().find_map(|h| {
-            h.strip_prefix(key)
-                .and_then(|r| r.strip_prefix(':'))
-                .map(str::trim)
-        })
-    }
-}
-
-/// The duration (s) a motion line commands for the move `from` → `to` (degrees): G93 takes
-/// 60/F; G94 the joint-space path length (degrees) over F (degrees per minute); G0, and a G1
-/// without a feed, `rapid_time` (the caller's Eq. 7 time at the joints' maximum speeds).
-pub fn commanded_duration(
-    from: &[f64; 6],
-    to: &[f64; 6],
-    rapid: bool,
-    feed: Option<(FeedMode, f64)>,
-    rapid_time: f64,
-) -> f64 {
-    match (rapid, feed) {
-        (false, Some((FeedMode::InverseTime, f))) => 60.0 / f,
-        (false, Some((FeedMode::UnitsPerMinute, f))) => {
-            let path = (0..6)
-                .map(|i| (to[i] - from[i]).powi(2))
-                .sum::<f64>()
-                .sqrt();
-            60.0 * path / f
-        }
-        _ => rapid_time,
-    }
-}
-
-#[derive(Debug, thiserror::Error, PartialEq)]
-#[error("line {line}: {msg}")]
-pub struct ParseError {
-    pub line: usize,
-    pub msg: String,
-}
-
-const AXES: &str = "XYZABC";
-
 /// Parses a program. Positions start unknown: the first move must name all six joints.
-pub fn parse(text: &str) -> Result<Parsed, ParseError> {
-    let mut out = Parsed::default();
+pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
+    let mut out = Parsed {
+        map: map.clone(),
+        ..Parsed::default()
+    };
     let mut pos: [Option<f64>; 6] = [None; 6];
     let mut absolute = true;
     let mut feed_mode = FeedMode::UnitsPerMinute;
@@ -239,18 +160,21 @@ pub fn parse(text: &str) -> Result<Parsed, ParseError> {
                 }
                 pos[i] = Some(target[i]);
             }
-            let f = if rapid {
-                None
+            let timing = if rapid {
+                Timing::Rapid
             } else {
                 let f = feed.ok_or_else(|| err("G1 without a feed rate F".into()))?;
-                Some((feed_mode, f))
+                match feed_mode {
+                    FeedMode::InverseTime => Timing::Duration(60.0 / f),
+                    FeedMode::UnitsPerMinute => Timing::PathFeed(f),
+                }
             };
             out.lines.push(Line {
                 line,
                 step: Step::Move {
-                    rapid,
-                    target,
-                    feed: f,
+                    target: map.undo(&target),
+                    axes: target,
+                    timing,
                     blend,
                 },
                 comment: comment_text.clone(),
@@ -356,6 +280,14 @@ fn words(code: &str) -> Result<Vec<(char, f64)>, String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::controller::Units;
+
+    fn parse(text: &str) -> Result<Parsed, ParseError> {
+        super::parse(
+            text,
+            &ControllerMap::identity(Units::Deg, ["X", "Y", "Z", "A", "B", "C"]),
+        )
+    }
 
     #[test]
     fn reads_an_edbbgen_program() {
@@ -378,12 +310,11 @@ mod tests {
         );
         match &p.lines[2].step {
             Step::Move {
-                rapid: false,
-                feed: Some((FeedMode::InverseTime, f)),
+                timing: Timing::Duration(t),
                 blend: Some(b),
                 ..
             } => {
-                assert_eq!((*f, *b), (120.0, 10.0))
+                assert_eq!((*t, *b), (0.5, 10.0))
             }
             s => panic!("{s:?}"),
         }

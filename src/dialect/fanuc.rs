@@ -1,0 +1,435 @@
+//! FANUC LS reader (`templates/fanuc.j2` writes it): in = a teach pendant program as LS text
+//! and the controller mapping; out = the motions, in program order.
+//!
+//! The subset a joint-space measurement program needs, strictly:
+//! - `/PROG name`, an optional `/ATTR` block, `/MN` with lines `n:  instruction ;` numbered
+//!   1, 2, … without gaps, `/POS` with one `P[k]{ GP1: UF : u, UT : t, J1= v deg, …, J6= v
+//!   deg };` per position, `/END`;
+//! - `J P[k] n% FINE|CNTn|CRn` (also `P[k:label]`; `n sec`/`n msec` as the move's time): `n%`
+//!   runs the slowest axis at n % of its speed, all axes arriving together. FINE is an exact
+//!   stop; CRn (corner region) an n mm blend; CNTn is read as an n mm blend at the MAP — the
+//!   edbbgen convention, since FANUC's CNT is a speed criterion, not a distance;
+//! - `!remark` (at most 32 characters; a remark goes with the motion after it; `..` lines
+//!   continue the header's long values), `MESSAGE[…]` (at most 24), `PAUSE`, `WAIT t(sec)`,
+//!   `UFRAME_NUM=n`, `UTOOL_NUM=n`, `END`.
+
+use super::{number, perr, push_header, Line, ParseError, Parsed, Step, Timing};
+use crate::controller::ControllerMap;
+
+/// FANUC program names: a letter, then letters, digits and `_`, at most 36 characters.
+pub fn valid_name(name: &str) -> bool {
+    super::valid_name(name, 36)
+}
+
+struct Motion {
+    line: usize,
+    p: usize,
+    timing: Timing,
+    blend: Option<f64>,
+    comment: Option<String>,
+}
+
+enum Item {
+    Move(Motion),
+    Step(Line),
+}
+
+pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
+    let mut out = Parsed {
+        map: map.clone(),
+        ..Parsed::default()
+    };
+    #[derive(PartialEq, Clone, Copy)]
+    enum Sec {
+        Start,
+        Attr,
+        Mn,
+        Pos,
+        End,
+    }
+    let mut sec = Sec::Start;
+    let mut items: Vec<Item> = Vec::new();
+    let mut next_no = 1;
+    let mut moved = false;
+    let mut remark: Option<String> = None;
+    let mut positions: Vec<(usize, usize, [Option<f64>; 6])> = Vec::new(); // (k, line, joints)
+    let mut open_p: Option<(usize, usize, [Option<f64>; 6])> = None;
+    let mut end_line = 0;
+    for (k, raw) in text.lines().enumerate() {
+        let line = k + 1;
+        let t = raw.trim();
+        if t.is_empty() {
+            continue;
+        }
+        if let Some(rest) = t.strip_prefix("/PROG") {
+            if sec != Sec::Start {
+                return Err(perr(line, "/PROG twice"));
+            }
+            let name = rest.split_whitespace().next().unwrap_or("");
+            if !valid_name(name) {
+                return Err(perr(
+                    line,
+                    format!(
+                        "/PROG {name}: not a program name (a letter, letters/digits/_, at most 36)"
+                    ),
+                ));
+            }
+            sec = Sec::Attr;
+            continue;
+        }
+        if sec == Sec::Start {
+            return Err(perr(line, "an LS program starts with /PROG name"));
+        }
+        match t {
+            "/ATTR" if sec == Sec::Attr => continue,
+            "/MN" if sec == Sec::Attr => {
+                sec = Sec::Mn;
+                continue;
+            }
+            "/POS" if sec == Sec::Mn => {
+                sec = Sec::Pos;
+                continue;
+            }
+            "/END" if sec == Sec::Pos || sec == Sec::Mn => {
+                if open_p.is_some() {
+                    return Err(perr(line, "/END inside a position (no '};')"));
+                }
+                sec = Sec::End;
+                end_line = line;
+                continue;
+            }
+            _ if t.starts_with('/') && !t.starts_with("/APPL") => {
+                return Err(perr(
+                    line,
+                    format!("{t} out of place (/PROG, /ATTR, /MN, /POS, /END in this order)"),
+                ))
+            }
+            _ => {}
+        }
+        match sec {
+            Sec::Start => unreachable!(),
+            Sec::End => return Err(perr(line, "text after /END")),
+            Sec::Attr => {
+                if !(t.ends_with(';') || t.ends_with(',') || t.starts_with("/APPL")) {
+                    return Err(perr(
+                        line,
+                        "an /ATTR line ends with ';' (or ',' inside TCD)",
+                    ));
+                }
+            }
+            Sec::Mn => {
+                let (no, rest) = t
+                    .split_once(':')
+                    .ok_or_else(|| perr(line, "an /MN line is 'n:  instruction ;'"))?;
+                let no: usize = no
+                    .trim()
+                    .parse()
+                    .map_err(|_| perr(line, format!("'{}' is not a line number", no.trim())))?;
+                if no != next_no {
+                    return Err(perr(line, format!("line number {no}, expected {next_no}")));
+                }
+                next_no += 1;
+                let instr = rest
+                    .trim_end()
+                    .strip_suffix(';')
+                    .ok_or_else(|| perr(line, "an /MN line ends with ';'"))?
+                    .trim();
+                if instr.is_empty() {
+                    continue;
+                }
+                if let Some(r) = instr.strip_prefix('!') {
+                    if r.chars().count() > 32 {
+                        return Err(perr(
+                            line,
+                            format!(
+                                "a remark holds at most 32 characters, this one {}",
+                                r.chars().count()
+                            ),
+                        ));
+                    }
+                    if !moved {
+                        push_header(&mut out.header, r);
+                    }
+                    remark = Some(r.trim().to_string());
+                    continue;
+                }
+                let comment = remark.take();
+                let upper = instr.to_ascii_uppercase();
+                if let Some(r) = upper.strip_prefix("J ") {
+                    items.push(Item::Move(motion(line, r.trim(), comment)?));
+                    moved = true;
+                } else if let Some(r) = upper.strip_prefix("MESSAGE[") {
+                    let inner = r
+                        .strip_suffix(']')
+                        .ok_or_else(|| perr(line, "MESSAGE[ without ']'"))?;
+                    if inner.chars().count() > 24 {
+                        return Err(perr(line, "a MESSAGE holds at most 24 characters"));
+                    }
+                } else if upper == "PAUSE" {
+                    items.push(Item::Step(Line {
+                        line,
+                        step: Step::Pause,
+                        comment,
+                    }));
+                } else if upper == "END" {
+                    items.push(Item::Step(Line {
+                        line,
+                        step: Step::End,
+                        comment,
+                    }));
+                } else if let Some(r) = upper.strip_prefix("WAIT ") {
+                    let s = r
+                        .trim()
+                        .strip_suffix("(SEC)")
+                        .ok_or_else(|| perr(line, "WAIT takes a time: WAIT t(sec)"))?;
+                    let secs = number(line, "WAIT", s)?;
+                    items.push(Item::Step(Line {
+                        line,
+                        step: Step::Dwell(secs),
+                        comment,
+                    }));
+                } else if let Some(r) = upper
+                    .strip_prefix("UFRAME_NUM=")
+                    .or(upper.strip_prefix("UTOOL_NUM="))
+                {
+                    r.trim()
+                        .parse::<u32>()
+                        .map_err(|_| perr(line, "UFRAME_NUM/UTOOL_NUM take a number"))?;
+                } else {
+                    return Err(perr(line, format!("'{instr}' is not an instruction edbbgen reads (J, !, MESSAGE, PAUSE, WAIT)")));
+                }
+            }
+            Sec::Pos => {
+                if let Some(r) = t.strip_prefix("P[") {
+                    if open_p.is_some() {
+                        return Err(perr(line, "a position starts inside another (no '};')"));
+                    }
+                    let (idx, rest) = r
+                        .split_once(']')
+                        .ok_or_else(|| perr(line, "P[ without ']'"))?;
+                    let idx = idx.split(':').next().unwrap_or("");
+                    let kk: usize = idx
+                        .trim()
+                        .parse()
+                        .map_err(|_| perr(line, format!("P[{idx}]: not a position number")))?;
+                    if rest.trim() != "{" {
+                        return Err(perr(line, "a position starts with 'P[k]{'"));
+                    }
+                    if positions.iter().any(|p| p.0 == kk) {
+                        return Err(perr(line, format!("P[{kk}] defined twice")));
+                    }
+                    open_p = Some((kk, line, [None; 6]));
+                } else if t == "};" {
+                    let p = open_p
+                        .take()
+                        .ok_or_else(|| perr(line, "'};' without a position"))?;
+                    positions.push(p);
+                } else {
+                    let p = open_p
+                        .as_mut()
+                        .ok_or_else(|| perr(line, "text outside a position"))?;
+                    if t == "GP1:" || t.starts_with("UF") {
+                        continue;
+                    }
+                    for part in t.split(',').map(str::trim).filter(|s| !s.is_empty()) {
+                        let (name, value) = part.split_once('=').ok_or_else(|| {
+                            perr(line, format!("'{part}' is not 'Jn = value deg'"))
+                        })?;
+                        let i = match name.trim() {
+                            "J1" => 0,
+                            "J2" => 1,
+                            "J3" => 2,
+                            "J4" => 3,
+                            "J5" => 4,
+                            "J6" => 5,
+                            n => {
+                                return Err(perr(
+                                    line,
+                                    format!(
+                                        "'{n}' is not a joint (J1..J6): joint representation only"
+                                    ),
+                                ))
+                            }
+                        };
+                        let v = value
+                            .trim()
+                            .strip_suffix("deg")
+                            .ok_or_else(|| perr(line, format!("J{} needs 'deg'", i + 1)))?;
+                        if p.2[i].is_some() {
+                            return Err(perr(line, format!("J{} given twice", i + 1)));
+                        }
+                        p.2[i] = Some(number(line, "joint value", v)?);
+                    }
+                }
+            }
+        }
+    }
+    if sec != Sec::End {
+        return Err(perr(
+            text.lines().count(),
+            "the program does not end with /END",
+        ));
+    }
+    for it in items {
+        match it {
+            Item::Step(l) => out.lines.push(l),
+            Item::Move(m) => {
+                let (_, pl, j) = positions
+                    .iter()
+                    .find(|p| p.0 == m.p)
+                    .ok_or_else(|| perr(m.line, format!("P[{}] is not in /POS", m.p)))?;
+                let mut axes = [0.0; 6];
+                for i in 0..6 {
+                    axes[i] =
+                        j[i].ok_or_else(|| perr(*pl, format!("P[{}] lacks J{}", m.p, i + 1)))?;
+                }
+                out.lines.push(Line {
+                    line: m.line,
+                    step: Step::Move {
+                        target: map.undo(&axes),
+                        axes,
+                        timing: m.timing,
+                        blend: m.blend,
+                    },
+                    comment: m.comment,
+                });
+            }
+        }
+    }
+    out.lines.push(Line {
+        line: end_line,
+        step: Step::End,
+        comment: None,
+    });
+    Ok(out)
+}
+
+/// `P[k] 100% CNT10` (upper case) → the motion.
+fn motion(line: usize, s: &str, comment: Option<String>) -> Result<Motion, ParseError> {
+    let r = s
+        .strip_prefix("P[")
+        .ok_or_else(|| perr(line, "J takes a position P[k]"))?;
+    let (idx, rest) = r
+        .split_once(']')
+        .ok_or_else(|| perr(line, "P[ without ']'"))?;
+    let idx = idx.split(':').next().unwrap_or("");
+    let p: usize = idx
+        .trim()
+        .parse()
+        .map_err(|_| perr(line, format!("P[{idx}]: not a position number")))?;
+    let words: Vec<&str> = rest.split_whitespace().collect();
+    let (speed, term) = match words.as_slice() {
+        [sp, term] => (sp.to_string(), *term),
+        [n, unit, term] if *unit == "SEC" || *unit == "MSEC" => (format!("{n}{unit}"), *term),
+        _ => {
+            return Err(perr(
+                line,
+                "J P[k] takes a speed and a termination (n% FINE|CNTn)",
+            ))
+        }
+    };
+    let timing = if let Some(n) = speed.strip_suffix('%') {
+        let v: u32 = n.parse().map_err(|_| {
+            perr(
+                line,
+                format!("'{speed}': a joint speed is an integer percentage"),
+            )
+        })?;
+        if !(1..=100).contains(&v) {
+            return Err(perr(line, "a joint speed is 1..100 %"));
+        }
+        Timing::AxisPercent([f64::from(v); 6])
+    } else if let Some(n) = speed.strip_suffix("MSEC") {
+        Timing::Duration(number(line, "msec", n)? / 1000.0)
+    } else if let Some(n) = speed.strip_suffix("SEC") {
+        Timing::Duration(number(line, "sec", n)?)
+    } else {
+        return Err(perr(
+            line,
+            format!("'{speed}' is not a joint speed (n%, t sec, t msec)"),
+        ));
+    };
+    let blend = if term == "FINE" {
+        None
+    } else if let Some(n) = term.strip_prefix("CNT").or(term.strip_prefix("CR")) {
+        let v: u32 = n
+            .parse()
+            .map_err(|_| perr(line, format!("'{term}' needs an integer")))?;
+        if v > 100 && term.starts_with("CNT") {
+            return Err(perr(line, "CNT takes 0..100"));
+        }
+        (v > 0).then_some(f64::from(v))
+    } else {
+        return Err(perr(
+            line,
+            format!("'{term}' is not a termination (FINE, CNTn, CRn)"),
+        ));
+    };
+    Ok(Motion {
+        line,
+        p,
+        timing,
+        blend,
+        comment,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::controller::Units;
+
+    fn map() -> ControllerMap {
+        ControllerMap::identity(Units::Deg, ["J1", "J2", "J3", "J4", "J5", "J6"])
+    }
+
+    const OK: &str = "/PROG  EDBB\n/ATTR\nOWNER = MNEDITOR;\nTCD:  STACK_SIZE = 0,\n      PAUSE_REQUEST = 0;\n/MN\n\
+           1:  !fixture: 1, 2, ;\n   2:  !.. 3 mm ;\n   3:  !pose 1/2 ;\n   4:  J P[1] 100% FINE ;\n   5:  MESSAGE[Mount the EDBB] ;\n\
+           6:  PAUSE ;\n   7:  !support ;\n   8:  J P[2] 50% CNT10 ;\n/POS\nP[1]{\n   GP1:\n    UF : 0, UT : 1,\n\
+        J1 = 1.000 deg,  J2 = 2.000 deg,  J3 = 3.000 deg,\n    J4 = 4.000 deg,  J5 = 5.000 deg,  J6 = 6.000 deg\n};\n\
+        P[2]{\n   GP1:\n    UF : 0, UT : 1,\n    J1 = 2.000 deg,  J2 = 2.000 deg,  J3 = 3.000 deg,\n    J4 = 4.000 deg,  J5 = 5.000 deg,  J6 = 6.000 deg\n};\n/END\n";
+
+    #[test]
+    fn reads_mn_and_pos() {
+        let p = parse(OK, &map()).unwrap();
+        assert_eq!(p.header_value("fixture"), Some("1, 2, 3 mm"));
+        let steps: Vec<&Step> = p.lines.iter().map(|l| &l.step).collect();
+        assert!(
+            matches!(steps[0], Step::Move { timing: Timing::AxisPercent(pc), blend: None, .. } if pc[0] == 100.0)
+        );
+        assert!(matches!(steps[1], Step::Pause));
+        assert!(
+            matches!(steps[2], Step::Move { blend: Some(b), target, .. } if *b == 10.0 && target[0] == 2.0)
+        );
+        assert_eq!(p.lines[2].comment.as_deref(), Some("support"));
+        assert!(matches!(steps[3], Step::End));
+    }
+
+    #[test]
+    fn rejects_with_the_line_number() {
+        for (from, to, msg) in [
+            ("   2:  !.. 3 mm ;", "   3:  !.. 3 mm ;", "expected 2"),
+            (
+                "J P[2] 50% CNT10",
+                "J P[3] 50% CNT10",
+                "P[3] is not in /POS",
+            ),
+            ("J P[2] 50% CNT10", "J P[2] 150% CNT10", "1..100"),
+            (
+                "J P[2] 50% CNT10",
+                "L P[2] 50mm/sec CNT10",
+                "not an instruction",
+            ),
+            ("/END\n", "", "does not end"),
+            (
+                "!support ;",
+                "!support with a remark that is much too long ;",
+                "at most 32",
+            ),
+        ] {
+            let text = OK.replacen(from, to, 1);
+            let e = parse(&text, &map()).unwrap_err();
+            assert!(e.msg.contains(msg), "{to:?}: {e}");
+        }
+    }
+}
