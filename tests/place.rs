@@ -39,7 +39,7 @@ fn place(dir: &Path, tag: &str, extra: &[&str]) -> (Value, String) {
 }
 
 /// The candidate at `mm` (given with --at or the cell's fixture).
-fn at<'a>(v: &'a Value, mm: [f64; 3]) -> &'a Value {
+fn at(v: &Value, mm: [f64; 3]) -> &Value {
     v["candidates"]
         .as_array()
         .unwrap()
