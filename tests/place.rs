@@ -457,7 +457,7 @@ fn bad_input_exits_2_with_one_line_and_writes_nothing() {
         ),
         (
             vec!["--cell", crowded.to_str().unwrap(), "--grid", "3,3,2"],
-            "no room for the fixture",
+            "crowded.toml: no room for the fixture",
         ),
         (vec!["--region", "0..1,2..1,0..1"], "--region"),
         (vec!["--region", "0..1000"], "--region"),

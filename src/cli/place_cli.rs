@@ -168,10 +168,11 @@ pub fn place(a: &PlaceArgs) -> Result<i32, Error> {
         None => None,
     };
     let cell_text = match &a.cell.cell {
-        Some(p) => Some(std::fs::read_to_string(p).map_err(|e| Error::File {
-            path: p.display().to_string(),
-            msg: format!("cannot read: {e}"),
-        })?),
+        Some(p) => Some(super::read_input(
+            p,
+            "the cell",
+            crate::files::Kind::Config,
+        )?),
         None => None,
     };
 
@@ -198,7 +199,14 @@ pub fn place(a: &PlaceArgs) -> Result<i32, Error> {
     opts.prior = prior;
 
     let bar = Bar::new(a.cell.quiet, "placing");
-    let placement = place::run(&robot, &opts, &bar)?;
+    // A cell that leaves no room is the cell file's fault: the line names it.
+    let placement = place::run(&robot, &opts, &bar).map_err(|e| match (&e, &a.cell.cell) {
+        (place::PlaceError::NoRoom { .. }, Some(p)) => Error::File {
+            path: p.display().to_string(),
+            msg: e.to_string(),
+        },
+        _ => e.into(),
+    })?;
     let mut rep = place::report::report(&robot, &placement);
     warnings.extend(rep.warnings.iter().cloned());
     rep.warnings = warnings.clone();
