@@ -58,8 +58,19 @@ fn pool(robot: &Robot, model: &MeasurementModel, cell: &Cell, cap: usize) -> (Po
 
 /// Runs the release binary under `/usr/bin/time -v`: (wall s, peak RSS MiB), best of `reps`.
 fn compile(args: &[&str], reps: usize) -> Option<(f64, f64)> {
-    let exe = Path::new(ROOT).join("target/release/edbbgen");
     let out = std::env::temp_dir().join(format!("edbbgen-bench-{}.nc", std::process::id()));
+    let mut all: Vec<&str> = args.to_vec();
+    let o = out.to_string_lossy().into_owned();
+    all.extend(["-o", o.as_str()]);
+    let r = timed(&all, reps);
+    let _ = std::fs::remove_file(&out);
+    r
+}
+
+/// The release binary with `args` (and `-q`) under `/usr/bin/time -v`: (wall s, peak RSS MiB),
+/// best of `reps`.
+fn timed(args: &[&str], reps: usize) -> Option<(f64, f64)> {
+    let exe = Path::new(ROOT).join("target/release/edbbgen");
     let mut best: Option<(f64, f64)> = None;
     for _ in 0..reps {
         let run = std::process::Command::new("/usr/bin/time")
@@ -67,8 +78,6 @@ fn compile(args: &[&str], reps: usize) -> Option<(f64, f64)> {
             .arg(&exe)
             .args(args)
             .arg("-q")
-            .arg("-o")
-            .arg(&out)
             .current_dir(ROOT)
             .output()
             .ok()?;
@@ -95,7 +104,6 @@ fn compile(args: &[&str], reps: usize) -> Option<(f64, f64)> {
             _ => this,
         });
     }
-    let _ = std::fs::remove_file(&out);
     best
 }
 
@@ -426,6 +434,33 @@ fn main() {
             }
             None => eprintln!("compile {name}: skipped (build the release binary first)"),
         }
+    }
+
+    // Fixture placement: a 10 x 10 x 5 grid on a shared URDF robot in its test cell (500
+    // proxies, 6 + 1 compiles), end to end.
+    let place_args = [
+        "place",
+        "../shared/robots/kuka_kr210_l150/robot.urdf",
+        "--cell",
+        "tests/cells/kuka_kr210_l150.toml",
+        "--grid",
+        "10,10,5",
+    ];
+    match timed(&place_args, 1) {
+        Some((wall, rss)) => {
+            row(
+                "place KUKA KR 210 L150, 10 x 10 x 5 grid: wall time".to_string(),
+                wall,
+                "s",
+            );
+            row(
+                "place KUKA KR 210 L150, 10 x 10 x 5 grid: peak memory".to_string(),
+                rss,
+                "MiB",
+            );
+            e2e.push(json!({"case": "place KUKA KR 210 L150 10x10x5", "args": place_args, "wall_s": wall, "peak_rss_mib": rss}));
+        }
+        None => eprintln!("place: skipped (build the release binary first)"),
     }
 
     println!("{:<56} {:>16}  unit", "benchmark", "value");

@@ -17,6 +17,8 @@
 //! - [`twin`]: the digital twin (truth model, effects library, program timing, simulation) and
 //!   the ISO 230-4 circle test; [`diagnose`]: measured vs simulated, calibration, effect
 //!   selection, report.
+//! - [`place`]: where the fixture goes: candidate positions scored by the MAP position
+//!   uncertainty a calibration from a program compiled there would reach; campaigns of K.
 //! - [`ldbb`]: the loaded double ball bar (Sections 2.2, 3.2, 4.2): compliance along the bar,
 //!   Eq. 8 and 9, the kinematic remainder, joint stiffness; its circle program and simulator.
 //!
@@ -39,6 +41,7 @@ pub mod ldbb;
 pub mod model;
 pub mod order;
 pub mod pipeline;
+pub mod place;
 pub mod plot;
 pub mod report;
 pub mod robot;

@@ -401,7 +401,8 @@ pub struct Compiled {
 
 /// The collision filter: candidates in key order, checked in parallel batches, until `want`
 /// pass. Deterministic: the accepted set is the first `want` passing poses in key order.
-fn collision_filter(
+/// Returns the accepted poses (grid order), how many were checked and how many rejected.
+pub fn collision_filter(
     ck: &Checker,
     mut candidates: Vec<crate::ir::Candidate>,
     want: usize,
@@ -624,14 +625,7 @@ pub fn compile(
 
     // What the program buys: the MAP position uncertainty after calibrating from its recording
     // (every move made with the bar, at the bar's rate), over the whole joint space.
-    let segments: Vec<([f64; 6], [f64; 6], f64)> = path
-        .poses
-        .windows(2)
-        .zip(plan.waypoints.iter().skip(1))
-        .zip(path.move_times.iter().skip(1))
-        .filter(|((_, w), _)| !w.transit)
-        .map(|((q, _), &t)| (q[0], q[1], t))
-        .collect();
+    let segments = recorded_segments(&path, &plan);
     let space = crate::calibrate::predict::workspace(robot, PREDICTION_POSES, opts.seed);
     let predicted = crate::calibrate::predict::spread(&crate::calibrate::predict::after_recording(
         &model,
@@ -773,6 +767,18 @@ pub fn compile(
         report,
         warnings,
     })
+}
+
+/// The moves a program records: every move made with the bar (not the transits between
+/// sections), as (from, to, duration in s) on the joint values the program text carries.
+pub fn recorded_segments(path: &Path, plan: &Plan) -> Vec<([f64; 6], [f64; 6], f64)> {
+    path.poses
+        .windows(2)
+        .zip(plan.waypoints.iter().skip(1))
+        .zip(path.move_times.iter().skip(1))
+        .filter(|((_, w), _)| !w.transit)
+        .map(|((q, _), &t)| (q[0], q[1], t))
+        .collect()
 }
 
 /// The controller mapping a template's programs use: the cell's `[controller]` over the

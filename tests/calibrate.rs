@@ -20,7 +20,7 @@ use std::path::{Path, PathBuf};
 const DEG: f64 = std::f64::consts::PI / 180.0;
 
 /// Random geometric errors of the DH parameters (up to ±0.2 mm, ±0.02°); fixture and MAP exact.
-fn dh_errors(rng: &mut ChaCha8Rng) -> [f64; N_PARAMS] {
+pub fn dh_errors(rng: &mut ChaCha8Rng) -> [f64; N_PARAMS] {
     let mut g = [0.0; N_PARAMS];
     for i in 0..6 {
         g[A + i] = rng.random_range(-0.2..0.2) * 1e-3;
@@ -32,7 +32,7 @@ fn dh_errors(rng: &mut ChaCha8Rng) -> [f64; N_PARAMS] {
 }
 
 /// Joint poses drawn uniformly within the limits (its own generator, not the library's).
-fn joint_space(robot: &Robot, n: usize, seed: u64) -> Vec<[f64; 6]> {
+pub fn joint_space(robot: &Robot, n: usize, seed: u64) -> Vec<[f64; 6]> {
     let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x5eed);
     let (lo, hi) = robot.limits();
     (0..n)
@@ -40,7 +40,7 @@ fn joint_space(robot: &Robot, n: usize, seed: u64) -> Vec<[f64; 6]> {
         .collect()
 }
 
-fn true_points(model: &MeasurementModel, truth: &Truth, qs: &[[f64; 6]]) -> Vec<Vector3<f64>> {
+pub fn true_points(model: &MeasurementModel, truth: &Truth, qs: &[[f64; 6]]) -> Vec<Vector3<f64>> {
     let mut p = model.nominal.to_array();
     for k in 0..N_PARAMS {
         p[k] += truth.geometric[k];
@@ -50,14 +50,14 @@ fn true_points(model: &MeasurementModel, truth: &Truth, qs: &[[f64; 6]]) -> Vec<
 }
 
 /// A calibrated robot file read back by the loader: its MAP (its own `tool`) at each pose.
-fn file_points(path: &Path, qs: &[[f64; 6]]) -> Vec<Vector3<f64>> {
+pub fn file_points(path: &Path, qs: &[[f64; 6]]) -> Vec<Vector3<f64>> {
     let robot = load(path);
     let tool = robot.tool.expect("a calibrated file carries the MAP");
     qs.iter().map(|q| robot.point(q, &tool)).collect()
 }
 
 /// Registered RMS distance (µm) between two point sets.
-fn registered_um(a: &[Vector3<f64>], b: &[Vector3<f64>]) -> f64 {
+pub fn registered_um(a: &[Vector3<f64>], b: &[Vector3<f64>]) -> f64 {
     predict::register(a, b).0 * 1e6
 }
 
@@ -95,7 +95,7 @@ fn calibrate_one(
 
 /// A scratch folder for calibrated files of `robot_file`: URDF mesh paths are relative to the
 /// robot's folder, so its `meshes` are linked in.
-fn workdir(robot_file: &Path) -> tempfile::TempDir {
+pub fn workdir(robot_file: &Path) -> tempfile::TempDir {
     let dir = tempdir();
     let meshes = robot_file.parent().unwrap().join("meshes");
     if meshes.exists() {

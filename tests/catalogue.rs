@@ -806,6 +806,48 @@ fn cases(f: &Fixtures) -> Vec<Case> {
             ],
             "syntax_setup.toml",
         ),
+        // ---- place
+        case(
+            "place region out of reach",
+            &[
+                "place",
+                nj,
+                "--region",
+                "9000..10000,0..500,0..500",
+                "--grid",
+                "2,2,2",
+                "--json",
+                &o("p.json"),
+            ],
+            "--region",
+        ),
+        case(
+            "place cell without room",
+            &[
+                "place",
+                nj,
+                "--cell",
+                &f.write(
+                    "crowded.toml",
+                    "[[environment]]\nname = \"slab\"\ntype = \"box\"\nsize = [6000.0, 12000.0, 4000.0]\norigin = [2950.0, 0.0, 2000.0]\n",
+                ),
+                "--grid",
+                "3,3,2",
+                "--json",
+                &o("p.json"),
+            ],
+            "crowded.toml",
+        ),
+        case(
+            "place grid",
+            &["place", nj, "--grid", "0,2,2", "--json", &o("p.json")],
+            "--grid",
+        ),
+        case(
+            "place count",
+            &["place", nj, "--count", "11", "--json", &o("p.json")],
+            "--count",
+        ),
         // ---- dialects, completions
         case("dialects flag", &["dialects", "--yaml"], "--yaml"),
         case("completions shell", &["completions", "cmd.exe"], "cmd.exe"),

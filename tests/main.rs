@@ -19,6 +19,7 @@ mod ldbb;
 mod linuxcnc;
 mod model_cmd;
 mod passive;
+mod place;
 mod report;
 mod safety;
 mod snapshots;

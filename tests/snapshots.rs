@@ -11,6 +11,7 @@ const CASES: &[&str] = &[
     "gcode@nj130_default",
     "html@nj130_default",
     "html@nj130_diagnosis",
+    "place@nj130_small",
     "json@ldbb_simulated",
     "dialects@list",
 ];

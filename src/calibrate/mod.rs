@@ -255,8 +255,30 @@ fn determine(
     }
     let scale: Vec<f64> = free.iter().map(|&q| prior(opts, q)).collect();
     let ss = DMatrix::from_fn(g, g, |a, b| s[(a, b)] * scale[a] * scale[b]);
+    let (chosen, weak) = determined_columns(&ss, sigma, opts.kappa);
+    (
+        chosen.into_iter().map(|k| free[k]).collect(),
+        weak.into_iter()
+            .map(|(k, ratio)| (free[k], ratio * scale[k]))
+            .collect(),
+    )
+}
+
+/// Step 3 on a normal matrix `ss` (g × g) whose columns are scaled by their parameters' prior
+/// uncertainty, for a noise σ per reading: the columns the data determine (ascending), and the
+/// others with the standard uncertainty each would have, in units of its prior (in the order
+/// they were ruled out). Pivoted Cholesky takes the best-seen column next while its conditional
+/// uncertainty stays below prior/κ; then any column whose marginal uncertainty exceeds prior/κ
+/// is dropped, worst first. Shared by [`run`] (on fitted data) and
+/// [`predict::expected`] (on the information a planned campaign would collect).
+pub fn determined_columns(
+    ss: &DMatrix<f64>,
+    sigma: f64,
+    kappa: f64,
+) -> (Vec<usize>, Vec<(usize, f64)>) {
+    let g = ss.nrows();
     // Pivoted Cholesky: the best-seen parameter next, while it is seen well enough.
-    let floor = (opts.kappa * sigma).powi(2);
+    let floor = (kappa * sigma).powi(2);
     let mut d: Vec<f64> = (0..g).map(|k| ss[(k, k)]).collect();
     let mut chosen: Vec<usize> = Vec::new();
     let mut l = DMatrix::<f64>::zeros(g, g);
@@ -282,11 +304,11 @@ fn determine(
         }
         chosen.push(k);
     }
-    let mut weak: Vec<(Param, f64)> = (0..g)
+    let mut weak: Vec<(usize, f64)> = (0..g)
         .filter(|k| !chosen.contains(k))
-        .map(|k| (free[k], scale[k] * sigma / d[k].max(1e-300).sqrt()))
+        .map(|k| (k, sigma / d[k].max(1e-300).sqrt()))
         .collect();
-    // Every kept parameter's marginal uncertainty within tolerance / κ, worst dropped first.
+    // Every kept parameter's marginal uncertainty within prior / κ, worst dropped first.
     chosen.sort_unstable();
     loop {
         if chosen.is_empty() {
@@ -300,13 +322,13 @@ fn determine(
             .map(|a| (a, cov[(a, a)].max(0.0).sqrt() * sigma))
             .max_by(|x, y| x.1.total_cmp(&y.1).then(y.0.cmp(&x.0)))
             .unwrap_or((0, 0.0));
-        if ratio <= 1.0 / opts.kappa {
+        if ratio <= 1.0 / kappa {
             break;
         }
         let k = chosen.remove(worst);
-        weak.push((free[k], ratio * scale[k]));
+        weak.push((k, ratio));
     }
-    (chosen.into_iter().map(|k| free[k]).collect(), weak)
+    (chosen, weak)
 }
 
 /// Calibrates the robot of `model` on a campaign of runs (`labels` name them in the report).
@@ -616,20 +638,14 @@ fn held_map(
     let c = cols.len();
     cols.extend(held.iter().map(|&q| fit::Col::Geo(q)));
     let (n, _, _, _) = accumulate(problem, est, &cols, 1).total();
-    let naa = n.view((0, 0), (c, c)).into_owned();
-    let nah = n.view((0, c), (c, h)).into_owned();
-    let k = fit::inverse(&naa) * nah; // c × h
-    let mut w = DMatrix::zeros(N_PARAMS, h);
-    for (b, q) in held.iter().enumerate() {
-        if let Param::Shared(i) = q {
-            w[(*i, b)] += 1.0;
-        }
-        for (a, d) in free.iter().enumerate() {
-            if let Param::Shared(i) = d {
-                w[(*i, b)] -= k[(a, b)];
-            }
-        }
-    }
+    let shared = |q: &Param| match q {
+        Param::Shared(i) => Some(*i),
+        Param::Fixture { .. } => None,
+    };
+    // Fitted columns: the free parameters, then the effects' coefficients (no MAP motion).
+    let fitted: Vec<Option<usize>> = (0..c).map(|a| free.get(a).and_then(shared)).collect();
+    let held_idx: Vec<Option<usize>> = held.iter().map(shared).collect();
+    let w = predict::held_weights(&n, &fitted, &held_idx);
     let cov = DMatrix::from_fn(h, h, |a, b| {
         if a == b {
             prior(opts, held[a]).powi(2)

@@ -13,7 +13,7 @@
 
 use crate::model::{MeasurementModel, Params, N_PARAMS};
 use crate::robot::Robot;
-use nalgebra::{DMatrix, Matrix3, Matrix6, Vector3};
+use nalgebra::{DMatrix, Matrix3, Matrix3xX, Matrix6, Vector3};
 use rand::{Rng, SeedableRng};
 use serde::Serialize;
 
@@ -77,9 +77,49 @@ pub fn position_std(
     w: &DMatrix<f64>,
     cov: &DMatrix<f64>,
 ) -> Vec<f64> {
+    registered(model, p, poses, w)
+        .iter()
+        .map(|jn| {
+            let c = jn * cov * jn.transpose();
+            c.trace().max(0.0).sqrt()
+        })
+        .collect()
+}
+
+/// For independent quantities with standard deviations `sd` moving the parameters by `w`
+/// (30 × k): each one's own contribution to the MAP position uncertainty after registration,
+/// as an RMS over `poses` (m). Which held parameter costs how much.
+pub fn column_rms(
+    model: &MeasurementModel,
+    p: &Params,
+    poses: &[[f64; 6]],
+    w: &DMatrix<f64>,
+    sd: &[f64],
+) -> Vec<f64> {
+    let reg = registered(model, p, poses, w);
+    (0..w.ncols())
+        .map(|c| {
+            let ms = reg
+                .iter()
+                .map(|jn| jn.column(c).norm_squared())
+                .sum::<f64>()
+                / reg.len().max(1) as f64;
+            ms.sqrt() * sd[c]
+        })
+        .collect()
+}
+
+/// The registered position Jacobian of every pose (3 × k each): ∂P/∂(k quantities) with the
+/// six rigid displacements t + ω × (p − c) of all the positions projected out.
+fn registered(
+    model: &MeasurementModel,
+    p: &Params,
+    poses: &[[f64; 6]],
+    w: &DMatrix<f64>,
+) -> Vec<Matrix3xX<f64>> {
     let k = w.ncols();
     if poses.is_empty() || k == 0 {
-        return vec![0.0; poses.len()];
+        return vec![Matrix3xX::zeros(k); poses.len()];
     }
     // Positions and the Jacobian of every pose with respect to the k quantities.
     let mut pos = Vec::with_capacity(poses.len());
@@ -122,11 +162,7 @@ pub fn position_std(
         .unwrap_or_else(|_| Matrix6::zeros());
     let coef = pinv * rtj; // 6 × k
     (0..pos.len())
-        .map(|n| {
-            let jn = jac.rows(3 * n, 3) - rigid(n) * &coef; // 3 × k, registered
-            let c = &jn * cov * jn.transpose();
-            c.trace().max(0.0).sqrt()
-        })
+        .map(|n| jac.rows(3 * n, 3) - rigid(n) * &coef)
         .collect()
 }
 
@@ -143,39 +179,302 @@ pub fn after_recording(
     rate: f64,
     poses: &[[f64; 6]],
 ) -> Vec<f64> {
+    let full = recording_information(model, segments, rate).normal;
+    let nn = DMatrix::from_fn(params.len(), params.len(), |x, y| {
+        full[(params[x], params[y])]
+    });
+    from_normal(model, &nn, params, noise, poses)
+}
+
+/// At most this many Jacobian rows of a run are kept for the structure question (which
+/// parameters are separable at all): the rank does not need every reading.
+pub const STRUCTURE_ROWS: usize = 1500;
+
+/// What one run's readings tell about the 30 Eq. 6 parameters: the normal matrix JᵀJ of every
+/// reading (30 × 30, not yet divided by the noise variance), the number of readings, and an
+/// evenly spaced subset of the rows (at most [`STRUCTURE_ROWS`]) for the structure.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RunInformation {
+    pub normal: DMatrix<f64>,
+    pub readings: usize,
+    pub rows: Vec<[f64; N_PARAMS]>,
+}
+
+/// The readings a recording takes: along every segment (from, to, duration in s) at `rate` Hz,
+/// at the middle of each sample interval; per segment, in order.
+fn readings_of(segment: &([f64; 6], [f64; 6], f64), rate: f64) -> impl Iterator<Item = [f64; 6]> {
+    let (a, b, t) = *segment;
+    let n = ((t * rate).ceil() as usize).max(1);
+    (0..n).map(move |s| {
+        let f = (s as f64 + 0.5) / n as f64;
+        std::array::from_fn(|i| a[i] + f * (b[i] - a[i]))
+    })
+}
+
+/// The information of a recording along `segments` at `rate` Hz (see [`after_recording`]),
+/// at the model's nominal parameters (its fixture included).
+pub fn recording_information(
+    model: &MeasurementModel,
+    segments: &[([f64; 6], [f64; 6], f64)],
+    rate: f64,
+) -> RunInformation {
     use rayon::prelude::*;
-    let k = params.len();
     // JᵀJ over the readings, summed per segment in parallel and in order (deterministic).
-    let parts: Vec<DMatrix<f64>> = segments
+    let parts: Vec<(DMatrix<f64>, usize)> = segments
         .par_iter()
-        .map(|(a, b, t)| {
-            let n = ((t * rate).ceil() as usize).max(1);
-            let mut nn = DMatrix::zeros(k, k);
+        .map(|seg| {
+            let mut nn = DMatrix::zeros(N_PARAMS, N_PARAMS);
             let mut row = [0.0; N_PARAMS];
-            for s in 0..n {
-                let f = (s as f64 + 0.5) / n as f64;
-                let q: [f64; 6] = std::array::from_fn(|i| a[i] + f * (b[i] - a[i]));
+            let mut n = 0;
+            for q in readings_of(seg, rate) {
                 model.jacobian_row(&model.nominal, &q, &mut row);
-                for x in 0..k {
-                    let rx = row[params[x]];
-                    for y in x..k {
-                        nn[(x, y)] += rx * row[params[y]];
-                    }
-                }
+                accumulate_row(&mut nn, &row);
+                n += 1;
             }
-            nn
+            (nn, n)
         })
         .collect();
-    let mut nn = DMatrix::zeros(k, k);
-    for p in parts {
+    let mut nn = DMatrix::zeros(N_PARAMS, N_PARAMS);
+    let mut readings = 0;
+    for (p, n) in parts {
         nn += p;
+        readings += n;
     }
-    for x in 0..k {
+    symmetrise(&mut nn);
+    let stride = readings.div_ceil(STRUCTURE_ROWS).max(1);
+    let rows = segments
+        .iter()
+        .flat_map(|seg| readings_of(seg, rate))
+        .step_by(stride)
+        .map(|q| {
+            let mut row = [0.0; N_PARAMS];
+            model.jacobian_row(&model.nominal, &q, &mut row);
+            row
+        })
+        .collect();
+    RunInformation {
+        normal: nn,
+        readings,
+        rows,
+    }
+}
+
+/// The information of one reading per row (Jacobian rows, Eq. 5, given directly).
+pub fn readings_information(rows: &[[f64; N_PARAMS]]) -> RunInformation {
+    let mut nn = DMatrix::zeros(N_PARAMS, N_PARAMS);
+    for r in rows {
+        accumulate_row(&mut nn, r);
+    }
+    symmetrise(&mut nn);
+    let stride = rows.len().div_ceil(STRUCTURE_ROWS).max(1);
+    RunInformation {
+        normal: nn,
+        readings: rows.len(),
+        rows: rows.iter().step_by(stride).copied().collect(),
+    }
+}
+
+/// Adds row·rowᵀ to the upper triangle.
+#[inline]
+fn accumulate_row(nn: &mut DMatrix<f64>, row: &[f64; N_PARAMS]) {
+    for x in 0..N_PARAMS {
+        let rx = row[x];
+        for y in x..N_PARAMS {
+            nn[(x, y)] += rx * row[y];
+        }
+    }
+}
+
+fn symmetrise(nn: &mut DMatrix<f64>) {
+    for x in 0..nn.nrows() {
         for y in 0..x {
             nn[(x, y)] = nn[(y, x)];
         }
     }
-    from_normal(model, &nn, params, noise, poses)
+}
+
+/// The prior knowledge a prediction assumes, as `calibrate` uses it: the standard uncertainty
+/// of a length (m) and an angle (rad) before calibration, and κ (a parameter is determined
+/// when the data bring its uncertainty to prior/κ or less).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct Prior {
+    pub length: f64,
+    pub angle: f64,
+    pub kappa: f64,
+}
+
+impl Default for Prior {
+    fn default() -> Self {
+        Prior {
+            length: super::DEFAULT_PRIOR_MM * crate::units::MM,
+            angle: super::DEFAULT_PRIOR_DEG * crate::units::DEG,
+            kappa: super::DEFAULT_KAPPA,
+        }
+    }
+}
+
+impl Prior {
+    fn of(&self, param: usize) -> f64 {
+        if crate::model::is_angle(param) {
+            self.angle
+        } else {
+            self.length
+        }
+    }
+}
+
+/// What a calibration from planned runs would state, before any data exist: per-pose 1σ MAP
+/// position uncertainty (m) after a best rigid registration, in total and by its two GUM
+/// components, and which parameters it would determine.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Expected {
+    /// Shared Eq. 6 parameters the runs can separate at all (structure).
+    pub identifiable: Vec<usize>,
+    /// Of those, the ones the information determines to prior/κ.
+    pub determined: Vec<usize>,
+    /// The shared parameters held at nominal: dependent, negligible or not determined.
+    pub held: Vec<usize>,
+    /// Type A: σ²N⁻¹ of the determined parameters.
+    pub from_noise: Vec<f64>,
+    /// Type B: the held parameters' priors, with what the determined ones absorb of them.
+    pub from_held: Vec<f64>,
+    pub combined: Vec<f64>,
+    /// What each held parameter costs on its own (RMS over the poses, m), in `held` order: 0
+    /// (to rounding) for an exact dependency such as d3 on d2.
+    pub held_cost: Vec<f64>,
+}
+
+/// The prediction of a calibration over a campaign of runs, as [`super::run`] would make it
+/// from their data with the fixtures held at their given positions (its default): the robot's
+/// parameters are shared by every run, each run has its own (known) fixture, so the
+/// information adds up, N = Σ N_k over the shared parameters (the fixture columns of each run
+/// drop out). Then, like `calibrate`: the structure from the runs' rows (Gram–Schmidt in Eq. 6
+/// order, the MAP free: it is dependent on link 6), the determined parameters by the same rule
+/// ([`super::determined_columns`]) for white noise `noise` per reading, Type A over the
+/// determined ones and Type B for every other shared parameter at its prior; both propagated
+/// to the MAP over `poses` after a rigid registration. One run is a campaign of one.
+pub fn expected(
+    model: &MeasurementModel,
+    runs: &[&RunInformation],
+    noise: f64,
+    prior: &Prior,
+    poses: &[[f64; 6]],
+) -> Expected {
+    let shared: Vec<usize> = (crate::model::ALPHA..N_PARAMS).collect();
+    // Structure: every run's rows on the shared columns (Eq. 6 order is the preference order).
+    let n_rows: usize = runs.iter().map(|r| r.rows.len()).sum();
+    let mut cols = DMatrix::zeros(n_rows, shared.len());
+    let mut i = 0;
+    for r in runs {
+        for row in &r.rows {
+            for (c, &p) in shared.iter().enumerate() {
+                cols[(i, c)] = row[p];
+            }
+            i += 1;
+        }
+    }
+    let names: Vec<String> = shared
+        .iter()
+        .map(|&p| crate::model::PARAM_NAMES[p].to_string())
+        .collect();
+    let order: Vec<usize> = (0..shared.len()).collect();
+    let known = vec![false; shared.len()];
+    let (_, ident) = crate::model::identify::classify(&cols, &names, &order, &known);
+    let identifiable: Vec<usize> = ident.iter().map(|&c| shared[c]).collect();
+
+    let mut total = DMatrix::zeros(N_PARAMS, N_PARAMS);
+    for r in runs {
+        total += &r.normal;
+    }
+    let sub =
+        |a: &[usize], b: &[usize]| DMatrix::from_fn(a.len(), b.len(), |x, y| total[(a[x], b[y])]);
+    // Determined: the prior-scaled information, as calibrate judges it.
+    let scale: Vec<f64> = identifiable.iter().map(|&p| prior.of(p)).collect();
+    let ni = sub(&identifiable, &identifiable);
+    let ss = DMatrix::from_fn(ni.nrows(), ni.ncols(), |a, b| {
+        ni[(a, b)] * scale[a] * scale[b]
+    });
+    let (chosen, _) = super::determined_columns(&ss, noise, prior.kappa);
+    let determined: Vec<usize> = chosen.iter().map(|&k| identifiable[k]).collect();
+    let held: Vec<usize> = shared
+        .iter()
+        .copied()
+        .filter(|p| !determined.contains(p))
+        .collect();
+
+    let nd = sub(&determined, &determined);
+    let cov_a = crate::diagnose::fit::inverse(&nd) * (noise * noise);
+    let from_noise = position_std(
+        model,
+        &model.nominal,
+        poses,
+        &selection(&determined),
+        &cov_a,
+    );
+    let (from_held, held_cost) = if held.is_empty() {
+        (vec![0.0; poses.len()], Vec::new())
+    } else {
+        let both: Vec<usize> = determined.iter().chain(&held).copied().collect();
+        let fitted: Vec<Option<usize>> = determined.iter().map(|&p| Some(p)).collect();
+        let held_idx: Vec<Option<usize>> = held.iter().map(|&p| Some(p)).collect();
+        let w = held_weights(&sub(&both, &both), &fitted, &held_idx);
+        let sd: Vec<f64> = held.iter().map(|&p| prior.of(p)).collect();
+        let cov_b = DMatrix::from_fn(held.len(), held.len(), |a, b| {
+            if a == b {
+                sd[a] * sd[a]
+            } else {
+                0.0
+            }
+        });
+        (
+            position_std(model, &model.nominal, poses, &w, &cov_b),
+            column_rms(model, &model.nominal, poses, &w, &sd),
+        )
+    };
+    let combined = from_noise
+        .iter()
+        .zip(&from_held)
+        .map(|(a, b)| a.hypot(*b))
+        .collect();
+    Expected {
+        identifiable,
+        determined,
+        held,
+        from_noise,
+        from_held,
+        combined,
+        held_cost,
+    }
+}
+
+/// Type B (GUM) of parameters held at nominal: how their true deviations move the MAP. A held
+/// parameter's deviation δ moves the MAP by J_h δ directly and by −J_f K δ through the fitted
+/// columns that absorb it (K = N_ff⁻¹ N_fh); for an exact dependency (d3 on d2) the two cancel.
+/// `n` is the normal matrix over the fitted columns followed by the held ones; `fitted[a]` and
+/// `held[b]` name each column's Eq. 6 parameter, None for a column that does not move the MAP
+/// (an effect's coefficient, a fixture coordinate). Returns W (30 × held), for
+/// [`position_std`] with the held parameters' prior covariance.
+pub fn held_weights(
+    n: &DMatrix<f64>,
+    fitted: &[Option<usize>],
+    held: &[Option<usize>],
+) -> DMatrix<f64> {
+    let (c, h) = (fitted.len(), held.len());
+    let nff = n.view((0, 0), (c, c)).into_owned();
+    let nfh = n.view((0, c), (c, h)).into_owned();
+    let k = crate::diagnose::fit::inverse(&nff) * nfh; // c × h
+    let mut w = DMatrix::zeros(N_PARAMS, h);
+    for (b, q) in held.iter().enumerate() {
+        if let Some(i) = q {
+            w[(*i, b)] += 1.0;
+        }
+        for (a, d) in fitted.iter().enumerate() {
+            if let Some(i) = d {
+                w[(*i, b)] -= k[(a, b)];
+            }
+        }
+    }
+    w
 }
 
 /// As [`after_recording`] for one reading per pose: Jacobian rows (Eq. 5) given directly.
@@ -324,5 +623,146 @@ mod tests {
             &DMatrix::from_element(1, 1, 1e-6),
         );
         assert!(spread(&one).max < 1e-9, "{:?}", spread(&one));
+    }
+
+    /// Jacobian rows of random poses with the MAP in the default shell around `fixture`.
+    fn shell_rows(
+        robot: &Robot,
+        model: &MeasurementModel,
+        n: usize,
+        seed: u64,
+    ) -> Vec<[f64; N_PARAMS]> {
+        let cell = crate::pipeline::make_cell(
+            robot,
+            model.nominal.fix,
+            model.nominal.map,
+            &crate::cell::CellSpec::default(),
+        )
+        .unwrap();
+        crate::pipeline::rich_rows(robot, model, &cell, n, seed).expect("reachable")
+    }
+
+    #[test]
+    fn expected_of_a_rich_run_is_the_type_a_prediction_and_adds_up_over_runs() {
+        let robot = nj130();
+        let model = MeasurementModel::new(
+            &robot,
+            Vector3::new(0.258, 1.468, 0.708),
+            Vector3::new(0.06, 0.03, 0.12),
+        );
+        let rows = shell_rows(&robot, &model, 300, 2);
+        let poses = workspace(&robot, 400, 8);
+        let info = readings_information(&rows);
+        let e = expected(&model, &[&info], 1e-6, &Prior::default(), &poses);
+        // Everything the structure allows is determined (the paper's 22), and only exact
+        // dependencies are held (d3 on d2, theta6 and the MAP on link 6): they cost nothing.
+        let id = crate::model::analyse(&rows, &Default::default());
+        assert_eq!(e.identifiable, id.identifiable);
+        assert_eq!(e.determined, id.identifiable);
+        let a = spread(&after_readings(
+            &model,
+            &rows,
+            &id.identifiable,
+            1e-6,
+            &poses,
+        ))
+        .rms;
+        let got = spread(&e.from_noise).rms;
+        assert!((got / a - 1.0).abs() < 1e-9, "{got:e} vs {a:e}");
+        assert!(
+            spread(&e.from_held).max < 1e-3 * got,
+            "{:?}",
+            spread(&e.from_held)
+        );
+        // Three runs with the same information: the uncertainty falls by √3 exactly.
+        let three = expected(
+            &model,
+            &[&info, &info, &info],
+            1e-6,
+            &Prior::default(),
+            &poses,
+        );
+        let ratio = spread(&e.combined).rms / spread(&three.combined).rms;
+        assert!((ratio - 3f64.sqrt()).abs() < 1e-6, "{ratio}");
+    }
+
+    /// The Type B part against its definition, computed another way: parameters held at
+    /// nominal deviate by draws from their prior, the determined ones are fitted to the
+    /// readings those deviations cause (least squares on the rows themselves), and the fitted
+    /// robot's MAP positions are compared with the true ones after an exact registration.
+    #[test]
+    fn held_parameters_cost_what_the_fit_cannot_absorb() {
+        let robot = nj130();
+        // On the joint-1 axis: q1 cannot change the bar length, and several parameters go
+        // unseen.
+        let model = MeasurementModel::new(
+            &robot,
+            Vector3::new(0.0, 0.0, 1.8),
+            Vector3::new(0.06, 0.03, 0.12),
+        );
+        let rows = shell_rows(&robot, &model, 300, 4);
+        let poses = workspace(&robot, 300, 6);
+        let prior = Prior::default();
+        let e = expected(
+            &model,
+            &[&readings_information(&rows)],
+            1e-6,
+            &prior,
+            &poses,
+        );
+        assert!(e.determined.len() < 22, "{:?}", e.determined);
+        let predicted = spread(&e.from_held).rms;
+        assert!(predicted > 10.0 * spread(&e.from_noise).rms);
+
+        let d = &e.determined;
+        let jd = DMatrix::from_fn(rows.len(), d.len(), |i, k| rows[i][d[k]]);
+        let jd_pinv = jd.clone().pseudo_inverse(1e-14).unwrap();
+        let nominal: Vec<Vector3<f64>> = poses
+            .iter()
+            .map(|q| model.map_position(&model.nominal, q))
+            .collect();
+        let mut cols = [Vector3::zeros(); N_PARAMS];
+        let pj: Vec<[Vector3<f64>; N_PARAMS]> = poses
+            .iter()
+            .map(|q| {
+                model.position_jacobian(&model.nominal, q, &mut cols);
+                cols
+            })
+            .collect();
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(12);
+        let trials = 300;
+        let mut ms = 0.0;
+        for _ in 0..trials {
+            let mut delta = [0.0; N_PARAMS];
+            for &h in &e.held {
+                delta[h] = prior.of(h) * crate::twin::gauss(&mut rng) * 1e-3;
+            }
+            // The readings the held deviations cause, and the determined parameters' fit.
+            let m = nalgebra::DVector::from_fn(rows.len(), |i, _| {
+                (0..N_PARAMS).map(|k| rows[i][k] * delta[k]).sum::<f64>()
+            });
+            let fit = &jd_pinv * m;
+            let (truth, fitted): (Vec<_>, Vec<_>) = (0..poses.len())
+                .map(|n| {
+                    let t: Vector3<f64> = nominal[n]
+                        + (0..N_PARAMS)
+                            .map(|k| pj[n][k] * delta[k])
+                            .sum::<Vector3<f64>>();
+                    let f: Vector3<f64> = nominal[n]
+                        + (0..d.len())
+                            .map(|k| pj[n][d[k]] * fit[k])
+                            .sum::<Vector3<f64>>();
+                    (t, f)
+                })
+                .unzip();
+            let (rms, _, _, _) = register(&fitted, &truth);
+            ms += rms * rms;
+        }
+        // Deviations a thousandth of the prior keep the registration linear; scale back.
+        let realised = (ms / trials as f64).sqrt() * 1e3;
+        assert!(
+            (predicted / realised - 1.0).abs() < 0.15,
+            "predicted {predicted:e} realised {realised:e}"
+        );
     }
 }

@@ -55,6 +55,10 @@ pub enum Command {
     /// data determine, their uncertainties and the predicted MAP position accuracy.
     #[command(allow_negative_numbers = true)]
     Calibrate(CalibrateArgs),
+    /// Where to put the fixture: candidate positions scored by the MAP position uncertainty a
+    /// calibration from a program compiled there would reach; the best campaign of K positions.
+    #[command(allow_negative_numbers = true)]
+    Place(Box<PlaceArgs>),
     /// Print a shell completion script (bash, zsh, fish, elvish, powershell) on stdout.
     Completions(CompletionsArgs),
     /// Print the manual page (roff, `man -l -` reads it) on stdout.
@@ -488,4 +492,67 @@ pub struct CalibrateArgs {
     /// No progress output (calibrate draws none; accepted like on every subcommand).
     #[arg(short, long)]
     pub quiet: bool,
+}
+
+#[derive(Args, Debug)]
+pub struct PlaceArgs {
+    /// Robot description: a .urdf or a .dh.toml file.
+    #[arg(value_name = "ROBOT")]
+    pub robot: PathBuf,
+    /// The fixture to compare with, mm [default: the cell file's, if it has one].
+    #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true)]
+    pub fixture: Option<String>,
+    #[command(flatten)]
+    pub cell: CellArgs,
+    /// The box searched, mm, robot base frame [default: the reachable volume in front of the
+    /// robot above the floor].
+    #[arg(long, value_name = "X0..X1,Y0..Y1,Z0..Z1", allow_hyphen_values = true)]
+    pub region: Option<String>,
+    /// Radius of the fixture's stand, a column from the floor to the ball, mm; 0 = no stand
+    /// (a fixture on a bracket or hung from above) [default: the cell's, else 40].
+    #[arg(long, value_name = "MM")]
+    pub stand: Option<String>,
+    /// Grid points per axis over the region (ends included).
+    #[arg(long, value_name = "NX,NY,NZ", default_value = "10,10,5")]
+    pub grid: String,
+    /// Also score this position, mm (repeatable): spots the cell offers.
+    #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true)]
+    pub at: Vec<String>,
+    /// Fixture positions in the campaign: the best K, calibrated together.
+    #[arg(long, value_name = "K", default_value_t = 1)]
+    pub count: usize,
+    /// Positions estimated in full (a compile each), the best by proxy.
+    #[arg(long, value_name = "N", default_value_t = crate::place::DEFAULT_TOP)]
+    pub top: usize,
+    /// Joint grid step of the proxies and the full estimate's compiles, degrees (one value or
+    /// six).
+    #[arg(long, value_name = "DEG", default_value = "20")]
+    pub step: String,
+    /// Pool size of the full estimate's compiles.
+    #[arg(long, value_name = "N", default_value_t = crate::place::DEFAULT_FULL_CANDIDATES)]
+    pub max_candidates: usize,
+    /// The bar's noise per reading, um.
+    #[arg(long, value_name = "UM", default_value = "1.0")]
+    pub bar_noise: String,
+    /// The bar's sample rate, Hz.
+    #[arg(long, value_name = "HZ", default_value = "50")]
+    pub bar_rate: String,
+    /// Standard uncertainty of a length and an angle before calibration, mm,deg: what a
+    /// parameter the data do not determine costs [default: 1,0.05].
+    #[arg(long, value_name = "MM,DEG", allow_hyphen_values = true)]
+    pub prior: Option<String>,
+    /// Ranked positions printed (the cell's fixture, --at positions and the campaign are
+    /// printed too).
+    #[arg(long, value_name = "N", default_value_t = 10)]
+    pub show: usize,
+    /// Write the JSON report here (schema edbbgen.place/1).
+    #[arg(long, value_name = "REPORT.json")]
+    pub json: Option<PathBuf>,
+    /// Write a self-contained HTML report here (the candidates around the robot, the ranking).
+    #[arg(long, value_name = "REPORT.html")]
+    pub html: Option<PathBuf>,
+    /// Write the cell file of each winner: into a directory (DIR/place-K.cell.toml) or as
+    /// PREFIX-K.cell.toml.
+    #[arg(long, value_name = "DIR_or_PREFIX")]
+    pub write_cell: Option<PathBuf>,
 }

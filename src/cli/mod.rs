@@ -4,6 +4,7 @@
 pub mod args;
 mod calibrate_cli;
 mod ldbb_cli;
+mod place_cli;
 mod twin_cli;
 
 use crate::cell::CellSpec;
@@ -32,6 +33,8 @@ pub enum Error {
     Plot(#[from] crate::plot::PlotError),
     #[error(transparent)]
     Report(#[from] crate::report::ReportError),
+    #[error(transparent)]
+    Place(#[from] crate::place::PlaceError),
     #[error(transparent)]
     Controller(#[from] crate::controller::ControllerError),
     #[error("{path}: {msg}")]
@@ -72,6 +75,7 @@ pub fn run(argv: Vec<std::ffi::OsString>) -> Result<i32, Error> {
         Some(Command::SimulateLdbb(a)) => ldbb_cli::simulate(&a),
         Some(Command::Dialects(a)) => run_dialects(&a),
         Some(Command::Calibrate(a)) => calibrate_cli::calibrate(&a),
+        Some(Command::Place(a)) => place_cli::place(&a),
         Some(Command::Completions(a)) => {
             let mut cmd = <Cli as clap::CommandFactory>::command();
             clap_complete::generate(a.shell, &mut cmd, "edbbgen", &mut std::io::stdout());

@@ -67,6 +67,9 @@ pub const AUTO_RADIUS_MIN: f64 = 0.050;
 pub const AUTO_RADIUS_MAX: f64 = 0.150;
 
 /// The collision world of one cell: immutable and `Sync`, built once, shared by rayon threads.
+/// Cloning is cheap (shapes and hulls are shared): [`Scene::with_fixture`] moves the fixture
+/// of a clone without reading a mesh again.
+#[derive(Clone)]
 pub struct Scene {
     bodies: Vec<Body>,
     /// The robot's passive links, placed per query from q.
@@ -144,10 +147,12 @@ enum Role {
 }
 
 /// One convex piece of a body, placed in the body's frame.
+#[derive(Clone)]
 struct Part {
     shape: SharedShape,
-    /// Meshes: the same hull with a fast support function, used by every query.
-    hull: Option<Box<Hull>>,
+    /// Meshes: the same hull with a fast support function, used by every query (shared by
+    /// clones of the scene).
+    hull: Option<std::sync::Arc<Hull>>,
     local: Isometry3<f64>,
     /// Bounding sphere in the body frame (for the floor: a point on the plane, radius 0).
     center: Point3<f64>,
@@ -156,6 +161,7 @@ struct Part {
     plane: bool,
 }
 
+#[derive(Clone)]
 struct Body {
     name: String,
     attach: Attach,
@@ -653,7 +659,7 @@ fn part(origin: &Frame, prim: Prim, body: &str) -> Result<Part, CollisionError> 
             );
             let c = Point3::from((lo + hi) * 0.5);
             let r = vs.iter().map(|p| (p - c).norm()).fold(0.0, f64::max);
-            hull = Some(Box::new(Hull::new(vs, &tris)));
+            hull = Some(std::sync::Arc::new(Hull::new(vs, &tris)));
             (SharedShape::new(poly), c, r)
         }
     };
@@ -878,33 +884,9 @@ pub fn build(
             vec![p],
         ));
     }
-    if ball_radius > 0.0 {
-        let p = part(
-            &Frame::translation(*fixture),
-            Prim::Sphere(ball_radius),
-            FIXTURE_BALL,
-        )?;
-        bodies.push(body(
-            FIXTURE_BALL.into(),
-            Attach::World,
-            Role::FixtureBall,
-            vec![p],
-        ));
-    }
-    let stand_height = fixture.z - ball_radius - cell.floor_z;
-    if cell.stand_radius > 0.0 && stand_height > 0.0 {
-        let origin = Frame::translation(Vector3::new(
-            fixture.x,
-            fixture.y,
-            cell.floor_z + 0.5 * stand_height,
-        ));
-        let p = part(
-            &origin,
-            Prim::Cylinder(cell.stand_radius, stand_height),
-            STAND,
-        )?;
-        bodies.push(body(STAND.into(), Attach::World, Role::Stand, vec![p]));
-    }
+    let (ball, stand) = fixture_bodies(cell, fixture)?;
+    bodies.extend(ball);
+    bodies.extend(stand);
 
     // Pairs.
     let home = chain_frames(&robot.base, &robot.dh, &robot.flange, &[0.0; 6]);
@@ -1134,6 +1116,111 @@ pub fn build(
         },
         report,
     ))
+}
+
+/// The fixture ball and its stand (a vertical cylinder from the floor to the socket below the
+/// ball), where the cell has them.
+fn fixture_bodies(
+    cell: &CellSpec,
+    fixture: &Vector3<f64>,
+) -> Result<(Option<Body>, Option<Body>), CollisionError> {
+    let ball_radius = 0.5 * cell.ball;
+    let ball = if ball_radius > 0.0 {
+        let p = part(
+            &Frame::translation(*fixture),
+            Prim::Sphere(ball_radius),
+            FIXTURE_BALL,
+        )?;
+        Some(body(
+            FIXTURE_BALL.into(),
+            Attach::World,
+            Role::FixtureBall,
+            vec![p],
+        ))
+    } else {
+        None
+    };
+    let stand_height = fixture.z - ball_radius - cell.floor_z;
+    let stand = if cell.stand_radius > 0.0 && stand_height > 0.0 {
+        let origin = Frame::translation(Vector3::new(
+            fixture.x,
+            fixture.y,
+            cell.floor_z + 0.5 * stand_height,
+        ));
+        let p = part(
+            &origin,
+            Prim::Cylinder(cell.stand_radius, stand_height),
+            STAND,
+        )?;
+        Some(body(STAND.into(), Attach::World, Role::Stand, vec![p]))
+    } else {
+        None
+    };
+    Ok((ball, stand))
+}
+
+impl Scene {
+    /// The same scene with the fixture (ball, stand and the bar's fixed end) at `fixture`:
+    /// what [`build`] would make for it, without reading a mesh again. `cell` must be the one
+    /// the scene was built from. The pair rules do not depend on the fixture (every robot body
+    /// is checked against the fixture ball and stand); only whether a stand exists does (none
+    /// when the ball is too low for one), and then the scene is refused: build it anew.
+    pub fn with_fixture(
+        &self,
+        cell: &CellSpec,
+        fixture: &Vector3<f64>,
+    ) -> Result<Scene, CollisionError> {
+        let (ball, stand) = fixture_bodies(cell, fixture)?;
+        let mut out = self.clone();
+        out.fixture = *fixture;
+        let mut replace = |role: Role, new: Option<Body>| -> Result<(), CollisionError> {
+            let at = out.bodies.iter().position(|b| b.role == role);
+            match (at, new) {
+                (Some(i), Some(b)) => {
+                    out.bodies[i] = b;
+                    Ok(())
+                }
+                (None, None) => Ok(()),
+                _ => Err(CollisionError::Shape {
+                    body: if role == Role::Stand { STAND } else { FIXTURE_BALL }.into(),
+                    msg: "exists for one fixture position and not for the other: build the scene for this fixture".into(),
+                }),
+            }
+        };
+        replace(Role::FixtureBall, ball)?;
+        replace(Role::Stand, stand)?;
+        Ok(out)
+    }
+
+    /// Whether the fixture has room where it stands: the first static body (an environment
+    /// shape, the robot's base, a body fixed to it) closer than `margin` to the fixture ball or
+    /// its stand, or the ball closer than `margin` to the floor. `frames` are the chain frames
+    /// of any pose (only frame 0, the base, is used: nothing that moves is judged here).
+    pub fn fixture_room(&self, frames: &[Frame; 8], margin: f64) -> Option<Contact> {
+        let q = [0.0; 6];
+        let poses = Poses::new(&q, frames, &self.passive);
+        let fixed = |b: &Body| match b.role {
+            Role::Environment => true,
+            Role::Link | Role::Hose => b.attach == Attach::Frame(0),
+            _ => false,
+        };
+        for (i, f) in self.bodies.iter().enumerate() {
+            if !matches!(f.role, Role::FixtureBall | Role::Stand) {
+                continue;
+            }
+            for (j, o) in self.bodies.iter().enumerate() {
+                // The stand stands on the floor; the ball must clear it.
+                let floor = o.role == Role::Floor && f.role == Role::FixtureBall;
+                if !(fixed(o) || floor) {
+                    continue;
+                }
+                if let Some(d) = f.pair(&poses.of(f), o, &poses.of(o), margin, Mode::Filter) {
+                    return Some(self.contact(d, i, Some(j)));
+                }
+            }
+        }
+        None
+    }
 }
 
 fn exclude_bar(excluded: &mut Vec<ExcludedPair>, b: &Body, reason: &str) {

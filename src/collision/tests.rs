@@ -606,3 +606,74 @@ fn hull_support_is_exact() {
     eprintln!("hull vs ConvexPolyhedron: worst difference {worst:.2e} m");
     assert!(worst < 1e-6);
 }
+
+#[test]
+fn a_moved_fixture_is_the_scene_built_there() {
+    // The KR 210's convex hulls and a stand: the scene moved to another fixture answers every
+    // query exactly as the scene built for that fixture does.
+    let r = robot(&format!("{SHARED}/kuka_kr210_l150/robot.urdf"));
+    let cell = CellSpec {
+        stand_radius: 0.04,
+        ..CellSpec::default()
+    };
+    let map = map_of(&r);
+    let a = Vector3::new(1.4, 0.4, 0.7);
+    let b = Vector3::new(0.9, -1.1, 0.45);
+    let (built_a, _) = build(&r, &cell, &a, &map).unwrap();
+    let (built_b, rep_b) = build(&r, &cell, &b, &map).unwrap();
+    let moved = built_a.with_fixture(&cell, &b).unwrap();
+    assert!(rep_b.bodies.contains(&STAND.to_string()));
+    let mut rng = ChaCha8Rng::seed_from_u64(17);
+    let mut hits = 0;
+    for _ in 0..400 {
+        let q = random_q(&r, &mut rng);
+        let f = frames(&r, &q);
+        let m = f[7].apply(&map);
+        let (x, y) = (
+            moved.violation(&q, &f, &m, 0.01),
+            built_b.violation(&q, &f, &m, 0.01),
+        );
+        assert_eq!(x, y, "{q:?}");
+        hits += x.is_some() as usize;
+        assert_eq!(moved.clearance(&q, &f, &m), built_b.clearance(&q, &f, &m));
+    }
+    assert!(
+        hits > 0,
+        "some poses collide, so the comparison means something"
+    );
+    // A ball too low for a stand: refused rather than silently different.
+    assert!(built_a
+        .with_fixture(&cell, &Vector3::new(1.0, 0.0, 0.005))
+        .is_err());
+}
+
+#[test]
+fn fixture_room_finds_obstacles_the_base_and_the_floor() {
+    let r = robot(NJ130_DH);
+    let home = frames(&r, &[0.0; 6]);
+    let map = map_of(&r);
+    let mut cell = CellSpec {
+        stand_radius: 0.04,
+        ..CellSpec::default()
+    };
+    cell.environment
+        .push(env_box("table", Vector3::new(1.2, -0.9, 0.35), 0.7));
+    let room = |f: Vector3<f64>| {
+        let (s, _) = build(&r, &cell, &f, &map).unwrap();
+        s.fixture_room(&home, cell.margin)
+    };
+    // Clear of everything.
+    assert_eq!(room(Vector3::new(0.258, 1.468, 0.708)), None);
+    // Above the table: the stand goes through it.
+    let c = room(Vector3::new(1.2, -0.9, 1.0)).expect("stand through the table");
+    assert_eq!((c.a.as_str(), c.b.as_str()), (STAND, "table"), "{c:?}");
+    // Beside the table by less than the stand radius + the margin (the table's face at x = 0.85).
+    assert!(room(Vector3::new(0.85 - 0.045, -0.9, 0.9)).is_some());
+    assert_eq!(room(Vector3::new(0.85 - 0.055, -0.9, 0.9)), None);
+    // In the robot's base column (link 0 of a DH robot: a column from the floor to frame 0) —
+    // only when the base stands above the floor; the NJ-130's frame 0 is on the floor, so its
+    // first link (frame 1) is what a fixture on the axis meets, and that moves: not judged here.
+    // The ball on the floor.
+    let c = room(Vector3::new(1.5, 0.0, 0.0125 + 0.005)).expect("ball on the floor");
+    assert_eq!(c.b, FLOOR, "{c:?}");
+}

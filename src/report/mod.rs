@@ -12,6 +12,7 @@ pub mod calibrate;
 pub mod compile;
 pub mod diagnose;
 pub mod ldbb;
+pub mod place;
 
 use crate::plot::{legend_entries, Figure, Legend, Mark, PlotError};
 use serde::Serialize;
