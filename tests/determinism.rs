@@ -1,6 +1,7 @@
 //! The determinism sweep: every output kind (programs in every dialect, the compile report and
 //! page, the simulated data, the diagnosis and calibration reports, plots and pages, the
-//! calibrated robot file, the ISO circle, the LDBB program, data and report, and the JSON
+//! calibrated robot file, the ISO circle, the LDBB program, data and report, the placement
+//! report and the cells it writes, and the JSON
 //! printed by model, verify and dialects) is byte-identical on 1 and 2 threads and across two
 //! runs in different directories.
 
@@ -180,6 +181,31 @@ fn run_all(dir: &Path, threads: &str) -> BTreeMap<String, Vec<u8>> {
         ],
     );
 
+    let cell = root()
+        .join("robots/comau_nj130/cell.toml")
+        .display()
+        .to_string();
+    run(
+        "place",
+        &[
+            "place",
+            &nj,
+            "--cell",
+            &cell,
+            "--grid",
+            "3,3,2",
+            "--top",
+            "2",
+            "--count",
+            "2",
+            "--json",
+            "p.json",
+            "--html",
+            "p.html",
+            "--write-cell",
+            "pc",
+        ],
+    );
     let mut all = printed;
     for e in std::fs::read_dir(dir).unwrap() {
         let e = e.unwrap();
@@ -222,6 +248,10 @@ fn every_output_is_byte_identical_on_any_thread_count_and_run() {
         "l.json",
         "l.svg",
         "l.html",
+        "p.json",
+        "p.html",
+        "pc-1.cell.toml",
+        "pc-2.cell.toml",
     ] {
         assert!(one.contains_key(name), "{name} was not written");
     }
