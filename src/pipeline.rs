@@ -808,19 +808,36 @@ pub fn finish(
     template: &Template,
     map: &ControllerMap,
 ) -> Result<(Program, String, verify::Summary), PipelineError> {
+    let hash = inputs_hash(robot, opts, &template.source);
+    emit_checked(ck, robot, base, template, map, DEFAULT_PROGRAM_NAME, &hash)
+}
+
+/// Any program kind's last step (the compiler's, the LDBB circle's): fills the dialect's fields
+/// of `base`, names it (`default_name` when its own name is not valid in the dialect), renders
+/// the template and checks the text with `verify`. Nothing is returned that `verify` did not
+/// pass.
+pub fn emit_checked(
+    ck: &Checker,
+    robot: &Robot,
+    base: &Program,
+    template: &Template,
+    map: &ControllerMap,
+    default_name: &str,
+    inputs_sha256: &str,
+) -> Result<(Program, String, verify::Summary), PipelineError> {
     let mut program = emit::target(base, template.dialect, map, &robot.max_speeds());
     let h = &mut program.header;
     if !crate::dialect::valid_name(&h.program_name, template.dialect.name_max) {
         h.program_name = emit::ident(
             if h.program_name.is_empty() {
-                DEFAULT_PROGRAM_NAME
+                default_name
             } else {
                 &h.program_name
             },
             template.dialect.name_max,
         );
     }
-    h.inputs_sha256 = inputs_hash(robot, opts, &template.source);
+    h.inputs_sha256 = inputs_sha256.to_string();
     let text = emit::render(template, &program).map_err(PipelineError::Template)?;
     let verified = verify::check_text(ck, robot, &text, template.dialect, map)
         .map_err(|f| PipelineError::Unsafe(f.to_string()))?;

@@ -536,18 +536,8 @@ pub fn register(a: &[Vector3<f64>], b: &[Vector3<f64>]) -> (f64, f64, Matrix3<f6
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::model::tests::nj130;
     use crate::model::{A, THETA};
-
-    fn nj130() -> Robot {
-        crate::robot::load(
-            std::path::Path::new(concat!(
-                env!("CARGO_MANIFEST_DIR"),
-                "/robots/comau_nj130/robot.dh.toml"
-            )),
-            &Default::default(),
-        )
-        .expect("bundled NJ-130")
-    }
 
     #[test]
     fn registration_recovers_a_known_rigid_motion() {

@@ -195,33 +195,17 @@ pub fn circle(a: &LdbbCircleArgs) -> Result<i32, Error> {
     super::check_outputs(&[Some(a.output.as_path())])?;
     let (setup, setup_text) = load_setup(&a.setup)?;
     setup.tool().map_err(|e| file_err(&a.setup, e))?;
-    let base = match &a.cell {
-        Some(p) => Some(crate::cell::load(p)?),
-        None => None,
-    };
+    // The cell is read once: its text enters the inputs hash, its parse the program's cell.
     let cell_text = match &a.cell {
         Some(p) => read(p, "cell", Kind::Config)?,
         None => String::new(),
     };
+    let base = match &a.cell {
+        Some(p) => Some(crate::cell::from_str(&cell_text, p)?),
+        None => None,
+    };
     let mut spec = program::cell(&setup, base, &opts).map_err(|e| file_err(&a.setup, e))?;
-    if let Some(m) = &a.margin {
-        let m = scalar("--margin", m)?;
-        if !(0.0..=500.0).contains(&m) {
-            return Err(usage(format!(
-                "--margin: {m} mm must be between 0 and 500 mm"
-            )));
-        }
-        spec.margin = m * MM;
-    }
-    if let Some(m) = &a.joint_margin {
-        let m = scalar("--joint-margin", m)?;
-        if !(0.0..=30.0).contains(&m) {
-            return Err(usage(format!(
-                "--joint-margin: {m} deg must be between 0 and 30 deg"
-            )));
-        }
-        spec.joint_margin = m * DEG;
-    }
+    super::set_margins(&mut spec, a.margin.as_deref(), a.joint_margin.as_deref())?;
     let robot = load_robot(Some(&a.robot), &setup, &a.setup, &a.package_path)?
         .ok_or_else(|| usage("ROBOT: required"))?;
     // A mapping the cell's [controller] cannot give is the cell's error, named as such.

@@ -210,7 +210,17 @@ fn resolve_cell(a: &CellArgs) -> Result<CellSpec, Error> {
         }
         spec.ball = b * MM;
     }
-    if let Some(m) = &a.margin {
+    set_margins(&mut spec, a.margin.as_deref(), a.joint_margin.as_deref())?;
+    Ok(spec)
+}
+
+/// `--margin MM` and `--joint-margin DEG` over the cell's values, range-checked.
+pub(crate) fn set_margins(
+    spec: &mut CellSpec,
+    margin: Option<&str>,
+    joint_margin: Option<&str>,
+) -> Result<(), Error> {
+    if let Some(m) = margin {
         let m = scalar("--margin", m)?;
         if !(0.0..=500.0).contains(&m) {
             return Err(usage(format!(
@@ -219,7 +229,7 @@ fn resolve_cell(a: &CellArgs) -> Result<CellSpec, Error> {
         }
         spec.margin = m * MM;
     }
-    if let Some(m) = &a.joint_margin {
+    if let Some(m) = joint_margin {
         let m = scalar("--joint-margin", m)?;
         if !(0.0..=30.0).contains(&m) {
             return Err(usage(format!(
@@ -228,7 +238,7 @@ fn resolve_cell(a: &CellArgs) -> Result<CellSpec, Error> {
         }
         spec.joint_margin = m * DEG;
     }
-    Ok(spec)
+    Ok(())
 }
 
 /// The fixture: the flag, else the cell file's, else (verify) the program header's.

@@ -86,22 +86,9 @@ impl Reference {
     }
 }
 
-#[derive(Debug, thiserror::Error, PartialEq)]
-#[error("line {line}, column {column}: {msg}")]
-pub struct CsvError {
-    pub line: usize,
-    /// 1-based column number and its name.
-    pub column: String,
-    pub msg: String,
-}
-
-fn err(line: usize, column: impl Into<String>, msg: impl Into<String>) -> CsvError {
-    CsvError {
-        line,
-        column: column.into(),
-        msg: msg.into(),
-    }
-}
+use crate::twin::measured::err;
+/// The measured-data contract's error: the same line, column and message as `diagnose` gives.
+pub use crate::twin::measured::CsvError;
 
 /// The data lines of a CSV text after its header, which must be exactly `header`.
 fn body<'a>(

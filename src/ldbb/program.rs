@@ -376,28 +376,26 @@ pub fn compile(
         robot,
     )
     .map_err(|e| input(e.to_string()))?;
-    let mut program = crate::emit::target(&base, template.dialect, &cmap, &speeds);
-    let h = &mut program.header;
-    if !crate::dialect::valid_name(&h.program_name, template.dialect.name_max) {
-        h.program_name = crate::emit::ident(
-            if h.program_name.is_empty() {
-                "LDBB_CIRCLE"
-            } else {
-                &h.program_name
-            },
-            template.dialect.name_max,
-        );
-    }
-    let text = crate::emit::render(&template, &program).map_err(ProgramError::Template)?;
-
-    // Check the text, not the memory: the same `verify` as every program.
+    // Check the text, not the memory: the same last step and `verify` as every program.
     let (scene, _) = crate::pipeline::build_scene(robot, spec, &table, &map)
         .map_err(|e| input(e.to_string()))?;
     let cellv =
         crate::pipeline::make_cell(robot, table, map, spec).map_err(|e| input(e.to_string()))?;
     let ck = crate::safety::Checker::new(robot, &model, &cellv, &scene, spec.margin);
-    let verified = crate::verify::check_text(&ck, robot, &text, template.dialect, &cmap)
-        .map_err(|f| ProgramError::Unsafe(f.to_string()))?;
+    let (program, text, verified) = crate::pipeline::emit_checked(
+        &ck,
+        robot,
+        &base,
+        &template,
+        &cmap,
+        "LDBB_CIRCLE",
+        inputs_sha256,
+    )
+    .map_err(|e| match e {
+        crate::pipeline::PipelineError::Template(m) => ProgramError::Template(m),
+        crate::pipeline::PipelineError::Unsafe(m) => ProgramError::Unsafe(m),
+        e => input(e.to_string()),
+    })?;
     Ok(Compiled {
         program,
         text,

@@ -240,11 +240,12 @@ pub fn is_map(index: usize) -> bool {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use rand::{Rng, SeedableRng};
 
-    fn nj130() -> Robot {
+    /// The bundled NJ-130 (DH), for unit tests across modules.
+    pub(crate) fn nj130() -> Robot {
         crate::robot::load(
             std::path::Path::new(concat!(
                 env!("CARGO_MANIFEST_DIR"),

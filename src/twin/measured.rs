@@ -72,7 +72,7 @@ pub struct CsvError {
     pub msg: String,
 }
 
-fn err(line: usize, column: impl Into<String>, msg: impl Into<String>) -> CsvError {
+pub(crate) fn err(line: usize, column: impl Into<String>, msg: impl Into<String>) -> CsvError {
     CsvError {
         line,
         column: column.into(),
