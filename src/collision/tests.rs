@@ -95,6 +95,7 @@ fn world_scene(shapes: Vec<(&str, Frame, Prim)>, floor_z: Option<f64>) -> Scene 
         bar_radius: 0.0,
         ball_radius: 0.0,
         sweep: [0.0; 6],
+        rates: Vec::new(),
     }
 }
 
@@ -128,6 +129,29 @@ fn two_boxes_at_a_known_distance_and_overlapping() {
         None,
     );
     check_clearance(&s, -0.05, "big", "small");
+}
+
+/// parry 0.25's `query::distance` of two cuboids depends on their order and overstates the gap
+/// (dimforge/parry#431): clearances go through closest points instead.
+#[test]
+fn two_boxes_of_different_sizes_in_either_order() {
+    for (first, second) in [
+        ([2.0, 2.0, 2.0], [2.0, 4.0, 2.0]),
+        ([2.0, 4.0, 2.0], [2.0, 2.0, 2.0]),
+    ] {
+        let s = world_scene(
+            vec![
+                ("a", Frame::IDENTITY, Prim::Box(first)),
+                (
+                    "b",
+                    Frame::translation(Vector3::new(-5.573167, 0.0, 0.0)),
+                    Prim::Box(second),
+                ),
+            ],
+            None,
+        );
+        check_clearance(&s, 3.573167, "a", "b");
+    }
 }
 
 #[test]
@@ -481,6 +505,7 @@ fn mesh_files_ascii_stl_obj_and_a_clear_error_for_dae() {
             bar_radius: 0.0,
             ball_radius: 0.0,
             sweep: [0.0; 6],
+            rates: Vec::new(),
         };
         let c = s.clearance(&[0.0; 6], &[Frame::IDENTITY; 8], &Vector3::zeros());
         assert!((c.distance - 0.5).abs() < 1e-9, "{c:?}");
@@ -676,4 +701,152 @@ fn fixture_room_finds_obstacles_the_base_and_the_floor() {
     // The ball on the floor.
     let c = room(Vector3::new(1.5, 0.0, 0.0125 + 0.005)).expect("ball on the floor");
     assert_eq!(c.b, FLOOR, "{c:?}");
+}
+
+/// A cell with something of every kind near the arm: a tool, a hose on the forearm, two
+/// environment boxes in reach, and the bar to a fixture in front of the robot.
+fn busy_cell(r: &Robot) -> CellSpec {
+    let mut cell = CellSpec::default();
+    cell.tool_shapes.push(CellShape {
+        name: "cup".into(),
+        origin: Frame::translation(Vector3::new(0.0, 0.0, 0.06)),
+        kind: ShapeKind::Cylinder {
+            radius: 0.05,
+            length: 0.12,
+        },
+    });
+    cell.hoses.push(crate::cell::AttachedShape {
+        frame: 3,
+        shape: CellShape {
+            name: "hose".into(),
+            origin: Frame::IDENTITY,
+            kind: ShapeKind::Capsule {
+                a: [0.0, -0.2, 0.0],
+                b: [0.0, -0.2, 0.6],
+                radius: 0.04,
+            },
+        },
+    });
+    let home = frames(r, &[0.0; 6])[7].apply(&map_of(r));
+    cell.environment
+        .push(env_box("crate", home + Vector3::new(0.1, 0.5, -0.3), 0.3));
+    cell.environment
+        .push(env_box("post", home + Vector3::new(-0.2, -0.6, 0.1), 0.2));
+    cell
+}
+
+/// Exact signed distance of checked pair k (body pairs, then bar pairs) at q.
+fn pair_distance(s: &Scene, k: usize, q: &[f64; 6], f: &[Frame; 8], map: &Vector3<f64>) -> f64 {
+    let poses = Poses::new(q, f, &s.passive);
+    if k < s.pairs.len() {
+        let (a, b) = s.pairs[k];
+        let (ba, bb) = (&s.bodies[a], &s.bodies[b]);
+        ba.pair(&poses.of(ba), bb, &poses.of(bb), f64::INFINITY, Mode::Min)
+            .unwrap_or(f64::INFINITY)
+    } else {
+        let bb = &s.bodies[s.bar_pairs[k - s.pairs.len()]];
+        let (cap, r) = s.bar(&s.fixture, map).expect("a bar");
+        bb.against(
+            &poses.of(bb),
+            &Placed::bar(&cap, r),
+            f64::INFINITY,
+            Mode::Min,
+        )
+        .unwrap_or(f64::INFINITY)
+    }
+}
+
+#[test]
+fn pair_rates_bound_how_fast_every_pair_distance_changes() {
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    for (file, r) in all_robots() {
+        let (s, _) = scene(&r, &busy_cell(&r));
+        assert_eq!(s.rates.len(), s.pairs.len() + s.bar_pairs.len());
+        let mut worst = 0.0f64;
+        let mut tried = 0;
+        for _ in 0..60 {
+            let q = random_q(&r, &mut rng);
+            let dq: [f64; 6] = std::array::from_fn(|_| rng.random_range(-0.02..0.02));
+            let q2: [f64; 6] = std::array::from_fn(|i| q[i] + dq[i]);
+            let (f1, f2) = (frames(&r, &q), frames(&r, &q2));
+            let (m1, m2) = (f1[7].apply(&map_of(&r)), f2[7].apply(&map_of(&r)));
+            if (m1 - s.fixture).norm() < 0.1 || (m2 - s.fixture).norm() < 0.1 {
+                continue;
+            }
+            for k in 0..s.rates.len() {
+                let (d1, d2) = (
+                    pair_distance(&s, k, &q, &f1, &m1),
+                    pair_distance(&s, k, &q2, &f2, &m2),
+                );
+                // Penetration depths come from EPA: only separated pairs are compared.
+                if !(d1 > 0.0 && d2 > 0.0 && d1.is_finite() && d2.is_finite()) {
+                    continue;
+                }
+                let bound: f64 = (0..6).map(|i| s.rates[k][i] * dq[i].abs()).sum();
+                assert!(
+                    (d2 - d1).abs() <= bound + 1e-9,
+                    "{file}: pair {k} ({}) distance changed by {} > {bound} ({:?})",
+                    if k < s.pairs.len() {
+                        format!(
+                            "{} / {}",
+                            s.bodies[s.pairs[k].0].name, s.bodies[s.pairs[k].1].name
+                        )
+                    } else {
+                        format!("bar / {}", s.bodies[s.bar_pairs[k - s.pairs.len()]].name)
+                    },
+                    (d2 - d1).abs(),
+                    s.rates[k]
+                );
+                if bound > 0.0 {
+                    worst = worst.max((d2 - d1).abs() / bound);
+                }
+                tried += 1;
+            }
+        }
+        assert!(tried > 100, "{file}: only {tried} pairs compared");
+        eprintln!("{file}: worst use of the pair rates {worst:.2}");
+    }
+}
+
+#[test]
+fn violation_along_is_the_full_check_at_every_sample() {
+    let mut rng = ChaCha8Rng::seed_from_u64(12);
+    for (file, r) in all_robots() {
+        let (s, _) = scene(&r, &busy_cell(&r));
+        let mut found = [0usize; 2];
+        for _ in 0..12 {
+            let a = random_q(&r, &mut rng);
+            // Moves of every length: a few degrees to across the range.
+            let scale = [0.05, 0.3, 1.0][rng.random_range(0..3)];
+            let b: [f64; 6] = std::array::from_fn(|i| {
+                (a[i] + scale * rng.random_range(-2.0..2.0))
+                    .clamp(r.joints[i].lower, r.joints[i].upper)
+            });
+            let lip: [f64; 6] = std::array::from_fn(|i| (b[i] - a[i]).abs());
+            let mut co = s.coherence(&lip);
+            // In order, then the bisection's out-of-order midpoints.
+            let mut ss: Vec<f64> = (0..=100).map(|k| k as f64 / 100.0).collect();
+            ss.extend((0..100).map(|k| (k as f64 + 0.5) / 100.0).rev());
+            for &t in &ss {
+                let q: [f64; 6] = std::array::from_fn(|i| a[i] + (b[i] - a[i]) * t);
+                let f = frames(&r, &q);
+                let map = f[7].apply(&map_of(&r));
+                let mounted = rng.random_bool(0.8);
+                let (full, along) = if mounted {
+                    (
+                        s.violation(&q, &f, &map, 0.01),
+                        s.violation_along(&q, &f, Some(&map), 0.01, t, &mut co),
+                    )
+                } else {
+                    (
+                        s.violation_unmounted(&q, &f, 0.01),
+                        s.violation_along(&q, &f, None, 0.01, t, &mut co),
+                    )
+                };
+                assert_eq!(full, along, "{file}: {a:?} -> {b:?} at {t}");
+                found[full.is_some() as usize] += 1;
+            }
+        }
+        assert!(found[0] > 100 && found[1] > 100, "{file}: {found:?}");
+    }
 }

@@ -26,10 +26,15 @@ impl Blend {
         std::array::from_fn(|i| u * self.q_in[i] + v * self.corner[i] + w * self.q_out[i])
     }
 
-    /// Total variation of each joint along the curve (a bound: the legs of the control polygon).
-    pub fn variation(&self) -> [f64; 6] {
+    /// A bound on each joint's speed along the curve, |dq/dt| (rad per unit of t): the
+    /// derivative 2(1−t)(k − q_in) + 2t(q_out − k) is largest at an end, twice a leg of the
+    /// control polygon. (The legs' sum, the total variation, is no bound on the speed when the
+    /// legs differ: the samples of the continuous check must be spaced by the speed.)
+    pub fn lipschitz(&self) -> [f64; 6] {
         std::array::from_fn(|i| {
-            (self.corner[i] - self.q_in[i]).abs() + (self.q_out[i] - self.corner[i]).abs()
+            2.0 * (self.corner[i] - self.q_in[i])
+                .abs()
+                .max((self.q_out[i] - self.corner[i]).abs())
         })
     }
 }

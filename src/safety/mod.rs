@@ -15,7 +15,7 @@ pub mod blend;
 pub mod path;
 pub mod roadmap;
 
-use crate::collision::{Contact, Scene};
+use crate::collision::{Coherence, Contact, Scene};
 use crate::ir::{Cell, Reason};
 use crate::model::MeasurementModel;
 use crate::robot::kinematics::chain_frames;
@@ -147,6 +147,16 @@ impl<'a> Checker<'a> {
 
     /// The full check of one pose.
     pub fn pose(&self, q: &[f64; 6]) -> Result<PoseInfo, Violation> {
+        self.pose_along(q, None)
+    }
+
+    /// [`Checker::pose`] at the sample `s` of a motion whose memory is `along` (the same
+    /// verdict; collision pairs the motion has proven clear are not queried again).
+    fn pose_along(
+        &self,
+        q: &[f64; 6],
+        along: Option<(f64, &mut Coherence)>,
+    ) -> Result<PoseInfo, Violation> {
         for i in 0..6 {
             if !(q[i] >= self.lo[i] - 1e-9 && q[i] <= self.hi[i] + 1e-9) {
                 return Err(Violation {
@@ -181,7 +191,13 @@ impl<'a> Checker<'a> {
                     detail,
                 });
             }
-            if let Some(c) = self.scene.violation_unmounted(q, &frames, self.margin) {
+            let hit = match along {
+                Some((s, co)) => self
+                    .scene
+                    .violation_along(q, &frames, None, self.margin, s, co),
+                None => self.scene.violation_unmounted(q, &frames, self.margin),
+            };
+            if let Some(c) = hit {
                 let detail = describe_contact(&c, self.margin);
                 return Err(Violation {
                     reason: Reason::Collision,
@@ -201,7 +217,13 @@ impl<'a> Checker<'a> {
                 detail: self.describe(reason, q, &map, &cup),
             });
         }
-        if let Some(c) = self.scene.violation(q, &frames, &map, self.margin) {
+        let hit = match along {
+            Some((s, co)) => self
+                .scene
+                .violation_along(q, &frames, Some(&map), self.margin, s, co),
+            None => self.scene.violation(q, &frames, &map, self.margin),
+        };
+        if let Some(c) = hit {
             return Err(Violation {
                 reason: Reason::Collision,
                 detail: describe_contact(&c, self.margin),
@@ -289,30 +311,36 @@ impl<'a> Checker<'a> {
         }
     }
 
-    /// Continuous check of a curve q(s), s ∈ [0, 1], whose joints vary by at most `variation`
-    /// (total variation per joint). Returns the parameter and the violation of the first failure.
+    /// Continuous check of a curve q(s), s ∈ [0, 1], whose joints move at most `lipschitz[i]`
+    /// radians per unit of s (for a straight move: the joints' travel). Returns the parameter
+    /// and the violation of the first failure.
     pub fn curve(
         &self,
         q: &dyn Fn(f64) -> [f64; 6],
-        variation: &[f64; 6],
+        lipschitz: &[f64; 6],
         ext: &mut Extremes,
     ) -> Result<(), (f64, Violation)> {
-        let motion: f64 = (0..6).map(|i| self.sweep[i] * variation[i]).sum();
-        let rotation: f64 = variation.iter().sum();
+        let motion: f64 = (0..6).map(|i| self.sweep[i] * lipschitz[i]).sum();
+        let rotation: f64 = lipschitz.iter().sum();
         let step = if self.margin > 0.0 {
             self.margin / 4.0
         } else {
             1e-3
         };
         let n = ((motion / step).ceil() as usize).clamp(1, 1_000_000);
+        let mut co = self.scene.coherence(lipschitz);
         let mut prev_s = 0.0;
-        let mut prev = self.pose(&q(0.0)).map_err(|v| (0.0, v))?;
+        let mut prev = self
+            .pose_along(&q(0.0), Some((0.0, &mut co)))
+            .map_err(|v| (0.0, v))?;
         if self.mounted {
             ext.add(&prev);
         }
         for k in 1..=n {
             let s = k as f64 / n as f64;
-            let cur = self.pose(&q(s)).map_err(|v| (s, v))?;
+            let cur = self
+                .pose_along(&q(s), Some((s, &mut co)))
+                .map_err(|v| (s, v))?;
             if self.mounted {
                 ext.add(&cur);
             }
@@ -325,6 +353,7 @@ impl<'a> Checker<'a> {
                 motion / n as f64,
                 rotation / n as f64,
                 0,
+                &mut co,
                 ext,
             )?;
             prev_s = s;
@@ -347,6 +376,7 @@ impl<'a> Checker<'a> {
         m: f64,
         w: f64,
         depth: u32,
+        co: &mut Coherence,
         ext: &mut Extremes,
     ) -> Result<(), (f64, Violation)> {
         if !self.mounted {
@@ -377,12 +407,14 @@ impl<'a> Checker<'a> {
             ));
         }
         let s = 0.5 * (s0 + s1);
-        let mid = self.pose(&q(s)).map_err(|v| (s, v))?;
+        let mid = self
+            .pose_along(&q(s), Some((s, &mut *co)))
+            .map_err(|v| (s, v))?;
         if self.mounted {
             ext.add(&mid);
         }
-        self.refine(q, s0, a, s, mid, m / 2.0, w / 2.0, depth + 1, ext)?;
-        self.refine(q, s, mid, s1, b, m / 2.0, w / 2.0, depth + 1, ext)
+        self.refine(q, s0, a, s, mid, m / 2.0, w / 2.0, depth + 1, co, ext)?;
+        self.refine(q, s, mid, s1, b, m / 2.0, w / 2.0, depth + 1, co, ext)
     }
 
     /// Continuous check of the straight joint move a → b.

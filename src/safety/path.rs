@@ -298,7 +298,7 @@ pub fn plan_sections(
 }
 
 pub fn check_blend(ck: &Checker, b: &Blend, ext: &mut Extremes) -> Result<(), (f64, Violation)> {
-    ck.curve(&|t| b.point(t), &b.variation(), ext)
+    ck.curve(&|t| b.point(t), &b.lipschitz(), ext)
 }
 
 /// Via points that make a → b safe: first a chain through the roadmap of admitted pool poses
