@@ -189,6 +189,10 @@ pub struct CompileArgs {
     /// path; the stage counts, safety and identifiability tables).
     #[arg(long, value_name = "REPORT.html")]
     pub html: Option<PathBuf>,
+    /// Print the wall time of every compile stage on stderr (load, scene, sample, sections,
+    /// identify, select/order/plan, predict, emit/verify; no output file changes).
+    #[arg(long)]
+    pub timings: bool,
 }
 
 #[derive(Args, Debug)]

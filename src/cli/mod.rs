@@ -303,6 +303,75 @@ impl crate::sample::Progress for Bar {
     }
 }
 
+/// `--timings`: the wall time of every pipeline stage on stderr, passing the progress
+/// callbacks on to the bar.
+struct Timed<'a> {
+    inner: &'a dyn crate::sample::Progress,
+    on: bool,
+    t0: std::time::Instant,
+    stage: std::sync::Mutex<(std::time::Instant, &'static str)>,
+}
+
+impl<'a> Timed<'a> {
+    /// Timing from `t0`, in the stage `first`.
+    fn new(
+        inner: &'a dyn crate::sample::Progress,
+        on: bool,
+        first: &'static str,
+        t0: std::time::Instant,
+    ) -> Self {
+        Timed {
+            inner,
+            on,
+            t0,
+            stage: std::sync::Mutex::new((t0, first)),
+        }
+    }
+
+    /// Ends the current stage (printing its time) and starts `next`.
+    fn next(&self, next: &'static str) {
+        if !self.on {
+            return;
+        }
+        let now = std::time::Instant::now();
+        let mut st = self.stage.lock().unwrap_or_else(|e| e.into_inner());
+        eprintln!(
+            "edbbgen: timing: {:<22}{:>8.3} s",
+            st.1,
+            (now - st.0).as_secs_f64()
+        );
+        *st = (now, next);
+    }
+
+    /// Ends the last stage and prints the total.
+    fn done(&self) {
+        if self.on {
+            self.next("");
+            eprintln!(
+                "edbbgen: timing: {:<22}{:>8.3} s",
+                "total",
+                self.t0.elapsed().as_secs_f64()
+            );
+        }
+    }
+}
+
+impl crate::sample::Progress for Timed<'_> {
+    fn stage(&self, name: &'static str) {
+        self.next(name);
+        self.inner.stage(name);
+    }
+    fn start(&self, total: u64) {
+        self.inner.start(total);
+    }
+    fn inc(&self, n: u64) {
+        self.inner.inc(n);
+    }
+    fn finish(&self) {
+        self.inner.finish();
+    }
+}
+
 // ---- the compiler -------------------------------------------------------------------------
 
 /// The output template: a user's file (`--template`) or a bundled dialect (`--dialect`).
@@ -329,6 +398,7 @@ fn resolve_template(dialect: &str, file: Option<&Path>) -> Result<String, Error>
 }
 
 fn run_compile(a: &CompileArgs) -> Result<i32, Error> {
+    let started = std::time::Instant::now();
     // Required by clap; the Options only exist because subcommands negate the requirement.
     let (Some(robot_path), Some(output)) = (&a.robot, &a.output) else {
         return Err(usage("ROBOT and -o are required"));
@@ -398,8 +468,12 @@ fn run_compile(a: &CompileArgs) -> Result<i32, Error> {
         bar_rate,
     };
     let bar = Bar::new(a.cell.quiet, "sampling");
-    let out = match pipeline::compile(&robot, &opts, &template, &bar) {
-        Ok(out) => out,
+    let timed = Timed::new(&bar, a.timings, "load", started);
+    let out = match pipeline::compile(&robot, &opts, &template, &timed) {
+        Ok(out) => {
+            timed.done();
+            out
+        }
         Err(e) if e.exit_code() == 1 => {
             eprintln!("edbbgen: {e}");
             return Ok(1);

@@ -417,6 +417,13 @@ impl<'a> Checker<'a> {
         self.refine(q, s, mid, s1, b, m / 2.0, w / 2.0, depth + 1, co, ext)
     }
 
+    /// [`Checker::line`]'s verdict for searches that only need yes or no: a few poses along
+    /// the move are checked first, so a move that fails far from `a` fails fast; a move that
+    /// passes them gets the full continuous check (and its extremes).
+    pub fn line_passes(&self, a: &[f64; 6], b: &[f64; 6], ext: &mut Extremes) -> bool {
+        PROBES.iter().all(|&s| self.pose(&lerp(a, b, s)).is_ok()) && self.line(a, b, ext).is_ok()
+    }
+
     /// Continuous check of the straight joint move a → b.
     pub fn line(
         &self,
@@ -428,6 +435,9 @@ impl<'a> Checker<'a> {
         self.curve(&|s| lerp(a, b, s), &var, ext)
     }
 }
+
+/// Where [`Checker::line_passes`] looks before the full check.
+const PROBES: [f64; 3] = [0.5, 0.25, 0.75];
 
 pub fn lerp(a: &[f64; 6], b: &[f64; 6], s: f64) -> [f64; 6] {
     std::array::from_fn(|i| a[i] + (b[i] - a[i]) * s)

@@ -4,9 +4,11 @@
 //! stop) decided for every corner.
 
 use super::blend::{self, Blend};
+use super::roadmap::Nearest;
 use super::{lerp, Checker, Extremes, Violation};
 use crate::order::move_time;
 use rand::{Rng, SeedableRng};
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -41,6 +43,17 @@ pub struct Plan {
     pub extremes: Extremes,
 }
 
+impl Plan {
+    /// Sections of the program: a section starts at a transit's target that is not a support
+    /// pose (the bar goes in there).
+    pub fn sections(&self) -> usize {
+        self.waypoints
+            .iter()
+            .filter(|w| w.transit && !w.support)
+            .count()
+    }
+}
+
 /// How hard to look for support poses.
 pub const PERTURB_TRIES: usize = 32;
 pub const MAX_DEPTH: u32 = 3;
@@ -55,6 +68,7 @@ pub fn plan(
     speeds: &[f64; 6],
     seed: u64,
 ) -> Plan {
+    let roadmap = Nearest::new(pool, speeds);
     let mut ext = Extremes::default();
     let mut wps: Vec<Waypoint> = Vec::new();
     let mut deferred: Vec<(usize, Violation)> = Vec::new();
@@ -67,7 +81,14 @@ pub fn plan(
         blend: 0.0,
     };
     // Pass 1: the tour as ordered; a pose that cannot be reached safely (not even through
-    // support poses) is deferred, and the tour goes on from where it is.
+    // support poses) is deferred, and the tour goes on from where it is. Every leg from one
+    // tour pose to the next is independent of the others, so all legs are worked out in
+    // parallel first (with their own seeds); a leg is used where the tour does arrive from the
+    // previous pose, and worked out again from where it is after a deferred pose.
+    let legs: Vec<Leg> = (1..tour.len())
+        .into_par_iter()
+        .map(|idx| leg(ck, &tour[idx - 1], &tour[idx], &roadmap, speeds, seed, idx))
+        .collect();
     for (idx, q) in tour.iter().enumerate() {
         let Some(last) = wps.last().map(|w| w.q) else {
             match ck.pose(q) {
@@ -83,32 +104,26 @@ pub fn plan(
             }
             continue;
         };
-        let mut e = Extremes::default();
-        match ck.line(&last, q, &mut e) {
-            Ok(()) => {
-                ext.merge(&e);
+        let fresh;
+        let l = if last == tour[idx - 1] {
+            &legs[idx - 1]
+        } else {
+            fresh = leg(ck, &last, q, &roadmap, speeds, seed, idx);
+            &fresh
+        };
+        match l {
+            Ok((vias, e)) => {
+                ext.merge(e);
+                supports += vias.len();
+                wps.extend(vias.iter().map(|&v| Waypoint {
+                    q: v,
+                    support: true,
+                    transit: false,
+                    blend: 0.0,
+                }));
                 wps.push(measure(q));
             }
-            Err((_, violation)) => {
-                let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(
-                    seed ^ (idx as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15),
-                );
-                let mut e = Extremes::default();
-                match find_support(ck, &last, q, pool, speeds, &mut rng, MAX_DEPTH, &mut e) {
-                    Some(vias) => {
-                        ext.merge(&e);
-                        supports += vias.len();
-                        wps.extend(vias.into_iter().map(|v| Waypoint {
-                            q: v,
-                            support: true,
-                            transit: false,
-                            blend: 0.0,
-                        }));
-                        wps.push(measure(q));
-                    }
-                    None => deferred.push((idx, violation)),
-                }
-            }
+            Err(violation) => deferred.push((idx, violation.clone())),
         }
     }
     // Pass 2: insert each deferred pose where both moves around it pass, cheapest place first.
@@ -137,7 +152,7 @@ pub fn plan(
             let into = if ck.line(&a, &q, &mut e).is_ok() {
                 Some(Vec::new())
             } else if rank < INSERT_WITH_SUPPORT {
-                super::roadmap::connect(ck, &a, &q, pool, speeds, &mut e)
+                super::roadmap::connect(ck, &a, &q, &roadmap, speeds, &mut e)
             } else {
                 None
             };
@@ -146,7 +161,7 @@ pub fn plan(
                 None => Some(Vec::new()),
                 Some(b) if ck.line(&q, &b, &mut e).is_ok() => Some(Vec::new()),
                 Some(b) if rank < INSERT_WITH_SUPPORT => {
-                    super::roadmap::connect(ck, &q, &b, pool, speeds, &mut e)
+                    super::roadmap::connect(ck, &q, &b, &roadmap, speeds, &mut e)
                 }
                 Some(_) => None,
             };
@@ -180,23 +195,30 @@ pub fn plan(
         wps.pop();
         supports -= 1;
     }
+    // Blends: every corner is checked on its own (in parallel); the results are taken in order.
     let mut exact_stops = 0;
     if blend_distance > 0.0 {
-        for k in 1..wps.len().saturating_sub(1) {
-            let bl = blend::geometry(
-                ck.model,
-                &wps[k - 1].q,
-                &wps[k].q,
-                &wps[k + 1].q,
-                blend_distance,
-            );
-            let mut e = Extremes::default();
-            match bl.map(|b| check_blend(ck, &b, &mut e)) {
-                Some(Ok(())) => {
+        let corners: Vec<Option<Extremes>> = (1..wps.len().saturating_sub(1))
+            .into_par_iter()
+            .map(|k| {
+                let bl = blend::geometry(
+                    ck.model,
+                    &wps[k - 1].q,
+                    &wps[k].q,
+                    &wps[k + 1].q,
+                    blend_distance,
+                )?;
+                let mut e = Extremes::default();
+                check_blend(ck, &bl, &mut e).ok().map(|()| e)
+            })
+            .collect();
+        for (k, corner) in (1..).zip(corners) {
+            match corner {
+                Some(e) => {
                     ext.merge(&e);
                     wps[k].blend = blend_distance;
                 }
-                _ => exact_stops += 1,
+                None => exact_stops += 1,
             }
         }
     }
@@ -206,6 +228,37 @@ pub fn plan(
         dropped,
         exact_stops,
         extremes: ext,
+    }
+}
+
+/// A leg of the tour: its support poses (none for a direct move) and the extremes met, or why
+/// the direct move failed when no support was found.
+type Leg = Result<(Vec<[f64; 6]>, Extremes), Violation>;
+
+/// The move a → b of tour leg `idx`: direct when it passes, else through support poses found
+/// with the leg's own seed.
+fn leg(
+    ck: &Checker,
+    a: &[f64; 6],
+    b: &[f64; 6],
+    roadmap: &Nearest,
+    speeds: &[f64; 6],
+    seed: u64,
+    idx: usize,
+) -> Leg {
+    let mut e = Extremes::default();
+    match ck.line(a, b, &mut e) {
+        Ok(()) => Ok((Vec::new(), e)),
+        Err((_, violation)) => {
+            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(
+                seed ^ (idx as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15),
+            );
+            let mut e = Extremes::default();
+            match find_support(ck, a, b, roadmap, speeds, &mut rng, MAX_DEPTH, &mut e) {
+                Some(vias) => Ok((vias, e)),
+                None => Err(violation),
+            }
+        }
     }
 }
 
@@ -262,7 +315,7 @@ pub fn plan_sections(
                     &free,
                     &last,
                     &first,
-                    &[],
+                    &Nearest::new(&[], speeds),
                     speeds,
                     &mut rng,
                     MAX_DEPTH,
@@ -308,7 +361,7 @@ fn find_support(
     ck: &Checker,
     a: &[f64; 6],
     b: &[f64; 6],
-    pool: &[[f64; 6]],
+    roadmap: &Nearest,
     speeds: &[f64; 6],
     rng: &mut impl Rng,
     depth: u32,
@@ -318,7 +371,7 @@ fn find_support(
         return None;
     }
     if depth == MAX_DEPTH {
-        if let Some(vias) = super::roadmap::connect(ck, a, b, pool, speeds, ext) {
+        if let Some(vias) = super::roadmap::connect(ck, a, b, roadmap, speeds, ext) {
             return Some(vias);
         }
     }
@@ -343,7 +396,7 @@ fn find_support(
             ext.merge(&e);
             return Some(vec![m]);
         }
-        if let Some(mut rest) = find_support(ck, &m, b, pool, speeds, rng, depth - 1, &mut e) {
+        if let Some(mut rest) = find_support(ck, &m, b, roadmap, speeds, rng, depth - 1, &mut e) {
             ext.merge(&e);
             let mut out = vec![m];
             out.append(&mut rest);

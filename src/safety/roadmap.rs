@@ -43,17 +43,18 @@ pub fn connect(
     ck: &Checker,
     a: &[f64; 6],
     b: &[f64; 6],
-    pool: &[[f64; 6]],
+    roadmap: &Nearest,
     speeds: &[f64; 6],
     ext: &mut Extremes,
 ) -> Option<Vec<[f64; 6]>> {
+    let pool = roadmap.pool;
     let pos = |n: usize| if n == START { a } else { &pool[n] };
     let h = |n: usize| move_time(pos(n), b, speeds);
     let mut checked: HashMap<(usize, usize), bool> = HashMap::new();
     let mut edge = |u: usize, v: usize, ext: &mut Extremes| -> bool {
         *checked.entry((u, v)).or_insert_with(|| {
             let mut e = Extremes::default();
-            let ok = ck.line(pos(u), pos(v), &mut e).is_ok();
+            let ok = ck.line_passes(pos(u), pos(v), &mut e);
             if ok {
                 ext.merge(&e);
             }
@@ -69,6 +70,7 @@ pub fn connect(
         parent: START,
     });
     let mut expansions = 0;
+    let mut near = Vec::with_capacity(NEIGHBOURS);
     while let Some(Open {
         g,
         node,
@@ -85,7 +87,7 @@ pub fn connect(
         parent.insert(node, from);
         // The direct move to b.
         let mut e = Extremes::default();
-        if node != START && ck.line(pos(node), b, &mut e).is_ok() {
+        if node != START && ck.line_passes(pos(node), b, &mut e) {
             ext.merge(&e);
             let mut vias = vec![pool[node]];
             let mut n = node;
@@ -105,18 +107,13 @@ pub fn connect(
         }
         // Push the nearest pool poses (lazily: their edges are checked when popped).
         let here = pos(node);
-        let mut near: Vec<(f64, usize)> = pool
-            .iter()
-            .enumerate()
-            .filter(|(i, q)| !parent.contains_key(i) && *q != here && *q != b)
-            .map(|(i, q)| (move_time(here, q, speeds), i))
-            .collect();
-        let k = NEIGHBOURS.min(near.len());
-        if k == 0 {
-            continue;
-        }
-        near.select_nth_unstable_by(k - 1, |x, y| x.0.total_cmp(&y.0).then(x.1.cmp(&y.1)));
-        for &(c, i) in &near[..k] {
+        roadmap.query(
+            here,
+            NEIGHBOURS,
+            |i| !parent.contains_key(&i) && pool[i] != *here && pool[i] != *b,
+            &mut near,
+        );
+        for &(c, i) in &near {
             let g2 = g + c;
             open.push(Open {
                 f: g2 + h(i),
@@ -136,31 +133,40 @@ pub fn connect(
 /// to tell the groups apart (e.g. wrist configurations a bar in its cones cannot cross); every
 /// move of the final path is still checked continuously.
 pub fn components(ck: &Checker, pool: &[[f64; 6]], speeds: &[f64; 6], k: usize) -> Vec<usize> {
+    components_by(pool, speeds, k, |i, j| {
+        [0.25, 0.5, 0.75]
+            .iter()
+            .all(|&s| ck.pose(&super::lerp(&pool[i], &pool[j], s)).is_ok())
+    })
+}
+
+/// Edges checked together (in parallel) between the union-find's skips.
+const EDGE_BATCH: usize = 256;
+
+/// [`components`] for any link test `passes(i, j)` (called with i < j). The groups are those of
+/// the graph of passing k-nearest-neighbour links. Links are taken shortest first, in batches,
+/// and a link whose ends are already joined is not tested: it could not change a group. So a
+/// well-connected pool costs about one test per pose, not k, and the result is the same on any
+/// number of threads.
+pub fn components_by(
+    pool: &[[f64; 6]],
+    speeds: &[f64; 6],
+    k: usize,
+    passes: impl Fn(usize, usize) -> bool + Sync,
+) -> Vec<usize> {
     use rayon::prelude::*;
     let n = pool.len();
-    let edges: Vec<Vec<usize>> = (0..n)
+    let index = Nearest::new(pool, speeds);
+    let mut edges: Vec<(f64, usize, usize)> = (0..n)
         .into_par_iter()
-        .map(|i| {
-            let mut near: Vec<(f64, usize)> = (0..n)
-                .filter(|&j| j != i)
-                .map(|j| (move_time(&pool[i], &pool[j], speeds), j))
-                .collect();
-            let kk = k.min(near.len());
-            if kk == 0 {
-                return Vec::new();
-            }
-            near.select_nth_unstable_by(kk - 1, |x, y| x.0.total_cmp(&y.0).then(x.1.cmp(&y.1)));
-            near[..kk]
-                .iter()
-                .filter(|&&(_, j)| {
-                    [0.25, 0.5, 0.75]
-                        .iter()
-                        .all(|&s| ck.pose(&super::lerp(&pool[i], &pool[j], s)).is_ok())
-                })
-                .map(|&(_, j)| j)
-                .collect()
+        .flat_map_iter(|i| {
+            let mut near = Vec::with_capacity(k);
+            index.query(&pool[i], k, |j| j != i, &mut near);
+            near.into_iter().map(move |(d, j)| (d, i.min(j), i.max(j)))
         })
         .collect();
+    edges.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2)));
+    edges.dedup_by(|a, b| a.1 == b.1 && a.2 == b.2);
     let mut parent: Vec<usize> = (0..n).collect();
     fn find(p: &mut [usize], mut x: usize) -> usize {
         while p[x] != x {
@@ -169,10 +175,18 @@ pub fn components(ck: &Checker, pool: &[[f64; 6]], speeds: &[f64; 6], k: usize) 
         }
         x
     }
-    for (i, js) in edges.iter().enumerate() {
-        for &j in js {
+    let mut todo: Vec<(usize, usize)> = Vec::with_capacity(EDGE_BATCH);
+    for batch in edges.chunks(EDGE_BATCH) {
+        todo.clear();
+        for &(_, i, j) in batch {
+            if find(&mut parent, i) != find(&mut parent, j) {
+                todo.push((i, j));
+            }
+        }
+        let ok: Vec<bool> = todo.par_iter().map(|&(i, j)| passes(i, j)).collect();
+        for (&(i, j), ok) in todo.iter().zip(ok) {
             let (a, b) = (find(&mut parent, i), find(&mut parent, j));
-            if a != b {
+            if ok && a != b {
                 parent[a.max(b)] = a.min(b);
             }
         }
@@ -190,4 +204,213 @@ pub fn components(ck: &Checker, pool: &[[f64; 6]], speeds: &[f64; 6], k: usize) 
         label[r] = l;
     }
     roots.iter().map(|&r| label[r]).collect()
+}
+
+/// Exact nearest-neighbour queries in the Eq. 7 metric without scanning the whole pool: the
+/// poses sorted along the joint that spreads them most in time; a query walks outwards from
+/// its place and stops on a side once that joint alone takes longer than the k-th best so far.
+/// The answer is the k smallest (time, index) pairs, exactly as a full sort would give them.
+pub struct Nearest<'a> {
+    pool: &'a [[f64; 6]],
+    speeds: [f64; 6],
+    axis: usize,
+    /// (coordinate on `axis`, pool index), ascending.
+    sorted: Vec<(f64, usize)>,
+}
+
+impl<'a> Nearest<'a> {
+    /// The poses the queries answer from.
+    pub fn pool(&self) -> &'a [[f64; 6]] {
+        self.pool
+    }
+
+    pub fn new(pool: &'a [[f64; 6]], speeds: &[f64; 6]) -> Self {
+        let spread = |i: usize| {
+            let (lo, hi) = pool
+                .iter()
+                .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), q| {
+                    (lo.min(q[i]), hi.max(q[i]))
+                });
+            (hi - lo) / speeds[i]
+        };
+        let axis = (0..6)
+            .map(|i| (spread(i), i))
+            .fold((f64::NEG_INFINITY, 0), |b, c| if c.0 > b.0 { c } else { b })
+            .1;
+        let mut sorted: Vec<(f64, usize)> =
+            pool.iter().enumerate().map(|(i, q)| (q[axis], i)).collect();
+        sorted.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        Nearest {
+            pool,
+            speeds: *speeds,
+            axis,
+            sorted,
+        }
+    }
+
+    /// The `k` pool poses nearest to `x` among those `keep` accepts, as (time, index), nearest
+    /// first (ties by index), in `out` (cleared first).
+    pub fn query(
+        &self,
+        x: &[f64; 6],
+        k: usize,
+        keep: impl Fn(usize) -> bool,
+        out: &mut Vec<(f64, usize)>,
+    ) {
+        out.clear();
+        if k == 0 {
+            return;
+        }
+        let (ax, w) = (self.axis, self.speeds[self.axis]);
+        let start = self.sorted.partition_point(|e| e.0 < x[ax]);
+        let (mut down, mut up) = (start, start);
+        let worse = |a: &(f64, usize), b: &(f64, usize)| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1));
+        loop {
+            // The nearer side next; a side is done once its joint alone exceeds the k-th best
+            // (equal times still count: a lower index may win the tie).
+            let bd = (down > 0).then(|| (x[ax] - self.sorted[down - 1].0).abs() / w);
+            let bu = (up < self.sorted.len()).then(|| (self.sorted[up].0 - x[ax]).abs() / w);
+            let (bound, take_down) = match (bd, bu) {
+                (None, None) => break,
+                (Some(d), None) => (d, true),
+                (None, Some(u)) => (u, false),
+                (Some(d), Some(u)) => (d.min(u), d <= u),
+            };
+            if out.len() == k && bound > out[k - 1].0 {
+                break;
+            }
+            let i = if take_down {
+                down -= 1;
+                self.sorted[down].1
+            } else {
+                up += 1;
+                self.sorted[up - 1].1
+            };
+            if !keep(i) {
+                continue;
+            }
+            let c = (move_time(x, &self.pool[i], &self.speeds), i);
+            if out.len() == k {
+                if worse(&c, &out[k - 1]).is_ge() {
+                    continue;
+                }
+                out.pop();
+            }
+            let at = out.partition_point(|e| worse(e, &c).is_lt());
+            out.insert(at, c);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+
+    fn pool(n: usize, seed: u64) -> Vec<[f64; 6]> {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+        // Coarse values, so that many times tie.
+        (0..n)
+            .map(|_| std::array::from_fn(|_| rng.random_range(-4i32..=4) as f64 * 0.25))
+            .collect()
+    }
+
+    fn brute(
+        pool: &[[f64; 6]],
+        x: &[f64; 6],
+        k: usize,
+        sp: &[f64; 6],
+        keep: impl Fn(usize) -> bool,
+    ) -> Vec<(f64, usize)> {
+        let mut all: Vec<(f64, usize)> = (0..pool.len())
+            .filter(|&i| keep(i))
+            .map(|i| (move_time(x, &pool[i], sp), i))
+            .collect();
+        all.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        all.truncate(k);
+        all
+    }
+
+    #[test]
+    fn nearest_is_the_full_sort_ties_and_exclusions_included() {
+        let sp = [2.0, 1.8, 2.2, 3.5, 3.5, 5.0];
+        for seed in 0..20 {
+            let p = pool(300, seed);
+            let index = Nearest::new(&p, &sp);
+            let mut out = Vec::new();
+            for (i, x) in p.iter().enumerate().step_by(7) {
+                for k in [1, 8, 10, 299, 400] {
+                    let keep = |j: usize| j != i && j % 5 != 3;
+                    index.query(x, k, keep, &mut out);
+                    assert_eq!(
+                        out,
+                        brute(&p, x, k, &sp, keep),
+                        "seed {seed} pose {i} k {k}"
+                    );
+                }
+                // A query point off the pool.
+                let y = x.map(|v| v + 0.1);
+                index.query(&y, 10, |_| true, &mut out);
+                assert_eq!(out, brute(&p, &y, 10, &sp, |_| true));
+            }
+        }
+    }
+
+    /// The groups of the graph of every passing k-nearest link, tested in both directions.
+    fn components_reference(
+        p: &[[f64; 6]],
+        sp: &[f64; 6],
+        k: usize,
+        passes: impl Fn(usize, usize) -> bool,
+    ) -> Vec<usize> {
+        let n = p.len();
+        let mut parent: Vec<usize> = (0..n).collect();
+        fn find(p: &mut [usize], mut x: usize) -> usize {
+            while p[x] != x {
+                x = p[x];
+            }
+            x
+        }
+        for i in 0..n {
+            for (_, j) in brute(p, &p[i], k, sp, |j| j != i) {
+                if passes(i.min(j), i.max(j)) {
+                    let (a, b) = (find(&mut parent, i), find(&mut parent, j));
+                    parent[a.max(b)] = a.min(b);
+                }
+            }
+        }
+        // Label by size, then smallest member.
+        let roots: Vec<usize> = (0..n).map(|i| find(&mut parent, i)).collect();
+        let mut order: Vec<usize> = (0..n).filter(|&r| roots[r] == r).collect();
+        let size = |r: usize| roots.iter().filter(|&&x| x == r).count();
+        order.sort_by(|&a, &b| size(b).cmp(&size(a)).then(a.cmp(&b)));
+        roots
+            .iter()
+            .map(|r| order.iter().position(|o| o == r).unwrap_or(usize::MAX))
+            .collect()
+    }
+
+    #[test]
+    fn skipping_links_within_a_group_never_changes_the_groups() {
+        let sp = [2.0, 1.8, 2.2, 3.5, 3.5, 5.0];
+        for seed in 0..10 {
+            let p = pool(400, 100 + seed);
+            // Links fail across a "wall" in joint 2 and at random elsewhere.
+            let passes = |i: usize, j: usize| {
+                let wall = (p[i][1] < 0.0) != (p[j][1] < 0.0);
+                let h = (i * 7919 + j * 104_729 + seed as usize) % 10;
+                !wall && h < 7
+            };
+            let got = components_by(&p, &sp, 8, passes);
+            let want = components_reference(&p, &sp, 8, passes);
+            assert_eq!(got, want, "seed {seed}");
+            assert!(got.iter().any(|&l| l > 0), "the wall must split the pool");
+            let one = rayon::ThreadPoolBuilder::new()
+                .num_threads(1)
+                .build()
+                .unwrap()
+                .install(|| components_by(&p, &sp, 8, passes));
+            assert_eq!(one, got);
+        }
+    }
 }

@@ -12,7 +12,15 @@
 //!    z0; when no position of the ball meets the shell, the whole branch is skipped.
 //! 3. **One turn per joint.** A joint whose range covers 360° or more is enumerated over one turn
 //!    centred on zero: q and q ± 360° give the same pose and the same Jacobian row.
-//! 4. **Joints that cannot move the MAP are held** (at 0, or the limit nearest to it), e.g. q6
+//! 4. **Floor and cones over whole circles and branches.** For fixed q2..q6 the floor height,
+//!    `d·socket axis` and `−d·cup axis` are bounded over every q1 in closed form (their extremes
+//!    on the circle); a circle that cannot pass them is skipped, and a socket axis along joint
+//!    1's axis caps the bar length (L ≤ d·axis / cos) before the q1 interval is solved. The
+//!    reach ball of a branch is tested against the floor and the socket cone the same way.
+//!    With joints that turn ±360° most of the grid fails the cones: the work then follows the
+//!    poses that pass, not the grid (an arm with six ±360° joints: 2.2·10⁹ grid poses, 3·10⁶
+//!    valid).
+//! 5. **Joints that cannot move the MAP are held** (at 0, or the limit nearest to it), e.g. q6
 //!    when the MAP lies on the flange axis: every value gives the same MAP and the same L.
 //!
 //! Streaming: survivors are reduced to a fixed-size, thread-count-independent subset (the
@@ -115,6 +123,8 @@ pub struct SampleReport {
 
 /// Progress callbacks (the CLI draws a bar; stages never print).
 pub trait Progress: Sync {
+    /// A pipeline stage begins (named for people: `sample`, `sections`, ...).
+    fn stage(&self, _name: &'static str) {}
     fn start(&self, _total: u64) {}
     fn inc(&self, _n: u64) {}
     fn finish(&self) {}
@@ -273,7 +283,19 @@ struct Ctx<'a> {
     rf: f64,
     phif: f64,
     radix: [u64; 6],
+    /// The socket axis in DH frame 0, its horizontal length and the fixture's offset along it.
+    a0: Vector3<f64>,
+    a0h: f64,
+    f0a: f64,
+    /// World z of a DH-frame-0 vector is `zrow · v` (plus the base's z): the third row of the
+    /// base rotation and its horizontal length.
+    zrow: Vector3<f64>,
+    zrowh: f64,
 }
+
+/// Slack of the whole-circle and whole-branch tests (m): they only ever skip what the exact
+/// test would reject by more than this, so rounding cannot drop a pose brute force keeps.
+const PRUNE_SLACK: f64 = 1e-9;
 
 impl<'a> Ctx<'a> {
     fn new(model: &MeasurementModel, cell: &'a Cell, grids: &'a [JointGrid]) -> Self {
@@ -305,6 +327,8 @@ impl<'a> Ctx<'a> {
         let reach = std::array::from_fn(|k| ((k + 2)..6).map(link).sum::<f64>() + tail);
         let f0 = model.base.inverse().apply(&cell.fixture);
         let radix = std::array::from_fn(|i| grids[i].len());
+        let a0 = model.base.r.transpose() * cell.fixture_axis;
+        let zrow = model.base.r.row(2).transpose();
         Ctx {
             cell,
             base: model.base,
@@ -317,19 +341,52 @@ impl<'a> Ctx<'a> {
             reach,
             rf: f0.x.hypot(f0.y),
             phif: f0.y.atan2(f0.x),
+            f0a: f0.dot(&a0),
             f0,
             radix,
+            a0h: a0.x.hypot(a0.y),
+            a0,
+            zrowh: zrow.x.hypot(zrow.y),
+            zrow,
         }
     }
 
-    /// Can the MAP, within `reach` of point `o` (DH frame 0, any q1), meet the shell?
+    /// The least of `cos · L` over bar lengths `L` in [lmin, lmax]: what `d·axis` must reach
+    /// for a cone test `d·axis ≥ cos·L` to pass somewhere.
+    #[inline]
+    fn cone_floor(cos: f64, lmin: f64, lmax: f64) -> f64 {
+        if cos > 0.0 {
+            cos * lmin
+        } else {
+            cos * lmax
+        }
+    }
+
+    /// Can the MAP, within `reach` of point `o` (DH frame 0, any q1), meet the shell above the
+    /// floor and inside the socket cone? (Necessary conditions, with slack.)
     #[inline]
     fn ball_meets_shell(&self, o: &Vector3<f64>, reach: f64) -> bool {
         let r = o.x.hypot(o.y);
         let dz = o.z - self.f0.z;
         let dmin = (r - self.rf).hypot(dz);
         let dmax = (r + self.rf).hypot(dz);
-        dmin - reach <= self.cell.bar_max && dmax + reach >= self.cell.bar_min
+        if dmin - reach > self.cell.bar_max || dmax + reach < self.cell.bar_min {
+            return false;
+        }
+        // Floor: the highest the ball gets over every q1 (|zrow| = 1).
+        let ztop = self.zrow.z * o.z + self.zrowh * r + self.base.t.z + reach;
+        if ztop + PRUNE_SLACK <= self.cell.floor_z {
+            return false;
+        }
+        // Socket cone: the most `d·axis` gets over the ball and every q1, against the least it
+        // must reach on the shell.
+        let along = r * self.a0h + o.z * self.a0.z - self.f0a + reach;
+        let need = Self::cone_floor(
+            self.cell.fixture_cone_cos,
+            self.cell.bar_min,
+            self.cell.bar_max,
+        );
+        along + PRUNE_SLACK >= need
     }
 
     fn unit(&self, i2: u64, i3: u64, cfg: &SampleConfig, acc: &mut Acc) {
@@ -376,10 +433,34 @@ impl<'a> Ctx<'a> {
             self.check(x, cup, v, 0, idx, cfg, acc);
             return;
         }
-        let (rmin, rmax) = (self.cell.bar_min, self.cell.bar_max);
+        let (rmin, mut rmax) = (self.cell.bar_min, self.cell.bar_max);
         let r = x.x.hypot(x.y);
         let dz = x.z - self.f0.z;
         let s = r * r + self.rf * self.rf + dz * dz;
+        // Whole-circle tests: floor and both cones bounded over every q1 (necessary conditions
+        // with slack; the poses visited are still checked exactly).
+        let lmin = rmin.max((s - 2.0 * r * self.rf).max(0.0).sqrt());
+        let lmax = rmax.min((s + 2.0 * r * self.rf).sqrt());
+        if self.zrow.z * x.z + self.zrowh * r + self.base.t.z + PRUNE_SLACK <= self.cell.floor_z {
+            return;
+        }
+        let socket = r * self.a0h + x.z * self.a0.z - self.f0a;
+        let cs = self.cell.fixture_cone_cos;
+        if socket + PRUNE_SLACK < Self::cone_floor(cs, lmin, lmax) {
+            return;
+        }
+        let toward = -x.dot(cup) + self.rf * cup.x.hypot(cup.y) + self.f0.z * cup.z;
+        if toward + PRUNE_SLACK < Self::cone_floor(self.cell.tool_cone_cos, lmin, lmax) {
+            return;
+        }
+        // A socket axis along joint 1's axis: `d·axis` is the same all round the circle, so the
+        // cone caps the bar length (L ≤ d·axis / cos).
+        if self.a0h == 0.0 && cs > 0.0 {
+            rmax = rmax.min(socket / cs + PRUNE_SLACK);
+            if rmax < rmin {
+                return;
+            }
+        }
         let mut iv = [(0.0f64, 0.0f64); 2];
         let n_iv;
         if r * self.rf < 1e-12 {
@@ -416,28 +497,40 @@ impl<'a> Ctx<'a> {
                 n_iv = 2;
             }
         }
-        let (wlo, whi) = (g.k_lo as f64 * g.step, g.k_hi as f64 * g.step);
-        // Intervals are at most 2π wide; shifting by whole turns covers the window, and
-        // `last_k` stops a grid value reached from two shifted intervals being visited twice.
         let mut ks: [(i64, i64); 8] = [(0, -1); 8];
-        let mut nk = 0;
-        for &(a, b) in &iv[..n_iv] {
-            let base_shift = ((wlo - b) / TAU).ceil();
-            let mut sh = base_shift;
-            while a + sh * TAU <= whi + 1e-12 && nk < ks.len() {
-                let lo = (((a + sh * TAU) / g.step).ceil() as i64).max(g.k_lo);
-                let hi = (((b + sh * TAU) / g.step).floor() as i64).min(g.k_hi);
-                if lo <= hi {
-                    ks[nk] = (lo, hi);
-                    nk += 1;
+        let nk = grid_ranges(g, &iv[..n_iv], &mut ks);
+        let mut both: [(i64, i64); 64] = [(0, -1); 64];
+        let mut ranges: &[(i64, i64)] = &ks[..nk];
+        // The cup cone as a q1 interval (a necessary condition): −d·cup = −x·cup +
+        // rf·|cup_h|·cos(q1 − γ) + f0z·cup_z must reach the circle's least cos·L.
+        let ch = cup.x.hypot(cup.y);
+        if self.rf * ch > 1e-9 {
+            let need = Self::cone_floor(self.cell.tool_cone_cos, lmin, lmax) - PRUNE_SLACK;
+            let kappa = (need + x.dot(cup) - self.f0.z * cup.z) / (self.rf * ch);
+            if kappa > 1.0 {
+                return;
+            }
+            if kappa > -1.0 {
+                let w = kappa.acos() + 1e-7;
+                let gamma = self.phif - cup.y.atan2(cup.x) - self.theta1;
+                let mut cs: [(i64, i64); 8] = [(0, -1); 8];
+                let nc = grid_ranges(g, &[(gamma - w, gamma + w)], &mut cs);
+                let mut nb = 0;
+                for &(a, b) in &ks[..nk] {
+                    for &(c, d) in &cs[..nc] {
+                        let (lo, hi) = (a.max(c), b.min(d));
+                        if lo <= hi {
+                            both[nb] = (lo, hi);
+                            nb += 1;
+                        }
+                    }
                 }
-                sh += 1.0;
+                both[..nb].sort_unstable();
+                ranges = &both[..nb];
             }
         }
-        let ks = &mut ks[..nk];
-        ks.sort_unstable();
         let mut last_k = i64::MIN;
-        for &(lo, hi) in ks.iter() {
+        for &(lo, hi) in ranges {
             for k in lo.max(last_k.saturating_add(1))..=hi {
                 self.check(
                     x,
@@ -503,6 +596,29 @@ impl<'a> Ctx<'a> {
     }
 }
 
+/// The grid indices `k` (`k·step` in `k_lo..=k_hi`) inside any of `intervals` (q1 values, each
+/// at most 2π wide) or a whole turn away from one, as sorted ranges in `out`; returns their
+/// count. Ranges may overlap where shifted intervals do; the caller visits each k once.
+fn grid_ranges(g: &JointGrid, intervals: &[(f64, f64)], out: &mut [(i64, i64); 8]) -> usize {
+    let (wlo, whi) = (g.k_lo as f64 * g.step, g.k_hi as f64 * g.step);
+    let mut n = 0;
+    for &(a, b) in intervals {
+        let mut sh = ((wlo - b) / TAU).ceil();
+        while a + sh * TAU <= whi + 1e-12 {
+            let lo = (((a + sh * TAU) / g.step).ceil() as i64).max(g.k_lo);
+            let hi = (((b + sh * TAU) / g.step).floor() as i64).min(g.k_hi);
+            if lo <= hi {
+                assert!(n < out.len(), "q1 window wider than three turns");
+                out[n] = (lo, hi);
+                n += 1;
+            }
+            sh += 1.0;
+        }
+    }
+    out[..n].sort_unstable();
+    n
+}
+
 /// SplitMix64 finaliser: a well-mixed 64-bit hash, identical on every platform.
 fn splitmix64(mut z: u64) -> u64 {
     z = z.wrapping_add(0x9e37_79b9_7f4a_7c15);
@@ -559,9 +675,11 @@ impl Acc {
     fn offer(&mut self, e: Entry) {
         if self.heap.len() < self.cap {
             self.heap.push(e);
-        } else if self.heap.peek().is_some_and(|top| e < *top) {
-            self.heap.pop();
-            self.heap.push(e);
+        } else if let Some(mut top) = self.heap.peek_mut() {
+            // Replacing the largest in place: one sift-down instead of a pop and a push.
+            if e < *top {
+                *top = e;
+            }
         }
     }
 
@@ -687,12 +805,25 @@ mod tests {
                 (0.5, 0.9),
                 [30.0; 6],
             ),
+            // A tilted socket and a floor above the base: the whole-circle and branch tests
+            // for a socket axis off joint 1's axis and the floor.
+            (
+                Vector3::new(0.06, 0.03, 0.12),
+                Vector3::new(0.9, 0.8, 0.5),
+                (0.30, 0.60),
+                [20.0, 20.0, 20.0, 40.0, 30.0, 45.0],
+            ),
         ];
         for (k, (map, fixture, bar, step_deg)) in cases.into_iter().enumerate() {
             let (robot, model, mut cell) = setup(map, fixture, bar);
             if k == 2 {
                 // A fixture hanging above the robot: its socket opens downwards.
                 cell.fixture_axis = -Vector3::z();
+            }
+            if k == 3 {
+                cell.fixture_axis = Vector3::new(-0.5, -0.3, 0.8).normalize();
+                cell.fixture_cone_cos = (50.0 * DEG).cos();
+                cell.floor_z = 0.35;
             }
             let cfg = SampleConfig {
                 step: step_deg.map(|s| s * DEG),

@@ -1,15 +1,26 @@
 //! The one place where stages are chained: in = a loaded robot and resolved options; out =
 //! every intermediate result (the IR) plus the program text. No file I/O, no printing.
 //!
-//! load → model → sample (shell, cones, harness) → collision filter → select → order →
-//! safety plan (support poses, blends) → emit → verify the emitted text.
+//! [`compile`] reads as its list of stages: cell, model and collision scene → admit (sample:
+//! shell, cones, floor, harness; collision filter) → sections ([`sections`]) → identify →
+//! select ⇄ order ⇄ plan (support poses, blends) → timed path → predict → program
+//! ([`program`]) → emit → verify the emitted text. Each stage tells [`Progress::stage`] when it
+//! starts (the CLI's `--timings`).
+
+pub mod program;
+pub mod sections;
+
+pub use sections::{
+    Sections, SectionsReport, COMPONENT_NEIGHBOURS, MAX_SECTIONS, MIN_POSES_PER_SECTION,
+    MIN_SECTION_POSES,
+};
 
 use crate::cell::CellSpec;
 use crate::collision::{self, Scene, SceneReport};
 use crate::controller::ControllerMap;
 use crate::dialect::Template;
 use crate::emit;
-use crate::ir::{Cell, Header, Move, Path, Pool, Program, Reason, Selection};
+use crate::ir::{Candidate, Cell, Path, Pool, Program, Reason, Selection};
 use crate::model::{self, Identifiability, IdentifyOptions, MeasurementModel, N_PARAMS};
 use crate::order;
 use crate::robot::Robot;
@@ -87,14 +98,6 @@ pub const POSE_INSET_CONE_DEG: f64 = 5.0;
 /// The sampler keeps this many times `max_candidates` cheap-valid poses; the collision filter
 /// then takes them in hash order until `max_candidates` pass.
 pub const RESERVOIR_FACTOR: usize = 4;
-/// Sections: at most this many, each with at least this many admitted poses (and 2 % of the
-/// pool); smaller groups are left out.
-pub const MAX_SECTIONS: usize = 4;
-pub const MIN_SECTION_POSES: usize = 10;
-/// A section must hold at least this many measurement poses.
-pub const MIN_POSES_PER_SECTION: usize = 3;
-/// Neighbours per pose in the connectivity graph of the pool.
-pub const COMPONENT_NEIGHBOURS: usize = 8;
 /// Rounds of "take unreachable poses out and select again".
 pub const REPAIR_ROUNDS: usize = 3;
 
@@ -368,6 +371,9 @@ pub struct Report {
     /// What the program buys: the predicted 1σ MAP position uncertainty after calibrating from
     /// its recording.
     pub predicted_position_std_um: Predicted,
+    /// How the admitted poses split into groups that safe motions connect, and the sections
+    /// the program measures.
+    pub sections: SectionsReport,
 }
 
 /// The predicted MAP position uncertainty after calibration from a program's recording (µm):
@@ -441,7 +447,9 @@ pub fn build_scene(
     collision::build(robot, spec, fixture, map).map_err(|e| PipelineError::Collision(e.to_string()))
 }
 
-/// load → model → sample → filter → select → order → plan → emit → verify.
+/// The compiler, as its list of stages (each a function below, in this order): check the
+/// template → cell, model, collision scene → admit (sample, collision filter) → sections →
+/// identify → select ⇄ order ⇄ plan → timed path → predict → program → emit and verify.
 pub fn compile(
     robot: &Robot,
     opts: &CompileOptions,
@@ -456,284 +464,48 @@ pub fn compile(
     warnings.extend(robot.notes.iter().cloned());
     let cell = make_cell(robot, opts.fixture, map, &opts.cell)?;
     let model = MeasurementModel::new(robot, opts.fixture, map);
+    progress.stage("scene");
     let (scene, scene_report) = build_scene(robot, &opts.cell, &opts.fixture, &map)?;
     let ck = Checker::new(robot, &model, &cell, &scene, opts.cell.margin);
-
-    let movable = model::movable_joints(&model, robot);
-    let reservoir = opts.max_candidates.saturating_mul(RESERVOIR_FACTOR);
-    let scfg = SampleConfig {
-        step: opts.step,
-        max_candidates: reservoir,
-        seed: opts.seed,
-        movable,
-    };
-    check_grid_size(robot, &cell, &scfg)?;
-    let (sampled, sample) = sample::run(robot, &model, &inset_cell(&cell), &scfg, progress);
-    let (candidates, collision_checked, collisions) =
-        collision_filter(&ck, sampled.candidates, opts.max_candidates);
-    // Poses that safe motions connect form groups; one group is measured per section of the
-    // program, and the operator remounts the bar between sections. Tiny groups are left out.
     let speeds = robot.max_speeds();
-    let qs: Vec<[f64; 6]> = candidates.iter().map(|c| c.q).collect();
-    let labels = crate::safety::roadmap::components(&ck, &qs, &speeds, COMPONENT_NEIGHBOURS);
-    let n_groups = labels.iter().copied().max().map_or(0, |l| l + 1);
-    let mut group_size = vec![0usize; n_groups];
-    for &l in &labels {
-        group_size[l] += 1;
-    }
-    let min_group = MIN_SECTION_POSES.max(candidates.len() / 50);
-    let kept_groups = group_size
-        .iter()
-        .take(MAX_SECTIONS)
-        .filter(|&&n| n >= min_group)
-        .count()
-        .max(1);
-    let keep: Vec<usize> = (0..candidates.len())
-        .filter(|&i| labels[i] < kept_groups)
-        .collect();
-    let disconnected = candidates.len() - keep.len();
-    let group: Vec<usize> = keep.iter().map(|&i| labels[i]).collect();
-    let pool = Pool {
-        candidates: keep.iter().map(|&i| candidates[i]).collect(),
-    };
-    if disconnected > 0 {
-        warnings.push(format!(
-            "{disconnected} of {} admitted poses lie in small groups that safe motions do not connect to the rest; left out",
-            candidates.len()
-        ));
-    }
-    let mut rejected: BTreeMap<String, u64> = sample
-        .rejected
-        .iter()
-        .map(|(r, n)| (r.name().to_string(), *n))
-        .collect();
-    if collisions > 0 {
-        rejected.insert(Reason::Collision.name().to_string(), collisions);
-    }
-    if pool.candidates.is_empty() {
-        if sample.valid == 0
-            && !sample
-                .rejected
-                .keys()
-                .any(|r| !matches!(r, Reason::BarLength | Reason::Floor))
-        {
-            return Err(empty_pool_error(robot, &model, &cell, opts.seed));
-        }
-        let why: Vec<String> = rejected.iter().map(|(k, v)| format!("{k} {v}")).collect();
-        return Err(PipelineError::AllRejected(why.join(", ")));
-    }
 
-    if pool.candidates.len() < N_PARAMS {
-        return Err(PipelineError::TooFewPoses(pool.candidates.len()));
-    }
+    progress.stage("sample");
+    let admitted = admit(&ck, opts, progress)?;
+    progress.stage("sections");
+    let mut sections = Sections::group(&ck, &admitted.candidates, &speeds);
+    warnings.extend(sections.warning());
+    check_pool(&ck, opts.seed, &admitted, &sections.pool)?;
+    progress.stage("identify");
     // Identifiability over the poses the bar can actually measure: the pool itself.
-    let pool_q: Vec<[f64; 6]> = pool.candidates.iter().map(|c| c.q).collect();
-    let rows = model.rows(&pool_q);
-    let identifiability = model::analyse(&rows, &IdentifyOptions::default());
+    let pool_q: Vec<[f64; 6]> = sections.pool.candidates.iter().map(|c| c.q).collect();
+    let identifiability = model::analyse(&model.rows(&pool_q), &IdentifyOptions::default());
     warnings.extend(map_warnings(&model, &identifiability));
-
-    // Select, order and make the path safe; poses no safe move reaches are taken out of the
-    // pool and the selection is redone, so that reachable poses replace them.
-    let mut usable: Vec<usize> = (0..pool.candidates.len()).collect();
-    let mut excluded_unreachable = 0;
-    let mut round = 0;
-    let (selection, time_unsorted, plan) = loop {
-        let sub = Pool {
-            candidates: usable.iter().map(|&i| pool.candidates[i]).collect(),
-        };
-        let selection = select::run(
-            &model,
-            &sub,
-            &identifiability.identifiable,
-            &SelectConfig { poses: opts.poses },
-        )?;
-        let chosen: Vec<usize> = selection.indices.iter().map(|&k| usable[k]).collect();
-        // A section is worth remounting the bar only for a few poses at least: the poses of
-        // smaller ones are replaced like unreachable ones.
-        let lonely: Vec<usize> = chosen
-            .iter()
-            .copied()
-            .filter(|&i| {
-                chosen.iter().filter(|&&j| group[j] == group[i]).count() < MIN_POSES_PER_SECTION
-            })
-            .collect();
-        if !lonely.is_empty()
-            && round < REPAIR_ROUNDS
-            && usable.len() > identifiability.count() + lonely.len()
-        {
-            round += 1;
-            excluded_unreachable += lonely.len();
-            usable.retain(|i| !lonely.contains(i));
-            continue;
-        }
-        let (sections, time_unsorted) =
-            order_sections(&pool, &group, &chosen, kept_groups, &opts.start, &speeds)?;
-        let plan = safepath::plan_sections(&ck, &sections, opts.blend, &speeds, opts.seed);
-        if plan.dropped.is_empty()
-            || round == REPAIR_ROUNDS
-            || usable.len() <= identifiability.count() + plan.dropped.len()
-        {
-            break (selection, time_unsorted, plan);
-        }
-        round += 1;
-        let unreachable: Vec<[f64; 6]> = plan.dropped.iter().map(|d| d.q).collect();
-        excluded_unreachable += unreachable.len();
-        usable.retain(|&i| !unreachable.contains(&pool.candidates[i].q));
-    };
-    if excluded_unreachable > 0 {
-        warnings.push(format!(
-            "{excluded_unreachable} selected poses were replaced: no safe move reached them, or too few shared their section"
-        ));
-    }
-    for d in &plan.dropped {
-        warnings.push(format!(
-            "dropped tour pose {}: no safe move found ({})",
-            d.index + 1,
-            d.violation
-        ));
-    }
-    let sections = plan
-        .waypoints
-        .iter()
-        .filter(|w| w.transit && !w.support)
-        .count();
-    if sections > 1 {
-        warnings.push(format!(
-            "the program has {sections} sections: the bar is removed and remounted between them (no safe motion joins their poses with the bar in place)"
-        ));
-    }
-    // The program carries joint values on the 0.001 deg grid every dialect prints: time the moves on
-    // exactly those values, so the emitted feed never asks an axis for more than its speed.
-    let wq: Vec<[f64; 6]> = plan
-        .waypoints
-        .iter()
-        .map(|w| w.q.map(|r| emit::round_deg(to_deg(r)).to_radians()))
-        .collect();
-    let move_times: Vec<f64> = std::iter::once(0.0)
-        .chain(
-            wq.windows(2)
-                .map(|w| order::move_time(&w[0], &w[1], &speeds)),
-        )
-        .collect();
-    let time_sorted: f64 = move_times.iter().sum();
-    let path = Path {
-        poses: wq,
-        move_times,
-        time_unsorted,
-        time_sorted,
-    };
-
-    // What the program buys: the MAP position uncertainty after calibrating from its recording
-    // (every move made with the bar, at the bar's rate), over the whole joint space.
-    let segments = recorded_segments(&path, &plan);
-    let space = crate::calibrate::predict::workspace(robot, PREDICTION_POSES, opts.seed);
-    let predicted = crate::calibrate::predict::spread(&crate::calibrate::predict::after_recording(
-        &model,
-        &segments,
-        &identifiability.identifiable,
-        opts.bar_noise,
-        opts.bar_rate,
-        &space,
-    ));
-    let predicted_um = Predicted {
-        workspace_rms: predicted.rms * 1e6,
-        workspace_p95: predicted.p95 * 1e6,
-        bar_noise_um: opts.bar_noise * 1e6,
-        bar_rate_hz: opts.bar_rate,
-    };
-
-    let measured = plan.waypoints.iter().filter(|w| !w.support).count();
-    let cond = selection
-        .curve
-        .iter()
-        .find(|c| c.0 == selection.indices.len())
-        .map_or(f64::NAN, |c| c.1);
-    let header = Header {
-        title: crate::ir::EDBB_TITLE.to_string(),
-        instrument: "EDBB".to_string(),
-        notes: Vec::new(),
-        tool_version: env!("CARGO_PKG_VERSION").to_string(),
-        robot: robot.name.clone(),
-        robot_file: robot.source.clone(),
-        fixture_mm: opts.fixture.map(to_mm).into(),
-        map_mm: map.map(to_mm).into(),
-        bar_mm: [to_mm(cell.bar_min), to_mm(cell.bar_max)],
-        blend_mm: to_mm(opts.blend),
-        margin_mm: to_mm(opts.cell.margin),
-        joint_margin_deg: to_deg(opts.cell.joint_margin),
-        poses: measured,
-        supports: plan.supports,
-        sections,
-        identifiable: identifiability.count(),
-        cond,
-        time_unsorted_s: path.time_unsorted,
-        time_s: path.time_sorted,
-        inputs_sha256: String::new(),
-        joint_names: robot.joints.iter().map(|j| j.name.clone()).collect(),
-        predicted_std_um: predicted_um.workspace_rms,
-        bar_noise_um: predicted_um.bar_noise_um,
-        bar_rate_hz: predicted_um.bar_rate_hz,
-        program_name: opts.program_name.clone(),
-        dialect: String::new(),
-        controller: String::new(),
-        axis_names: Vec::new(),
-        axis_units: String::new(),
-        axis_decimals: 0,
-    };
-    let (mut pose_no, mut section) = (0, 0);
-    let wps = &plan.waypoints;
-    let moves = wps
-        .iter()
-        .zip(&path.move_times)
-        .enumerate()
-        .map(|(k, (w, &t))| {
-            if !w.support {
-                pose_no += 1;
-            }
-            // A transit's target without support flag is a section's first pose: the bar goes
-            // in there; it comes out before the first transit move after a mounted stretch.
-            let mount_after = w.transit && !w.support;
-            if mount_after {
-                section += 1;
-            }
-            Move {
-                q_deg: w.q.map(|r| emit::round_deg(to_deg(r))),
-                support: w.support,
-                transit: w.transit,
-                pose: if w.support { 0 } else { pose_no },
-                blend_mm: to_mm(w.blend),
-                time_s: t,
-                length_mm: to_mm(model.length(&model.nominal, &w.q)),
-                note: String::new(),
-                pause: String::new(),
-                pause_before: String::new(),
-                section: section.max(1),
-                remove_before: k > 0 && w.transit && !(wps[k - 1].transit && wps[k - 1].support),
-                mount_after,
-                axes: [0.0; 6],
-                speed_pct: 0.0,
-            }
-        })
-        .collect();
-    let base = Program { header, moves };
+    let planned = select_order_plan(&ck, &sections, &identifiability, opts, progress)?;
+    warnings.extend(planned.warnings());
+    sections.report.measured_per_section = sections::measured_per_section(&planned.plan);
+    let path = timed_path(&planned.plan, planned.time_unsorted, &speeds);
+    progress.stage("path, predict");
+    let predicted = predict(&ck, &identifiability, &path, &planned.plan, opts);
+    let base = program::base(&ck, opts, &identifiability, &planned, &path, &predicted);
+    progress.stage("emit, verify");
     // The compiler does not trust its own memory either: `finish` re-reads the text and checks it.
     let (program, text, verified) = finish(&ck, robot, opts, &base, &template, &axes)?;
 
     let report = Report {
         schema: "edbbgen.report/1",
-        grid_size: sample.grid_size,
-        evaluated: sample.evaluated,
-        valid_before_collisions: sample.valid,
-        rejected,
-        collision_checked,
-        pool: pool.candidates.len(),
-        disconnected,
-        replaced_unreachable: excluded_unreachable,
+        grid_size: admitted.sample.grid_size,
+        evaluated: admitted.sample.evaluated,
+        valid_before_collisions: admitted.sample.valid,
+        rejected: admitted.rejected,
+        collision_checked: admitted.collision_checked,
+        pool: sections.pool.candidates.len(),
+        disconnected: sections.report.disconnected,
+        replaced_unreachable: planned.replaced,
         identifiable: identifiability.count(),
-        selected: selection.indices.len(),
-        support_poses: plan.supports,
-        dropped: plan.dropped.clone(),
-        exact_stops: plan.exact_stops,
+        selected: planned.selection.indices.len(),
+        support_poses: planned.plan.supports,
+        dropped: planned.plan.dropped.clone(),
+        exact_stops: planned.plan.exact_stops,
         min_clearance_mm: to_mm(verified.min_clearance.distance),
         min_clearance_between: [
             verified.min_clearance.a.clone(),
@@ -748,25 +520,245 @@ pub fn compile(
         estimated_time_s: path.time_sorted,
         time_unsorted_s: path.time_unsorted,
         collision_pairs_checked: scene_report.pairs_checked,
-        excluded_pairs: scene_report.excluded.clone(),
+        excluded_pairs: scene_report.excluded,
         warnings: warnings.clone(),
-        predicted_position_std_um: predicted_um,
+        predicted_position_std_um: predicted,
+        sections: sections.report,
     };
     Ok(Compiled {
         cell,
         model,
         identifiability,
-        sample,
-        pool,
-        selection,
+        sample: admitted.sample,
+        pool: sections.pool,
+        selection: planned.selection,
         path,
-        plan,
+        plan: planned.plan,
         program,
         text,
         verified,
         report,
         warnings,
     })
+}
+
+/// The poses that pass every check, in grid order, with the counts of the two stages.
+struct Admitted {
+    candidates: Vec<Candidate>,
+    sample: SampleReport,
+    collision_checked: usize,
+    /// Rejections by reason, the collision filter's included.
+    rejected: BTreeMap<String, u64>,
+}
+
+/// Samples the joint grid (shell, cones, floor, harness on the inset cell), then checks the
+/// sampled poses for collisions in hash order until `max_candidates` pass.
+fn admit(
+    ck: &Checker,
+    opts: &CompileOptions,
+    progress: &dyn Progress,
+) -> Result<Admitted, PipelineError> {
+    let (robot, model, cell) = (ck.robot, ck.model, ck.cell);
+    let scfg = SampleConfig {
+        step: opts.step,
+        max_candidates: opts.max_candidates.saturating_mul(RESERVOIR_FACTOR),
+        seed: opts.seed,
+        movable: model::movable_joints(model, robot),
+    };
+    check_grid_size(robot, cell, &scfg)?;
+    let (sampled, sample) = sample::run(robot, model, &inset_cell(cell), &scfg, progress);
+    let (candidates, collision_checked, collisions) =
+        collision_filter(ck, sampled.candidates, opts.max_candidates);
+    let mut rejected: BTreeMap<String, u64> = sample
+        .rejected
+        .iter()
+        .map(|(r, n)| (r.name().to_string(), *n))
+        .collect();
+    if collisions > 0 {
+        rejected.insert(Reason::Collision.name().to_string(), collisions);
+    }
+    Ok(Admitted {
+        candidates,
+        sample,
+        collision_checked,
+        rejected,
+    })
+}
+
+/// Refuses a pool that is empty (saying which test rejected everything, or why the shell is
+/// empty) or smaller than the parameter count.
+fn check_pool(
+    ck: &Checker,
+    seed: u64,
+    admitted: &Admitted,
+    pool: &Pool,
+) -> Result<(), PipelineError> {
+    if pool.candidates.is_empty() {
+        let sample = &admitted.sample;
+        if sample.valid == 0
+            && !sample
+                .rejected
+                .keys()
+                .any(|r| !matches!(r, Reason::BarLength | Reason::Floor))
+        {
+            return Err(empty_pool_error(ck.robot, ck.model, ck.cell, seed));
+        }
+        let why: Vec<String> = admitted
+            .rejected
+            .iter()
+            .map(|(k, v)| format!("{k} {v}"))
+            .collect();
+        return Err(PipelineError::AllRejected(why.join(", ")));
+    }
+    if pool.candidates.len() < N_PARAMS {
+        return Err(PipelineError::TooFewPoses(pool.candidates.len()));
+    }
+    Ok(())
+}
+
+/// The selection, its order and its safe plan.
+pub struct Planned {
+    pub selection: Selection,
+    /// Eq. 7 time of the selected poses in pool order.
+    pub time_unsorted: f64,
+    pub plan: Plan,
+    /// Selected poses replaced because no safe move reached them or their section was too small.
+    pub replaced: usize,
+}
+
+impl Planned {
+    /// Replaced and dropped poses, and a program of several sections, as warnings.
+    fn warnings(&self) -> Vec<String> {
+        let mut w = Vec::new();
+        if self.replaced > 0 {
+            w.push(format!(
+                "{} selected poses were replaced: no safe move reached them, or too few shared their section",
+                self.replaced
+            ));
+        }
+        for d in &self.plan.dropped {
+            w.push(format!(
+                "dropped tour pose {}: no safe move found ({})",
+                d.index + 1,
+                d.violation
+            ));
+        }
+        let sections = self.plan.sections();
+        if sections > 1 {
+            w.push(format!(
+                "the program has {sections} sections: the bar is removed and remounted between them (no safe motion joins their poses with the bar in place)"
+            ));
+        }
+        w
+    }
+}
+
+/// Selects, orders and makes the path safe; poses no safe move reaches (and the poses of
+/// sections too small to be worth a remount) are taken out of the pool and the selection is
+/// redone, so that reachable poses replace them, for at most [`REPAIR_ROUNDS`] rounds.
+fn select_order_plan(
+    ck: &Checker,
+    sections: &Sections,
+    id: &Identifiability,
+    opts: &CompileOptions,
+    progress: &dyn Progress,
+) -> Result<Planned, PipelineError> {
+    let pool = &sections.pool.candidates;
+    let speeds = ck.robot.max_speeds();
+    let mut usable: Vec<usize> = (0..pool.len()).collect();
+    let mut replaced = 0;
+    let mut round = 0;
+    loop {
+        progress.stage("select");
+        let sub = Pool {
+            candidates: usable.iter().map(|&i| pool[i]).collect(),
+        };
+        let selection = select::run(
+            ck.model,
+            &sub,
+            &id.identifiable,
+            &SelectConfig { poses: opts.poses },
+        )?;
+        let chosen: Vec<usize> = selection.indices.iter().map(|&k| usable[k]).collect();
+        let lonely = sections.lonely(&chosen);
+        if !lonely.is_empty() && round < REPAIR_ROUNDS && usable.len() > id.count() + lonely.len() {
+            round += 1;
+            replaced += lonely.len();
+            usable.retain(|i| !lonely.contains(i));
+            continue;
+        }
+        progress.stage("order");
+        let (ordered, time_unsorted) = sections.order(&chosen, &opts.start, &speeds)?;
+        progress.stage("plan");
+        let plan = safepath::plan_sections(ck, &ordered, opts.blend, &speeds, opts.seed);
+        if plan.dropped.is_empty()
+            || round == REPAIR_ROUNDS
+            || usable.len() <= id.count() + plan.dropped.len()
+        {
+            return Ok(Planned {
+                selection,
+                time_unsorted,
+                plan,
+                replaced,
+            });
+        }
+        round += 1;
+        let unreachable: Vec<[f64; 6]> = plan.dropped.iter().map(|d| d.q).collect();
+        replaced += unreachable.len();
+        usable.retain(|&i| !unreachable.contains(&pool[i].q));
+    }
+}
+
+/// The path on exactly the joint values the program carries (the 0.001° grid every dialect
+/// prints), each move timed on those values, so the emitted feed never asks an axis for more
+/// than its speed.
+fn timed_path(plan: &Plan, time_unsorted: f64, speeds: &[f64; 6]) -> Path {
+    let wq: Vec<[f64; 6]> = plan
+        .waypoints
+        .iter()
+        .map(|w| w.q.map(|r| emit::round_deg(to_deg(r)).to_radians()))
+        .collect();
+    let move_times: Vec<f64> = std::iter::once(0.0)
+        .chain(
+            wq.windows(2)
+                .map(|w| order::move_time(&w[0], &w[1], speeds)),
+        )
+        .collect();
+    let time_sorted = move_times.iter().sum();
+    Path {
+        poses: wq,
+        move_times,
+        time_unsorted,
+        time_sorted,
+    }
+}
+
+/// What the program buys: the MAP position uncertainty after calibrating from its recording
+/// (every move made with the bar, at the bar's rate), over the whole joint space.
+fn predict(
+    ck: &Checker,
+    id: &Identifiability,
+    path: &Path,
+    plan: &Plan,
+    opts: &CompileOptions,
+) -> Predicted {
+    use crate::calibrate::predict as p;
+    let segments = recorded_segments(path, plan);
+    let space = p::workspace(ck.robot, PREDICTION_POSES, opts.seed);
+    let spread = p::spread(&p::after_recording(
+        ck.model,
+        &segments,
+        &id.identifiable,
+        opts.bar_noise,
+        opts.bar_rate,
+        &space,
+    ));
+    Predicted {
+        workspace_rms: spread.rms * 1e6,
+        workspace_p95: spread.p95 * 1e6,
+        bar_noise_um: opts.bar_noise * 1e6,
+        bar_rate_hz: opts.bar_rate,
+    }
 }
 
 /// The moves a program records: every move made with the bar (not the transits between
@@ -905,72 +897,6 @@ fn check_grid_size(robot: &Robot, cell: &Cell, cfg: &SampleConfig) -> Result<(),
         points,
         min_step_deg: to_deg(min_step).max(0.01),
     })
-}
-
-/// Splits the chosen poses (pool indices) into sections by group and orders them: the section
-/// nearest to the current position first (Eq. 7), a time-optimal tour inside each, starting at
-/// its pose nearest to where the previous section ended. Returns the sections and the Eq. 7
-/// time of the chosen poses in pool order (the "unsorted" time).
-fn order_sections(
-    pool: &Pool,
-    group: &[usize],
-    chosen: &[usize],
-    groups: usize,
-    start: &[f64; 6],
-    speeds: &[f64; 6],
-) -> Result<(Vec<safepath::Section>, f64), PipelineError> {
-    let all: Vec<[f64; 6]> = chosen.iter().map(|&i| pool.candidates[i].q).collect();
-    let identity: Vec<usize> = (0..all.len()).collect();
-    let time_unsorted = order::path_time(&all, &identity, speeds);
-    let mut left: Vec<usize> = (0..groups)
-        .filter(|g| chosen.iter().any(|&i| group[i] == *g))
-        .collect();
-    let mut here = *start;
-    let mut sections = Vec::new();
-    while !left.is_empty() {
-        // The group with the pose nearest to here.
-        let (gi, _) = left
-            .iter()
-            .enumerate()
-            .map(|(gi, &g)| {
-                let d = chosen
-                    .iter()
-                    .filter(|&&i| group[i] == g)
-                    .map(|&i| order::move_time(&here, &pool.candidates[i].q, speeds))
-                    .fold(f64::INFINITY, f64::min);
-                (gi, d)
-            })
-            .fold((0, f64::INFINITY), |b, c| if c.1 < b.1 { c } else { b });
-        let g = left.remove(gi);
-        let poses: Vec<[f64; 6]> = chosen
-            .iter()
-            .filter(|&&i| group[i] == g)
-            .map(|&i| pool.candidates[i].q)
-            .collect();
-        let first = (0..poses.len())
-            .map(|k| (k, order::move_time(&here, &poses[k], speeds)))
-            .fold((0, f64::INFINITY), |b, c| if c.1 < b.1 { c } else { b })
-            .0;
-        let tour = order::solve(&poses, first, speeds)?;
-        // Plan on exactly the joint values the program text will carry.
-        let ordered: Vec<[f64; 6]> = tour
-            .order
-            .iter()
-            .map(|&k| emit::emitted(&poses[k]))
-            .collect();
-        if let Some(last) = ordered.last() {
-            here = *last;
-        }
-        let support: Vec<[f64; 6]> = (0..pool.candidates.len())
-            .filter(|&i| group[i] == g)
-            .map(|i| emit::emitted(&pool.candidates[i].q))
-            .collect();
-        sections.push(safepath::Section {
-            tour: ordered,
-            pool: support,
-        });
-    }
-    Ok((sections, time_unsorted))
 }
 
 fn empty_pool_error(
