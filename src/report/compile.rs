@@ -325,7 +325,7 @@ pub fn page(robot: &Robot, out: &Compiled) -> Result<Page, ReportError> {
     let mut counts = vec![
         vec!["joint grid".into(), num(r.grid_size)],
         vec![
-            "evaluated (after q1 solution and reach pruning)".into(),
+            "evaluated (after q1 solution; reach, floor and cone pruning)".into(),
             num(r.evaluated),
         ],
         vec![
@@ -342,6 +342,23 @@ pub fn page(robot: &Robot, out: &Compiled) -> Result<Page, ReportError> {
         vec![
             "left out (not safely connected)".into(),
             r.disconnected.to_string(),
+        ],
+        vec![
+            "connected groups (kept)".into(),
+            format!("{} ({})", r.sections.groups, r.sections.kept_groups),
+        ],
+        vec![
+            "sections (measurement poses each)".into(),
+            format!(
+                "{} ({})",
+                r.sections.measured_per_section.len(),
+                r.sections
+                    .measured_per_section
+                    .iter()
+                    .map(|n| n.to_string())
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            ),
         ],
         vec![
             "replaced (unreachable)".into(),
