@@ -28,8 +28,12 @@ struct Open {
 impl Eq for Open {}
 impl Ord for Open {
     fn cmp(&self, o: &Self) -> Ordering {
-        // Min-heap on f, ties by node index for determinism.
-        o.f.total_cmp(&self.f).then(o.node.cmp(&self.node))
+        // Min-heap on f, ties by node index, then by parent: a total order, so the search does
+        // not depend on the order entries were pushed in (on a grid-built pool the same node is
+        // often reached at exactly the same cost from two parents).
+        o.f.total_cmp(&self.f)
+            .then(o.node.cmp(&self.node))
+            .then(o.parent.cmp(&self.parent))
     }
 }
 impl PartialOrd for Open {

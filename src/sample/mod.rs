@@ -366,11 +366,13 @@ impl<'a> Ctx<'a> {
     /// floor and inside the socket cone? (Necessary conditions, with slack.)
     #[inline]
     fn ball_meets_shell(&self, o: &Vector3<f64>, reach: f64) -> bool {
-        let r = o.x.hypot(o.y);
+        let r = norm2(o.x, o.y);
         let dz = o.z - self.f0.z;
-        let dmin = (r - self.rf).hypot(dz);
-        let dmax = (r + self.rf).hypot(dz);
-        if dmin - reach > self.cell.bar_max || dmax + reach < self.cell.bar_min {
+        let dmin = norm2(r - self.rf, dz);
+        let dmax = norm2(r + self.rf, dz);
+        if dmin - reach > self.cell.bar_max + PRUNE_SLACK
+            || dmax + reach + PRUNE_SLACK < self.cell.bar_min
+        {
             return false;
         }
         // Floor: the highest the ball gets over every q1 (|zrow| = 1).
@@ -434,7 +436,7 @@ impl<'a> Ctx<'a> {
             return;
         }
         let (rmin, mut rmax) = (self.cell.bar_min, self.cell.bar_max);
-        let r = x.x.hypot(x.y);
+        let r = norm2(x.x, x.y);
         let dz = x.z - self.f0.z;
         let s = r * r + self.rf * self.rf + dz * dz;
         // Whole-circle tests: floor and both cones bounded over every q1 (necessary conditions
@@ -449,7 +451,7 @@ impl<'a> Ctx<'a> {
         if socket + PRUNE_SLACK < Self::cone_floor(cs, lmin, lmax) {
             return;
         }
-        let toward = -x.dot(cup) + self.rf * cup.x.hypot(cup.y) + self.f0.z * cup.z;
+        let toward = -x.dot(cup) + self.rf * norm2(cup.x, cup.y) + self.f0.z * cup.z;
         if toward + PRUNE_SLACK < Self::cone_floor(self.cell.tool_cone_cos, lmin, lmax) {
             return;
         }
@@ -503,7 +505,7 @@ impl<'a> Ctx<'a> {
         let mut ranges: &[(i64, i64)] = &ks[..nk];
         // The cup cone as a q1 interval (a necessary condition): −d·cup = −x·cup +
         // rf·|cup_h|·cos(q1 − γ) + f0z·cup_z must reach the circle's least cos·L.
-        let ch = cup.x.hypot(cup.y);
+        let ch = norm2(cup.x, cup.y);
         if self.rf * ch > 1e-9 {
             let need = Self::cone_floor(self.cell.tool_cone_cos, lmin, lmax) - PRUNE_SLACK;
             let kappa = (need + x.dot(cup) - self.f0.z * cup.z) / (self.rf * ch);
@@ -582,6 +584,9 @@ impl<'a> Ctx<'a> {
             acc.range[i][1] = acc.range[i][1].max(q[i]);
         }
         let key = splitmix64(cfg.seed ^ grid.wrapping_mul(0x9e37_79b9_7f4a_7c15));
+        if !acc.takes(key, grid) {
+            return;
+        }
         let length = (p - self.cell.fixture).norm();
         acc.offer(Entry {
             key,
@@ -617,6 +622,13 @@ fn grid_ranges(g: &JointGrid, intervals: &[(f64, f64)], out: &mut [(i64, i64); 8
     }
     out[..n].sort_unstable();
     n
+}
+
+/// √(a² + b²) without `hypot`'s overflow care (lengths here are metres), several times faster
+/// in the sampler's loops; every test that uses it has slack, and poses are checked exactly.
+#[inline]
+fn norm2(a: f64, b: f64) -> f64 {
+    (a * a + b * b).sqrt()
 }
 
 /// SplitMix64 finaliser: a well-mixed 64-bit hash, identical on every platform.
@@ -669,6 +681,16 @@ impl Acc {
             rejected: [0; Reason::ALL.len()],
             range: [[f64::INFINITY, f64::NEG_INFINITY]; 6],
         }
+    }
+
+    /// Would a pose with this key enter the bottom-K? (Cheap: no entry is built otherwise.)
+    #[inline]
+    fn takes(&self, key: u64, grid: u64) -> bool {
+        self.heap.len() < self.cap
+            || self
+                .heap
+                .peek()
+                .is_some_and(|top| (key, grid) < (top.key, top.cand.grid))
     }
 
     #[inline]
