@@ -58,14 +58,14 @@ pub(crate) fn improve(costs: &Costs, nbrs: &Neighbours, order: &mut [usize], eps
 /// the search can leave local optima that no single kick improves (the best path seen is what
 /// `perturb` returns). The threshold starts at this many mean edges of the starting path and falls
 /// linearly to zero over the kicks, like a cooling schedule: early kicks roam, late ones only
-/// descend. On the NJ-130 bench pools (3,400 poses, 4 kick seeds) a fixed 0.03 took the mean gap
-/// to LKH-3 from 0.335 % to 0.30 %, this schedule from 0.2 to 0.25-0.27 %; a fixed 0.2 wanders off
-/// (0.53 %).
+/// descend. On the NJ-130 bench pool of 3,400 poses (4 kick seeds, same kicks) strict acceptance
+/// gave a mean gap to LKH-3 of 0.335 %, a fixed 0.03 0.30 %, a fixed 0.2 0.53 % (it wanders off),
+/// and 0.2 falling to zero 0.25 %.
 const UPHILL: f64 = 0.2;
 
 /// Iterated local search from a local optimum `order`: `kicks` times, swap two adjacent short
-/// segments (a segment-local double bridge, which 2-opt and Or-opt cannot undo in one move),
-/// re-optimise around the four changed edges, and keep the result if the whole path got shorter
+/// segments (a segment move, which the Or-3opt moves could undo in one step; a true double bridge,
+/// A B C D E → A D C B E, did no better on the bench pools), re-optimise around the changed edges, and keep the result if the whole path got shorter
 /// (by more than `eps`) or longer by less than the falling [`UPHILL`] threshold; otherwise
 /// restore it. During the kicks Or-opt scans candidates only while the new edge is shorter than
 /// the edges it frees (`Path::prune`); a last exact search from the best path seen makes the
