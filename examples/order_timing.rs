@@ -6,6 +6,7 @@
 //!   default 35, 200, 1000 and 3400 poses), best of 3 like the bench, with the gap to the LKH-3
 //!   cost of the same instance (BENCHMARKS.md, issue 13 table). The pools are cached in
 //!   `target/tsp-pools/` (exact f64 bits) because sampling them takes longer than the tours.
+//!   `TSP_REPS=k` in the environment times k runs instead of 3.
 
 use edbbgen::ir::Cell;
 use edbbgen::model::MeasurementModel;
@@ -104,16 +105,26 @@ fn nj130(sizes: &[usize]) {
         };
         let mut best = f64::INFINITY;
         let mut tour = None;
-        for _ in 0..std::env::var("TSP_REPS").ok().and_then(|v| v.parse().ok()).unwrap_or(3) {
+        for _ in 0..std::env::var("TSP_REPS")
+            .ok()
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(3)
+        {
             let t0 = Instant::now();
             let t = edbbgen::order::solve(&poses, 0, &speed).expect("tour");
             best = best.min(t0.elapsed().as_secs_f64());
             tour = Some(t);
         }
         let tour = tour.expect("ran");
-        let lkh = LKH.iter().find(|&&(n, _)| n == poses.len()).map(|&(_, c)| c);
+        let lkh = LKH
+            .iter()
+            .find(|&&(n, _)| n == poses.len())
+            .map(|&(_, c)| c);
         let gap = lkh.map_or(String::new(), |c| {
-            format!(", LKH-3 {c:.4} s, gap {:+.3} %", (tour.time_sorted / c - 1.0) * 100.0)
+            format!(
+                ", LKH-3 {c:.4} s, gap {:+.3} %",
+                (tour.time_sorted / c - 1.0) * 100.0
+            )
         });
         println!(
             "TSP {} poses: {:.4} s (best of 3), cost {:.4} s{gap}",

@@ -138,7 +138,7 @@ pub(crate) fn perturb(
                 cur = path.cost();
                 if cur < best_cost - eps {
                     best_cost = cur;
-                    best.copy_from_slice(&path.t);
+                    best.copy_from_slice(path.t);
                 }
             }
         } else {

@@ -395,16 +395,29 @@ fn kicks_return_the_best_path_seen_and_end_at_a_local_optimum() {
         improve(&costs, &nbrs, &mut order, EPS);
         let improved = path_time(&poses, &order, &SPEED);
         let kept = perturb(&costs, &nbrs, &mut order, EPS, 500, case);
-        assert!(kept > 0, "case {case}: no kick kept, so the test exercised nothing");
+        assert!(
+            kept > 0,
+            "case {case}: no kick kept, so the test exercised nothing"
+        );
         assert_eq!(order[0], start);
         let mut sorted = order.clone();
         sorted.sort_unstable();
-        assert_eq!(sorted, (0..n).collect::<Vec<_>>(), "case {case}: a permutation");
+        assert_eq!(
+            sorted,
+            (0..n).collect::<Vec<_>>(),
+            "case {case}: a permutation"
+        );
         let t = path_time(&poses, &order, &SPEED);
-        assert!(t <= improved, "case {case}: {t} after kicks vs {improved} before");
+        assert!(
+            t <= improved,
+            "case {case}: {t} after kicks vs {improved} before"
+        );
         for o in neighbourhood(&order) {
             let u = path_time(&poses, &o, &SPEED);
-            assert!(u >= t - 1e-9, "case {case}: {o:?} ({u}) beats {order:?} ({t})");
+            assert!(
+                u >= t - 1e-9,
+                "case {case}: {o:?} ({u}) beats {order:?} ({t})"
+            );
         }
     }
 }
