@@ -887,6 +887,49 @@ mod tests {
         }
     }
 
+    /// An arm whose six joints all turn ±360° (bench/arm360.dh.toml): most of its grid fails
+    /// the cones, and the sampler must visit about as many poses as are valid, not the grid,
+    /// while keeping exactly the brute-force set.
+    #[test]
+    fn a_full_turn_arm_costs_its_valid_poses_not_its_grid() {
+        let robot = crate::robot::load(
+            std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/bench/arm360.dh.toml")),
+            &Default::default(),
+        )
+        .expect("bench arm");
+        let fixture = Vector3::new(0.7, 0.3, 0.3);
+        let map = robot.tool.expect("the bench arm has a tool");
+        let model = MeasurementModel::new(&robot, fixture, map);
+        let mut cell = Cell::shell_only(fixture, map, 0.30, 0.52, 0.0);
+        cell.fixture_cone_cos = (60.0 * DEG).cos();
+        cell.tool_cone_cos = (60.0 * DEG).cos();
+        cell.floor_z = 0.05;
+        let cfg = SampleConfig {
+            step: [30.0 * DEG; 6],
+            max_candidates: usize::MAX,
+            seed: 1,
+            movable: crate::model::movable_joints(&model, &robot),
+        };
+        let (pool, report) = run(&robot, &model, &cell, &cfg, &NoProgress);
+        let want = brute_force(&model, &cell, &report.grids);
+        let got: Vec<u64> = pool.candidates.iter().map(|c| c.grid).collect();
+        assert!(want.len() > 50, "{} valid", want.len());
+        let differ: Vec<_> = want
+            .iter()
+            .filter(|i| !got.contains(i))
+            .chain(got.iter().filter(|i| !want.contains(i)))
+            .filter(|&&i| !near_boundary(&model, &cell, &report.grids, i))
+            .collect();
+        assert!(differ.is_empty(), "differ from brute force: {differ:?}");
+        assert!(
+            report.evaluated < 2 * report.valid,
+            "evaluated {} for {} valid of {} grid poses",
+            report.evaluated,
+            report.valid,
+            report.grid_size
+        );
+    }
+
     #[test]
     fn pool_cap_keeps_a_thread_count_independent_subset() {
         let (robot, model, cell) = setup(
