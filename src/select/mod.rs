@@ -185,14 +185,27 @@ pub fn eliminate(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
     let mut sharp: Vec<f64> = Vec::new();
     let mut scored: Vec<(f64, usize, usize)> = Vec::new();
     let mut z = vec![0.0; m];
+    let mut ext = vec![0.0; 2 * RITZ_K * m];
+    let stats = std::env::var_os("EDBB_SELECT_STATS").is_some();
+    let mut tm = [0.0f64; 8];
+    let mut cnt = [0usize; 8];
+    let mut t0 = std::time::Instant::now();
+    let mut lap = |k: usize, tm: &mut [f64; 8]| {
+        let t = std::time::Instant::now();
+        tm[k] += (t - t0).as_secs_f64();
+        t0 = t;
+    };
     loop {
+        lap(7, &mut tm);
         let (lam, vt) = spectrum(&g);
+        lap(0, &mut tm);
         let n = ids.len();
         curve.push((n, cond_of(lam[0], lam[m - 1])));
         if n == m {
             break;
         }
         let slack = slack(&lam);
+        extremes_transposed(&vt, m, ritz_k, &mut ext);
         if age >= max_age {
             age = 0;
             let dirs = if m >= 2 { [0, 1, m - 2, m - 1] } else { [0; 4] };
@@ -219,6 +232,7 @@ pub fn eliminate(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
             };
             for_chunks(&mut cand[..n], n >= PARALLEL_BOUND, refresh);
         }
+        lap(1, &mut tm);
         age += 1;
         // UᵀGU on each pair of directions, once per step: the low and the high 2×2 block.
         let quad = |x: usize, y: usize| -> f64 {
@@ -264,6 +278,7 @@ pub fn eliminate(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
         if scored.is_empty() {
             scored.push((score(exact(ids[0], &mut z)), ids[0], 0));
         }
+        cnt[0] += scored.len();
         let mut best = scored.iter().copied().fold(scored[0], pick);
         let mut cut = best.0 * (1.0 + slack);
         // One pass: tier 1 where it rules a candidate out, the fresh 2×2 bound otherwise; the
@@ -282,6 +297,7 @@ pub fn eliminate(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
                 }
             }
         };
+        lap(2, &mut tm);
         queue.clear();
         if n >= PARALLEL_BOUND {
             let parts: Vec<Vec<(f64, usize)>> = cand[..n]
@@ -299,6 +315,8 @@ pub fn eliminate(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
         } else {
             pass(0, &mut cand[..n], &mut queue);
         }
+        lap(3, &mut tm);
+        cnt[1] += queue.len();
         // The candidate with the lowest bound usually scores best: its exact score tightens
         // the cut before the rest are looked at.
         let by_bound = |a: &(f64, usize), b: &(f64, usize)| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1));
@@ -310,6 +328,8 @@ pub fn eliminate(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
             cut = best.0 * (1.0 + slack);
         }
         queue.retain(|&(lb, _)| lb <= cut);
+        cnt[2] += queue.len();
+        lap(4, &mut tm);
         // Weak bounds: refresh the basis sooner; strong ones: later.
         if queue.len() > QUEUE_TOLERANCE + n / 256 {
             max_age = (max_age / 2).max(REFRESH_MIN);
@@ -325,6 +345,7 @@ pub fn eliminate(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
                 queue[start..].select_nth_unstable_by(end - start - 1, by_bound);
             }
             queue[start..end].sort_unstable_by(by_bound);
+            lap(5, &mut tm);
             if queue[start].0 > cut {
                 break;
             }
@@ -332,7 +353,7 @@ pub fn eliminate(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
                 if lb > cut || ritz_k == 0 {
                     lb
                 } else {
-                    let (h, l) = ritz_bound(&lam, &vt, row(ids[p]), norms[ids[p]], ritz_k);
+                    let (h, l) = ritz_bound(&lam, &ext, row(ids[p]), norms[ids[p]], ritz_k);
                     if l > 0.0 {
                         h / l
                     } else {
@@ -349,6 +370,7 @@ pub fn eliminate(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
                 sharp.clear();
                 sharp.extend(queue[start..end].iter().map(ritz));
             }
+            lap(4, &mut tm);
             for (&(lb, p), &r2) in queue[start..end].iter().zip(&sharp) {
                 if lb > cut {
                     break 'visit;
@@ -356,12 +378,18 @@ pub fn eliminate(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
                 if r2 > cut {
                     continue;
                 }
+                cnt[3] += 1;
                 let this = (score(exact(ids[p], &mut z)), ids[p], p);
                 scored.push(this);
                 best = pick(best, this);
                 cut = best.0 * (1.0 + slack);
             }
+            cnt[4] += end - start;
             start = end;
+        }
+        lap(5, &mut tm);
+        if stats && (n % 1000 == 0 || n < 200 && n % 20 == 0) {
+            eprintln!("n {n} acc: tm {:.3} {:.3} {:.3} cnt {} {} {} {} {} age {max_age}", tm[3], tm[5], tm[1], cnt[0], cnt[1], cnt[2], cnt[3], cnt[4]);
         }
         // The next step's first guesses: the best few of this step after the one removed.
         scored.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
@@ -382,6 +410,12 @@ pub fn eliminate(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
         } else {
             downdate(&mut g, row(i));
         }
+    }
+    lap(6, &mut tm);
+    if stats {
+        eprintln!("times spectrum {:.3} refresh {:.3} leaders {:.3} pass {:.3} first+ritz {:.3} sort+exact {:.3} gram {:.3} other {:.3}", tm[0], tm[1], tm[2], tm[3], tm[4], tm[5], tm[6], tm[7]);
+        eprintln!("secular calls {} iters {}", CALLS.load(std::sync::atomic::Ordering::Relaxed), ITERS.load(std::sync::atomic::Ordering::Relaxed));
+        eprintln!("counts leaders-exact {} queue {} queue-after {} visit-exact {} ritz {}", cnt[0], cnt[1], cnt[2], cnt[3], cnt[4]);
     }
     (removed, curve)
 }
@@ -574,7 +608,13 @@ fn spectrum(g: &DMatrix<f64>) -> (Vec<f64>, Vec<f64>) {
 const BOUND_MARGIN: f64 = 1e-9;
 /// Eigen-directions at each end of the spectrum that the sharper (Ritz) bound resolves; greedy
 /// elimination clusters the extreme eigenvalues, where the one-direction bound is weak.
-const RITZ_K: usize = 3;
+const RITZ_K: usize = 5;
+/// Relative distance between a secular iterate and its Rayleigh quotient at which
+/// [`secular_bound`] stops: the quotient's error is about its square, far finer than the
+/// differences between candidates' scores that the bound has to resolve.
+const RITZ_TOL: f64 = 1e-7;
+/// Secular steps [`secular_bound`] takes at most (it stops far earlier as a rule).
+const SECULAR_BOUND_STEPS: usize = 40;
 /// Below this relative size of the 2×2 determinant the closed-form bound is not trusted.
 const DET_FLOOR: f64 = 1e-6;
 /// Steps between recomputations of the bound basis and the projections on it: at least
@@ -588,7 +628,7 @@ const LEADERS: usize = 10;
 /// Blocks of the ascending-bound visit at least this long get their Ritz bounds in parallel.
 const PARALLEL_RITZ: usize = 64;
 /// Candidates per block of the ascending-bound visit.
-const RITZ_BLOCK: usize = 256;
+const RITZ_BLOCK: usize = 16;
 /// Candidates per chunk of the bound pass (one rayon task each).
 const BOUND_CHUNK: usize = 1024;
 /// Below this size a step is too short to pay for rayon.
@@ -650,43 +690,107 @@ pub fn eliminate_reference(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)
     (removed, curve)
 }
 
+/// The 2k extreme eigenvectors for [`ritz_bound`], transposed: entry (b, e) at `b * 2 * RITZ_K + e`
+/// holds component b of eigenvector e (e < k: the k lowest, ascending; k ≤ e < 2k: the k highest,
+/// ascending), so a row's projections on all of them are one pass over the row with 2k
+/// independent sums.
+fn extremes_transposed(vt: &[f64], m: usize, k: usize, ext: &mut [f64]) {
+    ext.fill(0.0);
+    for b in 0..m {
+        let slot = &mut ext[b * 2 * RITZ_K..(b + 1) * 2 * RITZ_K];
+        for i in 0..k {
+            slot[i] = vt[i * m + b];
+            slot[k + i] = vt[(m - k + i) * m + b];
+        }
+    }
+}
+
 /// Bounds on the extremes after removing row `r` (‖r‖² = `rr`): (h, l) with λ'max ≥ h and
 /// λ'min ≤ l, sharper than Rayleigh's: the k eigen-directions at each end are kept exactly and
 /// the rest of z is lumped into one extra direction on the far pole. With t = ‖r‖² − Σ_{i≤k} zᵢ²,
 /// the term Σ_{i>k} zᵢ²/(λᵢ − x) of the secular function is at least t/(λₘ − x) for x < λ₁, so the
 /// smallest root of the lumped (k+1)-term equation lies above λ'min; at the top,
 /// Σ_{i≤m−k} zᵢ²/(x − λᵢ) is at least t'/(x − λ₁), so the largest lumped root lies below λ'max.
-/// l ≤ 0 = no information.
-fn ritz_bound(lam: &[f64], vt: &[f64], r: &[f64], rr: f64, k: usize) -> (f64, f64) {
+/// The lumped equations are those of (k+1)×(k+1) matrices diag − z̃·z̃ᵀ; their extremes are bounded
+/// by Rayleigh quotients ([`secular_bound`]), valid however far the iteration got. `ext` is
+/// [`extremes_transposed`]. l ≤ 0 = no information.
+fn ritz_bound(lam: &[f64], ext: &[f64], r: &[f64], rr: f64, k: usize) -> (f64, f64) {
     let m = lam.len();
-    let dot = |e: usize| -> f64 {
-        vt[e * m..(e + 1) * m]
-            .iter()
-            .zip(r)
-            .map(|(v, x)| v * x)
-            .sum()
-    };
+    let mut p = [0.0; 2 * RITZ_K];
+    for (slot, &x) in ext.chunks_exact(2 * RITZ_K).zip(r) {
+        for (pe, &v) in p.iter_mut().zip(slot) {
+            *pe += v * x;
+        }
+    }
     let mut l = [0.0; RITZ_K + 1];
     let mut z = [0.0; RITZ_K + 1];
-    for i in 0..k {
-        l[i] = lam[i];
-        z[i] = dot(i);
-    }
+    l[..k].copy_from_slice(&lam[..k]);
+    z[..k].copy_from_slice(&p[..k]);
     let head: f64 = z[..k].iter().map(|v| v * v).sum();
     l[k] = lam[m - 1];
     z[k] = (rr - head).max(0.0).sqrt();
     let zz: f64 = z[..=k].iter().map(|v| v * v).sum();
-    let lo = secular_root(&l[..=k], &z[..=k], l[0] - zz, l[0], 0);
+    let lo = secular_bound(&l[..=k], &z[..=k], l[0] - zz, l[0], 0, true);
     l[0] = lam[0];
-    for i in 0..k {
-        l[i + 1] = lam[m - k + i];
-        z[i + 1] = dot(m - k + i);
-    }
+    l[1..=k].copy_from_slice(&lam[m - k..]);
+    z[1..=k].copy_from_slice(&p[k..2 * k]);
     let tail: f64 = z[1..=k].iter().map(|v| v * v).sum();
     z[0] = (rr - tail).max(0.0).sqrt();
     let zz: f64 = z[..=k].iter().map(|v| v * v).sum();
-    let hi = secular_root(&l[..=k], &z[..=k], l[k - 1].max(l[k] - zz), l[k], k);
+    let hi = secular_bound(&l[..=k], &z[..=k], l[k - 1].max(l[k] - zz), l[k], k, false);
     (hi, lo)
+}
+
+/// A bound on an extreme eigenvalue of M = diag(l) − z·zᵀ, whose secular root lies in (a, b) next
+/// to the pole `pole` (see [`secular_root`]): on the smallest when `low` (the result is ≥ it),
+/// else on the largest (the result is ≤ it). The secular iteration is [`secular_root`]'s, but
+/// each point x it visits also yields the Rayleigh quotient of w = (diag(l) − x)⁻¹z, the
+/// inverse-iteration vector for shift x: a bound on the extreme whatever x is (any vector's
+/// quotient is one), and one that is exact at the root with an error quadratic in x's. So a
+/// coarse x gives a sharp bound: the iteration stops once x and its quotient agree to
+/// [`RITZ_TOL`]. The bracket end on the far side of the root is a bound too (the fallback).
+fn secular_bound(l: &[f64], z: &[f64], mut a: f64, mut b: f64, pole: usize, low: bool) -> f64 {
+    let scale = b.abs().max(a.abs()).max(f64::MIN_POSITIVE);
+    let lp = l[pole];
+    let mut best = if low { b } else { a };
+    let mut x = 0.5 * (a + b);
+    for _ in 0..SECULAR_BOUND_STEPS {
+        // v = zᵀw = ψ(x), d = wᵀw = ψ'(x), lw = wᵀ·diag(l)·w.
+        let (mut v, mut d, mut lw) = (0.0, 0.0, 0.0);
+        for (&li, &zi) in l.iter().zip(z) {
+            let w = zi / (li - x);
+            v += zi * w;
+            d += w * w;
+            lw += li * w * w;
+        }
+        let q = (lw - v * v) / d;
+        if q.is_finite() {
+            best = if low { best.min(q) } else { best.max(q) };
+        }
+        if (q - x).abs() <= RITZ_TOL * scale {
+            break;
+        }
+        let f = 1.0 - v;
+        if f > 0.0 {
+            a = x;
+        } else if f < 0.0 {
+            b = x;
+        } else {
+            break;
+        }
+        let c = d * (lp - x) * (lp - x);
+        let e = v - c / (lp - x);
+        let mut next = if e < 1.0 {
+            lp - c / (1.0 - e)
+        } else {
+            f64::NAN
+        };
+        if !(next > a && next < b) {
+            next = 0.5 * (a + b);
+        }
+        x = next;
+    }
+    best
 }
 
 fn cond_of(lmin: f64, lmax: f64) -> f64 {
@@ -714,6 +818,8 @@ pub fn downdated_extremes(lam: &[f64], z: &[f64]) -> (f64, f64) {
 
 /// Root of the secular function in (a, b), b = λ[pole], by a one-pole rational model fitted to
 /// value and slope (quadratically convergent), safeguarded by bisection.
+pub static ITERS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+pub static CALLS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
 fn secular_root(lam: &[f64], z: &[f64], mut a: f64, mut b: f64, pole: usize) -> f64 {
     let psi = |x: f64| {
         let (mut v, mut d) = (0.0, 0.0);
@@ -726,7 +832,7 @@ fn secular_root(lam: &[f64], z: &[f64], mut a: f64, mut b: f64, pole: usize) -> 
     };
     let scale = b.abs().max(a.abs()).max(f64::MIN_POSITIVE);
     let mut x = 0.5 * (a + b);
-    for _ in 0..100 {
+    for _it in 0..100 {
         if b - a <= 4.0 * f64::EPSILON * scale {
             break;
         }
