@@ -183,6 +183,8 @@ pub fn eliminate(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
     let mut leaders: Vec<usize> = Vec::new();
     let mut queue: Vec<(f64, usize)> = Vec::new();
     let mut sharp: Vec<f64> = Vec::new();
+    let mut heap: std::collections::BinaryHeap<Queued> = std::collections::BinaryHeap::new();
+    let mut block: Vec<(f64, usize)> = Vec::new();
     let mut scored: Vec<(f64, usize, usize)> = Vec::new();
     let mut z = vec![0.0; m];
     let mut ext = vec![0.0; 2 * RITZ_K * m];
@@ -289,6 +291,7 @@ pub fn eliminate(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
                 if c.rules_out(&blocks, cut, floor) {
                     continue;
                 }
+                RENEWS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
                 let lb = c.renew(&blocks, floor);
                 let p = start + k;
                 if lb.partial_cmp(&cut) != Some(std::cmp::Ordering::Greater) && !known.contains(&p)
@@ -336,19 +339,27 @@ pub fn eliminate(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
         } else if age == max_age {
             max_age = (max_age * 2).min(REFRESH_MAX);
         }
-        // Visit in ascending bound order, a block at a time: partial sorting, and the Ritz
-        // bounds of a block computed in parallel.
-        let mut start = 0;
-        'visit: while start < queue.len() {
-            let end = (start + RITZ_BLOCK).min(queue.len());
-            if end < queue.len() {
-                queue[start..].select_nth_unstable_by(end - start - 1, by_bound);
+        // Visit in ascending bound order (a heap: usually only a few come off it), a block at
+        // a time, the Ritz bounds of a block computed in parallel when it is long. Blocks grow
+        // from `RITZ_BLOCK`: the first candidates are the likeliest to tighten the cut.
+        heap.clear();
+        heap.extend(queue.iter().map(|&(lb, p)| Queued(lb, p)));
+        let mut len = RITZ_BLOCK;
+        'visit: loop {
+            block.clear();
+            while block.len() < len {
+                match heap.peek() {
+                    Some(&Queued(lb, p)) if lb <= cut => {
+                        heap.pop();
+                        block.push((lb, p));
+                    }
+                    _ => break,
+                }
             }
-            queue[start..end].sort_unstable_by(by_bound);
-            lap(5, &mut tm);
-            if queue[start].0 > cut {
+            if block.is_empty() {
                 break;
             }
+            lap(5, &mut tm);
             let ritz = |&(lb, p): &(f64, usize)| -> f64 {
                 if lb > cut || ritz_k == 0 {
                     lb
@@ -361,17 +372,14 @@ pub fn eliminate(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
                     }
                 }
             };
-            if end - start >= PARALLEL_RITZ {
-                queue[start..end]
-                    .par_iter()
-                    .map(ritz)
-                    .collect_into_vec(&mut sharp);
+            if block.len() >= PARALLEL_RITZ {
+                block.par_iter().map(ritz).collect_into_vec(&mut sharp);
             } else {
                 sharp.clear();
-                sharp.extend(queue[start..end].iter().map(ritz));
+                sharp.extend(block.iter().map(ritz));
             }
             lap(4, &mut tm);
-            for (&(lb, p), &r2) in queue[start..end].iter().zip(&sharp) {
+            for (&(lb, p), &r2) in block.iter().zip(&sharp) {
                 if lb > cut {
                     break 'visit;
                 }
@@ -384,8 +392,8 @@ pub fn eliminate(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
                 best = pick(best, this);
                 cut = best.0 * (1.0 + slack);
             }
-            cnt[4] += end - start;
-            start = end;
+            cnt[4] += block.len();
+            len = (2 * len).min(RITZ_BLOCK_MAX);
         }
         lap(5, &mut tm);
         if stats && (n % 1000 == 0 || n < 200 && n % 20 == 0) {
@@ -414,7 +422,7 @@ pub fn eliminate(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
     lap(6, &mut tm);
     if stats {
         eprintln!("times spectrum {:.3} refresh {:.3} leaders {:.3} pass {:.3} first+ritz {:.3} sort+exact {:.3} gram {:.3} other {:.3}", tm[0], tm[1], tm[2], tm[3], tm[4], tm[5], tm[6], tm[7]);
-        eprintln!("secular calls {} iters {}", CALLS.load(std::sync::atomic::Ordering::Relaxed), ITERS.load(std::sync::atomic::Ordering::Relaxed));
+        eprintln!("renews {}", RENEWS.load(std::sync::atomic::Ordering::Relaxed));
         eprintln!("counts leaders-exact {} queue {} queue-after {} visit-exact {} ritz {}", cnt[0], cnt[1], cnt[2], cnt[3], cnt[4]);
     }
     (removed, curve)
@@ -431,6 +439,32 @@ fn for_chunks<T: Send>(items: &mut [T], parallel: bool, f: impl Fn(usize, &mut [
         f(0, items);
     }
 }
+
+/// A queued candidate (bound, position), ordered so that std's max-heap pops the lowest bound
+/// first, ties by position: a total order, so the visit order never depends on the heap's
+/// history.
+#[derive(Clone, Copy)]
+struct Queued(f64, usize);
+
+impl Ord for Queued {
+    fn cmp(&self, o: &Self) -> std::cmp::Ordering {
+        o.0.total_cmp(&self.0).then(o.1.cmp(&self.1))
+    }
+}
+
+impl PartialOrd for Queued {
+    fn partial_cmp(&self, o: &Self) -> Option<std::cmp::Ordering> {
+        Some(self.cmp(o))
+    }
+}
+
+impl PartialEq for Queued {
+    fn eq(&self, o: &Self) -> bool {
+        self.cmp(o) == std::cmp::Ordering::Equal
+    }
+}
+
+impl Eq for Queued {}
 
 /// Tier 1 of [`eliminate`] for one candidate: its projections on the bound basis U and the
 /// Rayleigh-quotient weights of its kept eigenvectors (see there).
@@ -627,8 +661,10 @@ const QUEUE_TOLERANCE: usize = 16;
 const LEADERS: usize = 10;
 /// Blocks of the ascending-bound visit at least this long get their Ritz bounds in parallel.
 const PARALLEL_RITZ: usize = 64;
-/// Candidates per block of the ascending-bound visit.
+/// Candidates in the first block of the ascending-bound visit; each further block is twice as
+/// long, up to `RITZ_BLOCK_MAX`.
 const RITZ_BLOCK: usize = 16;
+const RITZ_BLOCK_MAX: usize = 256;
 /// Candidates per chunk of the bound pass (one rayon task each).
 const BOUND_CHUNK: usize = 1024;
 /// Below this size a step is too short to pay for rayon.
@@ -818,6 +854,7 @@ pub fn downdated_extremes(lam: &[f64], z: &[f64]) -> (f64, f64) {
 
 /// Root of the secular function in (a, b), b = λ[pole], by a one-pole rational model fitted to
 /// value and slope (quadratically convergent), safeguarded by bisection.
+pub static RENEWS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
 pub static ITERS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
 pub static CALLS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
 fn secular_root(lam: &[f64], z: &[f64], mut a: f64, mut b: f64, pole: usize) -> f64 {
