@@ -177,7 +177,9 @@ pub fn eliminate(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
     let ritz_k = RITZ_K.min(m.saturating_sub(1));
     // The bound basis (4 directions, row-major) and, per position, the tier-1 data.
     let mut basis = vec![0.0; 4 * m];
-    let mut cand: Vec<Tier1> = vec![Tier1::default(); n0];
+    let mut hot: Vec<[f64; 8]> = vec![[0.0; 8]; n0];
+    let mut kept: Vec<Kept> = vec![Kept::default(); n0];
+    let mut parts: Vec<Vec<(f64, usize)>> = Vec::new();
     let mut age = usize::MAX;
     let mut max_age = REFRESH_MIN;
     let mut leaders: Vec<usize> = Vec::new();
@@ -188,19 +190,10 @@ pub fn eliminate(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
     let mut scored: Vec<(f64, usize, usize)> = Vec::new();
     let mut z = vec![0.0; m];
     let mut ext = vec![0.0; 2 * RITZ_K * m];
-    let stats = std::env::var_os("EDBB_SELECT_STATS").is_some();
-    let mut tm = [0.0f64; 8];
-    let mut cnt = [0usize; 8];
-    let mut t0 = std::time::Instant::now();
-    let mut lap = |k: usize, tm: &mut [f64; 8]| {
-        let t = std::time::Instant::now();
-        tm[k] += (t - t0).as_secs_f64();
-        t0 = t;
-    };
+    let mut known: Vec<usize> = Vec::new();
+    let mut active: Vec<usize> = Vec::with_capacity(n0);
     loop {
-        lap(7, &mut tm);
         let (lam, vt) = spectrum(&g);
-        lap(0, &mut tm);
         let n = ids.len();
         curve.push((n, cond_of(lam[0], lam[m - 1])));
         if n == m {
@@ -211,12 +204,19 @@ pub fn eliminate(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
         if age >= max_age {
             age = 0;
             let dirs = if m >= 2 { [0, 1, m - 2, m - 1] } else { [0; 4] };
+            // The new directions, signed like the old ones, so that the kept eigenvectors
+            // (coordinates in this basis) stay good ones.
             for (slot, &e) in basis.chunks_mut(m).zip(&dirs) {
-                slot.copy_from_slice(&vt[e * m..(e + 1) * m]);
+                let v = &vt[e * m..(e + 1) * m];
+                let same: f64 = slot.iter().zip(v).map(|(a, b)| a * b).sum();
+                let sign = if same < 0.0 { -1.0 } else { 1.0 };
+                for (u, &x) in slot.iter_mut().zip(v) {
+                    *u = sign * x;
+                }
             }
             let (basis, ids) = (&basis, &ids);
-            let refresh = |start: usize, cs: &mut [Tier1]| {
-                for (k, c) in cs.iter_mut().enumerate() {
+            let refresh = |start: usize, ws: &mut [[f64; 8]], ks: &mut [Kept]| {
+                for (k, (w, c)) in ws.iter_mut().zip(ks.iter_mut()).enumerate() {
                     let r = row(ids[start + k]);
                     let mut s = [0.0; 4];
                     for (d, sd) in s.iter_mut().enumerate() {
@@ -226,15 +226,20 @@ pub fn eliminate(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
                             .map(|(u, x)| u * x)
                             .sum();
                     }
-                    *c = Tier1 {
-                        proj: s,
-                        ..Tier1::default()
-                    };
+                    c.proj = s;
+                    *w = c.weights();
                 }
             };
-            for_chunks(&mut cand[..n], n >= PARALLEL_BOUND, refresh);
+            if n >= PARALLEL_BOUND {
+                hot[..n]
+                    .par_chunks_mut(BOUND_CHUNK)
+                    .zip(kept[..n].par_chunks_mut(BOUND_CHUNK))
+                    .enumerate()
+                    .for_each(|(c, (ws, ks))| refresh(c * BOUND_CHUNK, ws, ks));
+            } else {
+                refresh(0, &mut hot[..n], &mut kept[..n]);
+            }
         }
-        lap(1, &mut tm);
         age += 1;
         // UᵀGU on each pair of directions, once per step: the low and the high 2×2 block.
         let quad = |x: usize, y: usize| -> f64 {
@@ -280,19 +285,20 @@ pub fn eliminate(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
         if scored.is_empty() {
             scored.push((score(exact(ids[0], &mut z)), ids[0], 0));
         }
-        cnt[0] += scored.len();
         let mut best = scored.iter().copied().fold(scored[0], pick);
         let mut cut = best.0 * (1.0 + slack);
         // One pass: tier 1 where it rules a candidate out, the fresh 2×2 bound otherwise; the
         // queue holds those whose fresh bound does not exceed the cut.
-        let known: Vec<usize> = scored.iter().map(|s| s.2).collect();
-        let pass = |start: usize, cs: &mut [Tier1], out: &mut Vec<(f64, usize)>| {
-            for (k, c) in cs.iter_mut().enumerate() {
-                if c.rules_out(&blocks, cut, floor) {
+        known.clear();
+        known.extend(scored.iter().map(|s| s.2));
+        let known = &known;
+        let pass = |start: usize, ws: &mut [[f64; 8]], ks: &mut [Kept], out: &mut Vec<(f64, usize)>| {
+            out.clear();
+            for (k, (w, c)) in ws.iter_mut().zip(ks.iter_mut()).enumerate() {
+                if rules_out(w, &blocks, cut, floor) {
                     continue;
                 }
-                RENEWS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-                let lb = c.renew(&blocks, floor);
+                let lb = c.renew(w, &blocks, floor);
                 let p = start + k;
                 if lb.partial_cmp(&cut) != Some(std::cmp::Ordering::Greater) && !known.contains(&p)
                 {
@@ -300,26 +306,24 @@ pub fn eliminate(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
                 }
             }
         };
-        lap(2, &mut tm);
         queue.clear();
         if n >= PARALLEL_BOUND {
-            let parts: Vec<Vec<(f64, usize)>> = cand[..n]
+            let chunks = n.div_ceil(BOUND_CHUNK);
+            if parts.len() < chunks {
+                parts.resize_with(chunks, Vec::new);
+            }
+            hot[..n]
                 .par_chunks_mut(BOUND_CHUNK)
+                .zip(kept[..n].par_chunks_mut(BOUND_CHUNK))
+                .zip(parts[..chunks].par_iter_mut())
                 .enumerate()
-                .map(|(c, cs)| {
-                    let mut out = Vec::new();
-                    pass(c * BOUND_CHUNK, cs, &mut out);
-                    out
-                })
-                .collect();
-            for p in parts {
-                queue.extend(p);
+                .for_each(|(c, ((ws, ks), out))| pass(c * BOUND_CHUNK, ws, ks, out));
+            for p in &parts[..chunks] {
+                queue.extend_from_slice(p);
             }
         } else {
-            pass(0, &mut cand[..n], &mut queue);
+            pass(0, &mut hot[..n], &mut kept[..n], &mut queue);
         }
-        lap(3, &mut tm);
-        cnt[1] += queue.len();
         // The candidate with the lowest bound usually scores best: its exact score tightens
         // the cut before the rest are looked at.
         let by_bound = |a: &(f64, usize), b: &(f64, usize)| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1));
@@ -331,8 +335,6 @@ pub fn eliminate(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
             cut = best.0 * (1.0 + slack);
         }
         queue.retain(|&(lb, _)| lb <= cut);
-        cnt[2] += queue.len();
-        lap(4, &mut tm);
         // Weak bounds: refresh the basis sooner; strong ones: later.
         if queue.len() > QUEUE_TOLERANCE + n / 256 {
             max_age = (max_age / 2).max(REFRESH_MIN);
@@ -359,7 +361,6 @@ pub fn eliminate(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
             if block.is_empty() {
                 break;
             }
-            lap(5, &mut tm);
             let ritz = |&(lb, p): &(f64, usize)| -> f64 {
                 if lb > cut || ritz_k == 0 {
                     lb
@@ -378,7 +379,6 @@ pub fn eliminate(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
                 sharp.clear();
                 sharp.extend(block.iter().map(ritz));
             }
-            lap(4, &mut tm);
             for (&(lb, p), &r2) in block.iter().zip(&sharp) {
                 if lb > cut {
                     break 'visit;
@@ -386,18 +386,12 @@ pub fn eliminate(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
                 if r2 > cut {
                     continue;
                 }
-                cnt[3] += 1;
                 let this = (score(exact(ids[p], &mut z)), ids[p], p);
                 scored.push(this);
                 best = pick(best, this);
                 cut = best.0 * (1.0 + slack);
             }
-            cnt[4] += block.len();
             len = (2 * len).min(RITZ_BLOCK_MAX);
-        }
-        lap(5, &mut tm);
-        if stats && (n % 1000 == 0 || n < 200 && n % 20 == 0) {
-            eprintln!("n {n} acc: tm {:.3} {:.3} {:.3} cnt {} {} {} {} {} age {max_age}", tm[3], tm[5], tm[1], cnt[0], cnt[1], cnt[2], cnt[3], cnt[4]);
         }
         // The next step's first guesses: the best few of this step after the one removed.
         scored.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
@@ -405,7 +399,8 @@ pub fn eliminate(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
         leaders.extend(scored.iter().skip(1).take(LEADERS).map(|s| s.1));
         let (_, i, p) = best;
         ids.swap_remove(p);
-        cand.swap_remove(p);
+        hot.swap_remove(p);
+        kept.swap_remove(p);
         if p < ids.len() {
             at[ids[p]] = p;
         }
@@ -413,31 +408,14 @@ pub fn eliminate(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
         removed.push(i);
         // Same schedule of rebuilds and downdates as the reference.
         if ids.len() < 3 * m || removed.len() % 64 == 0 {
-            let active: Vec<usize> = (0..n0).filter(|&k| alive[k]).collect();
+            active.clear();
+            active.extend((0..n0).filter(|&k| alive[k]));
             g = gram(j, m, &active);
         } else {
             downdate(&mut g, row(i));
         }
     }
-    lap(6, &mut tm);
-    if stats {
-        eprintln!("times spectrum {:.3} refresh {:.3} leaders {:.3} pass {:.3} first+ritz {:.3} sort+exact {:.3} gram {:.3} other {:.3}", tm[0], tm[1], tm[2], tm[3], tm[4], tm[5], tm[6], tm[7]);
-        eprintln!("renews {}", RENEWS.load(std::sync::atomic::Ordering::Relaxed));
-        eprintln!("counts leaders-exact {} queue {} queue-after {} visit-exact {} ritz {}", cnt[0], cnt[1], cnt[2], cnt[3], cnt[4]);
-    }
     (removed, curve)
-}
-
-/// Runs `f(start, chunk)` over chunks of `BOUND_CHUNK` items, in parallel if asked.
-fn for_chunks<T: Send>(items: &mut [T], parallel: bool, f: impl Fn(usize, &mut [T]) + Sync) {
-    if parallel {
-        items
-            .par_chunks_mut(BOUND_CHUNK)
-            .enumerate()
-            .for_each(|(c, ch)| f(c * BOUND_CHUNK, ch));
-    } else {
-        f(0, items);
-    }
 }
 
 /// A queued candidate (bound, position), ordered so that std's max-heap pops the lowest bound
@@ -466,32 +444,47 @@ impl PartialEq for Queued {
 
 impl Eq for Queued {}
 
-/// Tier 1 of [`eliminate`] for one candidate: its projections on the bound basis U and the
-/// Rayleigh-quotient weights of its kept eigenvectors (see there).
-#[derive(Clone, Copy, Default)]
-struct Tier1 {
-    /// [a1, a2, b1, b2] = Uᵀr: two low, two high directions.
-    proj: [f64; 4],
-    /// yᵀ(H − b·bᵀ)y / yᵀy = hi[0]·H11 + hi[1]·H12 + hi[2]·H22 + hi[3] (a lower bound on λ'max).
-    hi: [f64; 4],
-    /// xᵀ(L − a·aᵀ)x / xᵀx, likewise (an upper bound on λ'min). All zero: nothing kept.
-    lo: [f64; 4],
+/// Tier 1 of [`eliminate`] for one candidate, the hot half: the Rayleigh-quotient weights of
+/// its kept eigenvectors, [hi; lo]. yᵀ(H − b·bᵀ)y / yᵀy = hi[0]·H11 + hi[1]·H12 + hi[2]·H22 +
+/// hi[3] is a lower bound on λ'max, xᵀ(L − a·aᵀ)x / xᵀx likewise (lo) an upper bound on λ'min
+/// (see there). True when they put the score above `cut`. All zero: nothing kept.
+#[inline]
+fn rules_out(w: &[f64; 8], b: &[f64; 6], cut: f64, floor: f64) -> bool {
+    let num = w[0] * b[3] + w[1] * b[4] + w[2] * b[5] + w[3];
+    let den = w[4] * b[0] + w[5] * b[1] + w[6] * b[2] + w[7];
+    den > floor && num > cut * den
 }
 
-impl Tier1 {
-    /// True when the kept quotients put the score above `cut`.
-    #[inline]
-    fn rules_out(&self, b: &[f64; 6], cut: f64, floor: f64) -> bool {
-        let num = self.hi[0] * b[3] + self.hi[1] * b[4] + self.hi[2] * b[5] + self.hi[3];
-        let den = self.lo[0] * b[0] + self.lo[1] * b[1] + self.lo[2] * b[2] + self.lo[3];
-        den > floor && num > cut * den
+/// Tier 1 of [`eliminate`] for one candidate, the cold half: its projections on the bound basis
+/// U and its kept eigenvectors (coordinates in U), from which the hot weights are made.
+#[derive(Clone, Copy, Default)]
+struct Kept {
+    /// [a1, a2, b1, b2] = Uᵀr: two low, two high directions.
+    proj: [f64; 4],
+    /// [x1, x2, y1, y2]: the kept low and high eigenvectors; zero = none kept.
+    x: [f64; 4],
+}
+
+impl Kept {
+    /// The hot weights of the kept eigenvectors with the current projections.
+    fn weights(&self) -> [f64; 8] {
+        let [a1, a2, b1, b2] = self.proj;
+        let [x1, x2, y1, y2] = self.x;
+        let mut w = [0.0; 8];
+        if y1 != 0.0 || y2 != 0.0 {
+            w[..4].copy_from_slice(&weights([y1, y2], [b1, b2]));
+        }
+        if x1 != 0.0 || x2 != 0.0 {
+            w[4..].copy_from_slice(&weights([x1, x2], [a1, a2]));
+        }
+        w
     }
 
-    /// Solves both 2×2 compressions afresh, keeps their extreme eigenvectors, and returns the
-    /// bound λmax(H − b·bᵀ)/λmin(L − a·aᵀ) (0 = no information: a nearly singular downdate,
-    /// too much cancellation to trust).
+    /// Solves both 2×2 compressions afresh, keeps their extreme eigenvectors (and their hot
+    /// weights in `w`), and returns the bound λmax(H − b·bᵀ)/λmin(L − a·aᵀ) (0 = no
+    /// information: a nearly singular downdate, too much cancellation to trust).
     #[inline]
-    fn renew(&mut self, b: &[f64; 6], floor: f64) -> f64 {
+    fn renew(&mut self, w: &mut [f64; 8], b: &[f64; 6], floor: f64) -> f64 {
         let [la, lb, lc, ha, hb, hc] = *b;
         let [a1, a2, b1, b2] = self.proj;
         // Smallest eigenvalue of L − a·aᵀ via its determinant (the z⁴ terms cancel exactly), and
@@ -507,12 +500,19 @@ impl Tier1 {
         let (q1, q2, hoff) = (ha - b1 * b1, hc - b2 * b2, hb - b1 * b2);
         let hrad = (0.25 * (q1 - q2) * (q1 - q2) + hoff * hoff).sqrt();
         let hmax = 0.5 * (q1 + q2) + hrad;
-        self.hi = weights(eigvec(q1, q2, hoff, hmax), [b1, b2]);
-        self.lo = if lmin > floor {
-            weights(eigvec(p1, p2, off, lmin), [a1, a2])
+        let y = eigvec(q1, q2, hoff, hmax);
+        w[..4].copy_from_slice(&weights(y, [b1, b2]));
+        let x = if lmin > floor {
+            eigvec(p1, p2, off, lmin)
         } else {
-            [0.0; 4]
+            [0.0; 2]
         };
+        if lmin > floor {
+            w[4..].copy_from_slice(&weights(x, [a1, a2]));
+        } else {
+            w[4..].fill(0.0);
+        }
+        self.x = [x[0], x[1], y[0], y[1]];
         if lmin > 0.0 {
             hmax / lmin
         } else {
@@ -854,9 +854,6 @@ pub fn downdated_extremes(lam: &[f64], z: &[f64]) -> (f64, f64) {
 
 /// Root of the secular function in (a, b), b = λ[pole], by a one-pole rational model fitted to
 /// value and slope (quadratically convergent), safeguarded by bisection.
-pub static RENEWS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
-pub static ITERS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
-pub static CALLS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
 fn secular_root(lam: &[f64], z: &[f64], mut a: f64, mut b: f64, pole: usize) -> f64 {
     let psi = |x: f64| {
         let (mut v, mut d) = (0.0, 0.0);
