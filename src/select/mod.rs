@@ -568,9 +568,13 @@ fn pick(a: (f64, usize, usize), b: (f64, usize, usize)) -> (f64, usize, usize) {
 /// skipped. The bounds are carried from earlier eigendecompositions, so besides a fixed margin far
 /// above rounding it covers the eigenvalue error of a symmetric eigensolver (a few ε·λmax in
 /// absolute terms, so ε·λmax/λmin relative to λ'min), generously.
+///
+/// Above [`EXHAUSTIVE_RATIO`] (λmax/λmin: G numerically singular or nearly so) rounding swamps
+/// λ'min and the exact scores themselves are mostly noise; no bound is trusted there (infinite
+/// slack), so every candidate is scored exactly, as the reference does.
 fn slack(lam: &[f64]) -> f64 {
     let m = lam.len();
-    if lam[0] > 0.0 {
+    if lam[0] > 0.0 && lam[m - 1] <= EXHAUSTIVE_RATIO * lam[0] {
         BOUND_MARGIN + 1024.0 * f64::EPSILON * lam[m - 1] / lam[0]
     } else {
         f64::INFINITY
@@ -640,6 +644,10 @@ fn spectrum(g: &DMatrix<f64>) -> (Vec<f64>, Vec<f64>) {
 /// Relative margin by which a lower bound must exceed the best exact score before a candidate is
 /// skipped: far above the rounding of either, far below any difference that matters.
 const BOUND_MARGIN: f64 = 1e-9;
+/// λmax/λmin of G (cond² of J) above which [`slack`] gives up on bounds: there 1024·ε·λmax/λmin
+/// exceeds 2·10⁻³, so the bounds would have to beat the best score by that much anyway, and the
+/// secular roots' absolute rounding (ε·‖z‖²) is no longer small against λ'min.
+const EXHAUSTIVE_RATIO: f64 = 1e10;
 /// Eigen-directions at each end of the spectrum that the sharper (Ritz) bound resolves; greedy
 /// elimination clusters the extreme eigenvalues, where the one-direction bound is weak.
 const RITZ_K: usize = 5;
@@ -1042,6 +1050,109 @@ mod tests {
                 .expect("thread pool");
             pool.install(|| check_against_reference(&j, 8, &format!("{threads} threads")));
         }
+    }
+
+    /// Bit for bit: the same removals and the same curve bits as the exhaustive reference, on one
+    /// thread and on two (NaN-safe: compares bits, not values).
+    fn check_bits(j: &[f64], m: usize, what: &str) {
+        let (want_removed, want_curve) = eliminate_reference(j, m);
+        let bits = |c: &[(usize, f64)]| -> Vec<(usize, u64)> {
+            c.iter().map(|&(n, v)| (n, v.to_bits())).collect()
+        };
+        for threads in [1, 2] {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .expect("thread pool");
+            let (removed, curve) = pool.install(|| eliminate(j, m));
+            assert_eq!(removed, want_removed, "{what}, {threads} threads: removal order");
+            assert_eq!(
+                bits(&curve),
+                bits(&want_curve),
+                "{what}, {threads} threads: curve"
+            );
+        }
+    }
+
+    #[test]
+    fn bit_identical_to_reference_on_random_matrices() {
+        for seed in 20..24 {
+            let n = 250 + 25 * (seed as usize - 20);
+            check_bits(&random_matrix(n, 22, seed), 22, &format!("random {n} x 22, seed {seed}"));
+        }
+        // Badly scaled columns (six decades) and a narrow one.
+        let mut j = random_matrix(300, 12, 30);
+        for (k, v) in j.iter_mut().enumerate() {
+            *v *= 10f64.powi((k % 12) as i32 / 2 - 3);
+        }
+        check_bits(&j, 12, "columns over six decades");
+        check_bits(&random_matrix(300, 2, 31), 2, "m = 2");
+    }
+
+    #[test]
+    fn bit_identical_to_reference_on_adversarial_matrices() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(40);
+        let m = 10;
+        // Exact ties everywhere: ± unit vectors and their pairwise sums, each several times, so
+        // the spectrum is one cluster and many removals score exactly alike.
+        let mut j = Vec::new();
+        for rep in 0..3 {
+            for a in 0..m {
+                for b in a..m {
+                    let mut r = vec![0.0; m];
+                    r[a] += 1.0;
+                    r[b] += if (a + b + rep) % 2 == 0 { 1.0 } else { -1.0 };
+                    j.extend(r);
+                }
+            }
+        }
+        check_bits(&j, m, "symmetric design with exact ties");
+        // Near-ties: 100 base rows, each repeated with relative perturbations of 1e-13 .. 1e-9.
+        let base = random_matrix(100, m, 41);
+        let mut j = base.clone();
+        for scale in [1e-13, 1e-11, 1e-9] {
+            j.extend(base.iter().map(|v| v * (1.0 + scale * rng.random_range(-1.0..1.0))));
+        }
+        check_bits(&j, m, "near-duplicate rows");
+        // Exact duplicates in a shuffled order.
+        let base = random_matrix(120, m, 42);
+        let mut j = Vec::new();
+        for i in 0..360 {
+            let r = (i * 7) % 120;
+            j.extend_from_slice(&base[r * m..(r + 1) * m]);
+        }
+        check_bits(&j, m, "each row three times");
+        // Rank-deficient: the last column is a combination of two others (G singular
+        // throughout), and a pool whose rows span only m − 2 dimensions after a few outliers.
+        let mut j = random_matrix(300, m, 43);
+        for i in 0..300 {
+            j[i * m + m - 1] = 2.0 * j[i * m] - j[i * m + 1];
+        }
+        check_bits(&j, m, "dependent column");
+        for (i, v) in j.iter_mut().enumerate().filter(|(i, _)| i % m == m - 1) {
+            *v += 1e-6 * ((i * 37 % 101) as f64 / 50.0 - 1.0);
+        }
+        check_bits(&j, m, "nearly dependent column");
+        let mut j = random_matrix(300, m, 44);
+        for i in 5..300 {
+            j[i * m + m - 1] = 0.0;
+            j[i * m + m - 2] = 0.0;
+        }
+        check_bits(&j, m, "two directions carried by five rows");
+        // A clustered spectrum: nearly orthogonal design (random signs), where the extreme
+        // eigenvalues bunch up from the start.
+        let j: Vec<f64> = (0..400 * 16)
+            .map(|_| if rng.random_bool(0.5) { 1.0 } else { -1.0 })
+            .collect();
+        check_bits(&j, 16, "random sign matrix");
+        // Outliers: a few rows a thousand times larger than the rest.
+        let mut j = random_matrix(300, m, 45);
+        for i in [3, 77, 150, 299] {
+            for v in &mut j[i * m..(i + 1) * m] {
+                *v *= 1e3;
+            }
+        }
+        check_bits(&j, m, "large outlier rows");
     }
 
     #[test]
