@@ -30,8 +30,9 @@ fn text(removed: &[usize], curve: &[(usize, f64)]) -> String {
 
 fn hash(s: &str) -> u64 {
     // FNV-1a: enough to tell runs apart at a glance.
-    s.bytes()
-        .fold(0xcbf29ce484222325u64, |h, b| (h ^ b as u64).wrapping_mul(0x100000001b3))
+    s.bytes().fold(0xcbf29ce484222325u64, |h, b| {
+        (h ^ b as u64).wrapping_mul(0x100000001b3)
+    })
 }
 
 fn main() {
@@ -104,7 +105,10 @@ fn main() {
         }
         if let Some(d) = &check {
             let want = std::fs::read_to_string(d.join(format!("prune_{n}.txt"))).expect("read");
-            println!("  check vs saved: {}", if want == t { "IDENTICAL" } else { "DIFFERENT" });
+            println!(
+                "  check vs saved: {}",
+                if want == t { "IDENTICAL" } else { "DIFFERENT" }
+            );
         }
         if reference {
             let t0 = Instant::now();
