@@ -137,140 +137,74 @@ pub fn knee(curve: &[(usize, f64)], m: usize) -> (usize, String) {
 /// the curve (n, cond) from n = rows down to n = m.
 ///
 /// It makes exactly the choices of [`eliminate_reference`] (which scores every candidate by the
-/// secular equation at every step) but scores most candidates only by cheap lower bounds. The
-/// score of removing row r is λ'max/λ'min, the extreme eigenvalues of G − r·rᵀ. By Rayleigh-Ritz,
-/// for any orthonormal U the smallest eigenvalue of Uᵀ(G − r·rᵀ)U bounds λ'min from above and,
-/// for another U, the largest bounds λ'max from below; and so does any Rayleigh quotient of those
-/// compressions. Three tiers of lower bounds on the score:
-/// 1. U holds two low and two high eigenvectors of a recent step (refreshed when the bounds grow
-///    weak), so the projections Uᵀr are computed once per refresh. For every candidate the
-///    extreme eigenvectors x, y of its two 2×2 compressions are kept from the step they were last
-///    computed; the Rayleigh quotients yᵀ(H − b·bᵀ)y / xᵀ(L − a·aᵀ)x with this step's blocks H, L
-///    of UᵀGU are a lower bound for 8 multiply-adds and no square root. Quotients are stationary
-///    at eigenvectors, so a kept vector stays nearly as good as a fresh one for many steps (and
-///    across refreshes: the new basis is signed like the old one and the vectors are kept);
-/// 2. where that does not rule a candidate out, the 2×2 compressions are solved afresh (closed
-///    form), which also renews its kept vectors; those still not ruled out are visited in
-///    ascending order of this bound (a heap) and get the sharper `ritz_bound` (k directions at
-///    each end of the current eigenbasis, the rest lumped, its extremes bounded by Rayleigh
-///    quotients rather than solved), a block at a time, long blocks in parallel;
-/// 3. the exact score for those not ruled out either.
+/// secular equation at every step) but scores only a handful of candidates per step. The score
+/// of removing row r is λ'max/λ'min, the extreme eigenvalues of G − r·rᵀ. By Rayleigh-Ritz, for
+/// any orthonormal U the smallest eigenvalue of Uᵀ(G − r·rᵀ)U bounds λ'min from above and the
+/// largest, for another U, bounds λ'max from below; interlacing adds λ'max ≥ λₘ₋₁. U holds the
+/// [`K_LO`] lowest and the two highest eigenvectors of a recent step, and every row's
+/// projections on four of them are kept from that step (a refresh, when the bounds grow weak);
+/// each step forms the blocks L (low) and H (high) of UᵀGU once. Greedy elimination clusters
+/// the extreme eigenvalues (two to four nearly equal at each end, candidates' scores 10⁻⁵
+/// apart), and a row moves them by less than the clusters are wide, so the blocks follow the
+/// turning of a cluster exactly and an old basis serves well. Per step:
+/// 1. every candidate's key, λmax(H − b·bᵀ)/λmin(L₂ − a·aᵀ) on the leading 2 × 2 blocks (closed
+///    form; the numerator at least λₘ₋₁), a lower bound on its score: one branch-free,
+///    vectorised pass, in parallel, and computed alongside the step's eigendecomposition (the
+///    keys do not need it);
+/// 2. the candidates with the lowest keys ([`GUESSES`]) are scored exactly: the best of them is
+///    as a rule the step's best, and it sets the cut;
+/// 3. the candidates whose key does not exceed the cut are visited in ascending key order
+///    until a key exceeds it; each is tested with the whole low block (L − a·aᵀ − (h/cut)·I
+///    not positive semi-definite, by LDLᵀ, means λ'min < h/cut ≤ λ'max/cut) and, if the test
+///    does not rule it out, scored exactly, which tightens the cut.
 ///
 /// A candidate is skipped only when a bound exceeds the best exact score of the step by a
 /// relative margin above rounding (see `slack`), so the skipped ones provably score worse and
 /// the choice, tie-break by index included, is the exhaustive one. The Gram matrix, its
 /// eigendecomposition and the exact scores use the reference's arithmetic (the same functions),
 /// so the curve is bit for bit the same. Where G is numerically singular (see `slack`) nothing is
-/// skipped. The result does not depend on the thread count: parallel parts only compute bounds
-/// per candidate, in fixed chunks, and every choice is made serially in a fixed order.
-/// Greedy elimination makes the extreme eigenvalues
-/// cluster, which is why tier 1 looks at two directions at each end and tier 2 at `RITZ_K`.
+/// skipped. The result does not depend on the thread count: parallel parts only compute keys
+/// and projections, in fixed chunks, and every choice is made serially in a fixed order.
 pub fn eliminate(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
+    // On a pool thread, the step's parallel parts are cheap forks; from outside the pool every
+    // one would be a round trip through the pool's queue and a sleeping thread.
+    rayon::scope(|_| eliminate_in_pool(j, m))
+}
+
+fn eliminate_in_pool(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
     let n0 = j.len() / m;
     let row = |i: usize| &j[i * m..(i + 1) * m];
     let mut alive = vec![true; n0];
-    // Active rows by position; removal is swap_remove, positions carry no meaning. `at` maps a
-    // row to its position.
+    // Active rows by position; removal is swap_remove, positions carry no meaning.
     let mut ids: Vec<usize> = (0..n0).collect();
-    let mut at: Vec<usize> = (0..n0).collect();
-    let norms: Vec<f64> = (0..n0)
-        .map(|i| row(i).iter().map(|v| v * v).sum())
-        .collect();
     let mut removed = Vec::with_capacity(n0.saturating_sub(m));
     let mut curve = Vec::with_capacity(n0 - m + 1);
-    let mut g = gram(j, m, &(0..n0).collect::<Vec<_>>());
-    let ritz_k = RITZ_K.min(m.saturating_sub(1));
-    // The bound basis (4 directions, row-major) and, per position, the tier-1 data.
-    let mut basis = vec![0.0; 4 * m];
-    let mut hot: Vec<[f64; 8]> = vec![[0.0; 8]; n0];
-    let mut kept: Vec<Kept> = vec![Kept::default(); n0];
-    let mut parts: Vec<Vec<(f64, usize)>> = Vec::new();
-    let mut age = usize::MAX;
-    let mut max_age = REFRESH_MIN;
-    let mut leaders: Vec<usize> = Vec::new();
-    let mut queue: Vec<(f64, usize)> = Vec::new();
-    let mut sharp: Vec<f64> = Vec::new();
+    let mut active: Vec<usize> = (0..n0).collect();
+    let mut g = gram(j, m, &active);
+    let mut bounds = Bounds::new(m);
+    // The active rows' projections on the keyed directions, one column each, by position.
+    let mut proj: [Vec<f64>; KEYED] = std::array::from_fn(|_| vec![0.0; n0]);
+    let mut keys = vec![0.0; n0];
     let mut heap: std::collections::BinaryHeap<Queued> = std::collections::BinaryHeap::new();
-    let mut block: Vec<(f64, usize)> = Vec::new();
-    let mut scored: Vec<(f64, usize, usize)> = Vec::new();
     let mut z = vec![0.0; m];
-    let mut ext = vec![0.0; 2 * RITZ_K * m];
-    let mut known: Vec<usize> = Vec::new();
-    let mut active: Vec<usize> = Vec::with_capacity(n0);
+    let mut period = REFRESH_MIN;
+    // Step 0's spectrum, basis and keys; every later step gets its spectrum and its keys
+    // together, at the end of the step before.
+    let (mut lam, mut vt) = spectrum(&g);
+    bounds.refresh(&vt, j, &ids, &mut proj);
+    bounds.update(&g, lam[m.saturating_sub(2)]);
+    let mut lows = first_pass(&bounds, &proj, &mut keys[..n0]);
+    let mut age = 0;
     loop {
-        let (lam, vt) = spectrum(&g);
         let n = ids.len();
         curve.push((n, cond_of(lam[0], lam[m - 1])));
         if n == m {
             break;
         }
         let slack = slack(&lam);
-        extremes_transposed(&vt, m, ritz_k, &mut ext);
-        if age >= max_age {
-            age = 0;
-            let dirs = if m >= 2 { [0, 1, m - 2, m - 1] } else { [0; 4] };
-            // The new directions, signed like the old ones, so that the kept eigenvectors
-            // (coordinates in this basis) stay good ones.
-            for (slot, &e) in basis.chunks_mut(m).zip(&dirs) {
-                let v = &vt[e * m..(e + 1) * m];
-                let same: f64 = slot.iter().zip(v).map(|(a, b)| a * b).sum();
-                let sign = if same < 0.0 { -1.0 } else { 1.0 };
-                for (u, &x) in slot.iter_mut().zip(v) {
-                    *u = sign * x;
-                }
-            }
-            let (basis, ids) = (&basis, &ids);
-            let refresh = |start: usize, ws: &mut [[f64; 8]], ks: &mut [Kept]| {
-                for (k, (w, c)) in ws.iter_mut().zip(ks.iter_mut()).enumerate() {
-                    let r = row(ids[start + k]);
-                    let mut s = [0.0; 4];
-                    for (d, sd) in s.iter_mut().enumerate() {
-                        *sd = basis[d * m..(d + 1) * m]
-                            .iter()
-                            .zip(r)
-                            .map(|(u, x)| u * x)
-                            .sum();
-                    }
-                    c.proj = s;
-                    *w = c.weights();
-                }
-            };
-            if n >= PARALLEL_BOUND {
-                hot[..n]
-                    .par_chunks_mut(BOUND_CHUNK)
-                    .zip(kept[..n].par_chunks_mut(BOUND_CHUNK))
-                    .enumerate()
-                    .for_each(|(c, (ws, ks))| refresh(c * BOUND_CHUNK, ws, ks));
-            } else {
-                refresh(0, &mut hot[..n], &mut kept[..n]);
-            }
-        }
         age += 1;
-        // UᵀGU on each pair of directions, once per step: the low and the high 2×2 block.
-        let quad = |x: usize, y: usize| -> f64 {
-            let (u, v) = (&basis[x * m..(x + 1) * m], &basis[y * m..(y + 1) * m]);
-            let mut s = 0.0;
-            for a in 0..m {
-                let mut t = 0.0;
-                for b in 0..m {
-                    t += g[(a, b)] * v[b];
-                }
-                s += u[a] * t;
-            }
-            s
-        };
-        let blocks = [
-            quad(0, 0),
-            quad(0, 1),
-            quad(1, 1),
-            quad(2, 2),
-            quad(2, 3),
-            quad(3, 3),
-        ];
-        let floor = DET_FLOOR * blocks[0].abs().max(blocks[2].abs());
-        // The exact extremes (λ'min, λ'max), with the reference's arithmetic.
-        let exact = |i: usize, z: &mut [f64]| -> (f64, f64) {
-            let r = row(i);
+        let exact = |p: usize, z: &mut [f64]| -> (f64, usize, usize) {
+            let r = row(ids[p]);
             for k in 0..m {
                 z[k] = vt[k * m..(k + 1) * m]
                     .iter()
@@ -278,138 +212,62 @@ pub fn eliminate(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
                     .map(|(v, x)| v * x)
                     .sum();
             }
-            downdated_extremes(&lam, z)
+            let (lo, hi) = downdated_extremes(&lam, z);
+            let score = if lo > 0.0 { hi / lo } else { f64::INFINITY };
+            (score, ids[p], p)
         };
-        let score = |(lo, hi): (f64, f64)| if lo > 0.0 { hi / lo } else { f64::INFINITY };
-        // The cut: the best exact score among the previous step's leaders (any candidate would
-        // do; these usually come close to the best).
-        scored.clear();
-        for &i in leaders.iter().filter(|&&i| alive[i]) {
-            scored.push((score(exact(i, &mut z)), i, at[i]));
-        }
-        if scored.is_empty() {
-            scored.push((score(exact(ids[0], &mut z)), ids[0], 0));
-        }
-        let mut best = scored.iter().copied().fold(scored[0], pick);
-        let mut cut = best.0 * (1.0 + slack);
-        // One pass: tier 1 where it rules a candidate out, the fresh 2×2 bound otherwise; the
-        // queue holds those whose fresh bound does not exceed the cut.
-        known.clear();
-        known.extend(scored.iter().map(|s| s.2));
-        let known = &known;
-        let pass =
-            |start: usize, ws: &mut [[f64; 8]], ks: &mut [Kept], out: &mut Vec<(f64, usize)>| {
-                out.clear();
-                for (k, (w, c)) in ws.iter_mut().zip(ks.iter_mut()).enumerate() {
-                    if rules_out(w, &blocks, cut, floor) {
-                        continue;
-                    }
-                    let lb = c.renew(w, &blocks, floor);
-                    let p = start + k;
-                    if lb.partial_cmp(&cut) != Some(std::cmp::Ordering::Greater)
-                        && !known.contains(&p)
-                    {
-                        out.push((lb, p));
-                    }
-                }
-            };
-        queue.clear();
-        if n >= PARALLEL_BOUND {
-            let chunks = n.div_ceil(BOUND_CHUNK);
-            if parts.len() < chunks {
-                parts.resize_with(chunks, Vec::new);
+        let mut best = (f64::INFINITY, usize::MAX, usize::MAX);
+        let mut cut = f64::INFINITY;
+        bounds.set_cut(cut);
+        let mut exacts = 0;
+        let mut visit = |key: f64, p: usize, best: &mut (f64, usize, usize), cut: &mut f64| {
+            if key > *cut || bounds.rules_out(&proj, p, row(ids[p])) {
+                return;
             }
-            hot[..n]
-                .par_chunks_mut(BOUND_CHUNK)
-                .zip(kept[..n].par_chunks_mut(BOUND_CHUNK))
-                .zip(parts[..chunks].par_iter_mut())
-                .enumerate()
-                .for_each(|(c, ((ws, ks), out))| pass(c * BOUND_CHUNK, ws, ks, out));
-            for p in &parts[..chunks] {
-                queue.extend_from_slice(p);
+            let this = exact(p, &mut z);
+            exacts += 1;
+            if best.1 == usize::MAX || pick(*best, this) != *best {
+                *best = this;
+                *cut = best.0 * (1.0 + slack);
+                bounds.set_cut(*cut);
             }
-        } else {
-            pass(0, &mut hot[..n], &mut kept[..n], &mut queue);
+        };
+        // The lowest keys overall are the likeliest best: their exact scores make the cut.
+        let mut guesses = Lowest::default();
+        for &(key, p) in lows.iter().flat_map(|low| low.entries()) {
+            guesses.offer(key, p);
         }
-        // The candidate with the lowest bound usually scores best: its exact score tightens
-        // the cut before the rest are looked at.
-        let by_bound = |a: &(f64, usize), b: &(f64, usize)| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1));
-        if let Some(k) = (0..queue.len()).min_by(|&a, &b| by_bound(&queue[a], &queue[b])) {
-            let (_, p) = queue.swap_remove(k);
-            let this = (score(exact(ids[p], &mut z)), ids[p], p);
-            scored.push(this);
-            best = pick(best, this);
-            cut = best.0 * (1.0 + slack);
+        for &(key, p) in guesses.entries() {
+            visit(key, p, &mut best, &mut cut);
         }
-        queue.retain(|&(lb, _)| lb <= cut);
-        // Weak bounds: refresh the basis sooner; strong ones: later.
-        if queue.len() > QUEUE_TOLERANCE + n / 256 {
-            max_age = (max_age / 2).max(REFRESH_MIN);
-        } else if age == max_age {
-            max_age = (max_age * 2).min(REFRESH_MAX);
-        }
-        // Visit in ascending bound order (a heap: usually only a few come off it), a block at
-        // a time, the Ritz bounds of a block computed in parallel when it is long. Blocks grow
-        // from `RITZ_BLOCK`: the first candidates are the likeliest to tighten the cut.
+        // The others whose key does not exceed the cut, likeliest first (a heap: as a rule only
+        // a few come off it before a key exceeds the cut).
         heap.clear();
-        heap.extend(queue.iter().map(|&(lb, p)| Queued(lb, p)));
-        let mut len = RITZ_BLOCK;
-        'visit: loop {
-            block.clear();
-            while block.len() < len {
-                match heap.peek() {
-                    Some(&Queued(lb, p)) if lb <= cut => {
-                        heap.pop();
-                        block.push((lb, p));
-                    }
-                    _ => break,
-                }
-            }
-            if block.is_empty() {
+        heap.extend(
+            keys[..n]
+                .iter()
+                .enumerate()
+                .filter(|&(p, &key)| {
+                    key.partial_cmp(&cut) != Some(std::cmp::Ordering::Greater) && !guesses.holds(p)
+                })
+                .map(|(p, &key)| Queued(key, p)),
+        );
+        while let Some(Queued(key, p)) = heap.pop() {
+            if key > cut {
                 break;
             }
-            let ritz = |&(lb, p): &(f64, usize)| -> f64 {
-                if lb > cut || ritz_k == 0 {
-                    lb
-                } else {
-                    let (h, l) = ritz_bound(&lam, &ext, row(ids[p]), norms[ids[p]], ritz_k);
-                    if l > 0.0 {
-                        h / l
-                    } else {
-                        0.0
-                    }
-                }
-            };
-            if block.len() >= PARALLEL_RITZ {
-                block.par_iter().map(ritz).collect_into_vec(&mut sharp);
-            } else {
-                sharp.clear();
-                sharp.extend(block.iter().map(ritz));
-            }
-            for (&(lb, p), &r2) in block.iter().zip(&sharp) {
-                if lb > cut {
-                    break 'visit;
-                }
-                if r2 > cut {
-                    continue;
-                }
-                let this = (score(exact(ids[p], &mut z)), ids[p], p);
-                scored.push(this);
-                best = pick(best, this);
-                cut = best.0 * (1.0 + slack);
-            }
-            len = (2 * len).min(RITZ_BLOCK_MAX);
+            visit(key, p, &mut best, &mut cut);
         }
-        // The next step's first guesses: the best few of this step after the one removed.
-        scored.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-        leaders.clear();
-        leaders.extend(scored.iter().skip(1).take(LEADERS).map(|s| s.1));
+        // Many exact scores: a stale basis, refresh it sooner; few: later.
+        if exacts > GUESSES + DIRECT + n / 1024 {
+            period = (period / 2).max(REFRESH_MIN);
+        } else if age == period {
+            period = (period * 2).min(REFRESH_MAX);
+        }
         let (_, i, p) = best;
         ids.swap_remove(p);
-        hot.swap_remove(p);
-        kept.swap_remove(p);
-        if p < ids.len() {
-            at[ids[p]] = p;
+        for col in &mut proj {
+            col.swap_remove(p);
         }
         alive[i] = false;
         removed.push(i);
@@ -421,13 +279,306 @@ pub fn eliminate(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
         } else {
             downdate(&mut g, row(i));
         }
+        if ids.len() == m {
+            (lam, vt) = spectrum(&g);
+            continue;
+        }
+        // The next step's keys need no eigendecomposition of its Gram matrix: the basis may
+        // come from this step's (any orthonormal one will do), and its λₘ₋₁ is at least this
+        // step's λₘ₋₂ (interlacing). So its spectrum is computed alongside them.
+        if age >= period {
+            age = 0;
+            bounds.refresh(&vt, j, &ids, &mut proj);
+        }
+        bounds.update(
+            &g,
+            if m >= 3 {
+                lam[m - 3]
+            } else {
+                f64::NEG_INFINITY
+            },
+        );
+        let n = ids.len();
+        ((lam, vt), lows) = rayon::join(
+            || spectrum(&g),
+            || first_pass(&bounds, &proj, &mut keys[..n]),
+        );
     }
     (removed, curve)
 }
 
-/// A queued candidate (bound, position), ordered so that std's max-heap pops the lowest bound
-/// first, ties by position: a total order, so the visit order never depends on the heap's
-/// history.
+/// Every candidate's key and each chunk's lowest keys.
+fn first_pass(bounds: &Bounds, proj: &[Vec<f64>; KEYED], keys: &mut [f64]) -> Vec<Lowest> {
+    let pass = |start: usize, ks: &mut [f64]| -> Lowest {
+        bounds.keys(proj, start, ks);
+        let mut low = Lowest::default();
+        for (k, &key) in ks.iter().enumerate() {
+            low.offer(key, start + k);
+        }
+        low
+    };
+    if keys.len() >= PARALLEL_BOUND {
+        keys.par_chunks_mut(BOUND_CHUNK)
+            .enumerate()
+            .map(|(c, ks)| pass(c * BOUND_CHUNK, ks))
+            .collect()
+    } else {
+        vec![pass(0, keys)]
+    }
+}
+
+/// Eigen-directions at the low end of the spectrum that the full test uses: enough for the
+/// clusters greedy elimination forms there (up to four nearly equal eigenvalues on the bench
+/// pools). The high end uses two (clusters of two, and interlacing covers a third).
+const K_LO: usize = 4;
+/// Directions whose projections are kept for every row: the two lowest (slots 0, 1) and the two
+/// highest (slots 2, 3). The test computes the projections on the other low ones from the row.
+const KEYED: usize = 4;
+
+/// The bounds of [`eliminate`]: the basis U (rows: `K_LO` low directions, then two high ones),
+/// the current step's blocks of UᵀGU and constants.
+struct Bounds {
+    m: usize,
+    /// Low directions used (`K_LO`, fewer when m is small); one column: no bounds at all.
+    klo: usize,
+    able: bool,
+    basis: Vec<f64>,
+    /// L = U_loᵀ G U_lo, lower triangle.
+    l: [[f64; K_LO]; K_LO],
+    /// H = U_hiᵀ G U_hi: [H11, H12, H22].
+    h: [f64; 3],
+    /// A lower bound on λ'max for every candidate (λₘ₋₁ or less).
+    floor: f64,
+    inv_cut: f64,
+    /// False where nothing may be ruled out (no finite positive cut: G numerically singular).
+    on: bool,
+    gu: Vec<f64>,
+}
+
+impl Bounds {
+    fn new(m: usize) -> Self {
+        Bounds {
+            m,
+            klo: K_LO.min(m),
+            able: m >= 2,
+            basis: vec![0.0; (K_LO + 2) * m],
+            l: [[0.0; K_LO]; K_LO],
+            h: [0.0; 3],
+            floor: f64::NEG_INFINITY,
+            inv_cut: 0.0,
+            on: false,
+            gu: vec![0.0; m],
+        }
+    }
+
+    /// Basis row `d`.
+    fn u(&self, d: usize) -> &[f64] {
+        &self.basis[d * self.m..(d + 1) * self.m]
+    }
+
+    /// The basis from the eigenvectors `vt` (rows, ascending), and the keyed projections of the
+    /// active rows `ids` on it. The two blocks share directions when m is small; each is
+    /// orthonormal, which is all its bound needs.
+    fn refresh(&mut self, vt: &[f64], j: &[f64], ids: &[usize], proj: &mut [Vec<f64>; KEYED]) {
+        let m = self.m;
+        for d in 0..K_LO + 2 {
+            let e = if d < K_LO {
+                d.min(m - 1)
+            } else {
+                (m + d).saturating_sub(K_LO + 2).min(m - 1)
+            };
+            self.basis[d * m..(d + 1) * m].copy_from_slice(&vt[e * m..(e + 1) * m]);
+        }
+        let n = ids.len();
+        let this = &*self;
+        let project = |slot: usize, col: &mut [f64]| {
+            let u = this.u(Self::basis_row(slot));
+            for (c, &i) in col.iter_mut().zip(ids) {
+                *c = u
+                    .iter()
+                    .zip(&j[i * m..(i + 1) * m])
+                    .map(|(a, b)| a * b)
+                    .sum();
+            }
+        };
+        if n >= PARALLEL_BOUND {
+            proj.par_iter_mut()
+                .enumerate()
+                .for_each(|(slot, col)| project(slot, &mut col[..n]));
+        } else {
+            for (slot, col) in proj.iter_mut().enumerate() {
+                project(slot, &mut col[..n]);
+            }
+        }
+    }
+
+    /// The basis row of a keyed slot: 0, 1 → the two lowest; 2, 3 → the two highest.
+    fn basis_row(slot: usize) -> usize {
+        if slot < 2 {
+            slot
+        } else {
+            K_LO + slot - 2
+        }
+    }
+
+    /// The blocks of UᵀGU for the Gram matrix `g`, and the floor for λ'max.
+    fn update(&mut self, g: &DMatrix<f64>, floor: f64) {
+        let m = self.m;
+        let gs = g.as_slice();
+        let mut quad = |x: usize, y: usize| -> f64 {
+            // G is symmetric: (G·u)ₐ is column a of G (contiguous) times u.
+            for (a, out) in self.gu.iter_mut().enumerate() {
+                *out = gs[a * m..(a + 1) * m]
+                    .iter()
+                    .zip(&self.basis[y * m..(y + 1) * m])
+                    .map(|(p, q)| p * q)
+                    .sum();
+            }
+            self.basis[x * m..(x + 1) * m]
+                .iter()
+                .zip(&self.gu)
+                .map(|(p, q)| p * q)
+                .sum()
+        };
+        let mut l = [[0.0; K_LO]; K_LO];
+        for (r, lr) in l.iter_mut().enumerate().take(self.klo) {
+            for (c, lrc) in lr.iter_mut().enumerate().take(r + 1) {
+                *lrc = quad(r, c);
+            }
+        }
+        let h = [
+            quad(K_LO, K_LO),
+            quad(K_LO, K_LO + 1),
+            quad(K_LO + 1, K_LO + 1),
+        ];
+        self.l = l;
+        self.h = h;
+        self.floor = floor;
+    }
+
+    fn set_cut(&mut self, cut: f64) {
+        self.inv_cut = 1.0 / cut;
+        self.on = self.able && cut.is_finite() && cut > 0.0;
+    }
+
+    /// λmax(H − b·bᵀ) (closed form) or the floor, the larger: a lower bound on λ'max.
+    #[inline]
+    fn high(&self, b1: f64, b2: f64) -> f64 {
+        let q1 = self.h[0] - b1 * b1;
+        let q2 = self.h[2] - b2 * b2;
+        let o = self.h[1] - b1 * b2;
+        let hmax = 0.5 * (q1 + q2) + (0.25 * (q1 - q2) * (q1 - q2) + o * o).sqrt();
+        if hmax > self.floor {
+            hmax
+        } else {
+            self.floor
+        }
+    }
+
+    /// Keys for the positions `start..start + ks.len()`: `high` over λmin of the leading 2 × 2
+    /// block of L − a·aᵀ, a lower bound on the score (0 where that block is not positive
+    /// definite: no information). Branch-free, so that it vectorises.
+    fn keys(&self, proj: &[Vec<f64>; KEYED], start: usize, ks: &mut [f64]) {
+        if !self.able {
+            ks.fill(0.0);
+            return;
+        }
+        let end = start + ks.len();
+        let (a1, a2) = (&proj[0][start..end], &proj[1][start..end]);
+        let (b1, b2) = (&proj[2][start..end], &proj[3][start..end]);
+        let (l11, l21, l22) = (self.l[0][0], self.l[1][0], self.l[1][1]);
+        let rows = a1.iter().zip(a2).zip(b1).zip(b2);
+        for (key, (((&x1, &x2), &y1), &y2)) in ks.iter_mut().zip(rows) {
+            let h = self.high(y1, y2);
+            let p1 = l11 - x1 * x1;
+            let p2 = l22 - x2 * x2;
+            let off = l21 - x1 * x2;
+            let det = p1 * p2 - off * off;
+            let rad = (0.25 * (p1 - p2) * (p1 - p2) + off * off).sqrt();
+            let lmin = det / (0.5 * (p1 + p2) + rad);
+            *key = if det > 0.0 && lmin > 0.0 {
+                h / lmin
+            } else {
+                0.0
+            };
+        }
+    }
+
+    /// True when the candidate at position `p` (row `r`) provably scores above the cut:
+    /// λmin(L − a·aᵀ) < h/cut with h ≤ λ'max, i.e. a negative pivot in the LDLᵀ of
+    /// L − a·aᵀ − (h/cut)·I. A zero pivot or NaN: not ruled out.
+    fn rules_out(&self, proj: &[Vec<f64>; KEYED], p: usize, r: &[f64]) -> bool {
+        if !self.on {
+            return false;
+        }
+        let t = self.high(proj[2][p], proj[3][p]) * self.inv_cut;
+        let a: [f64; K_LO] = std::array::from_fn(|d| match d {
+            0 | 1 => proj[d][p],
+            _ => self.u(d).iter().zip(r).map(|(u, x)| u * x).sum(),
+        });
+        let mut mm = [[0.0; K_LO]; K_LO];
+        for r in 0..self.klo {
+            for c in 0..=r {
+                mm[r][c] = self.l[r][c] - a[r] * a[c];
+            }
+            mm[r][r] -= t;
+        }
+        for c in 0..self.klo {
+            let d = mm[c][c];
+            if d < 0.0 {
+                return true;
+            }
+            if d == 0.0 || d.is_nan() {
+                return false;
+            }
+            for r in c + 1..self.klo {
+                let f = mm[r][c] / d;
+                for cc in c + 1..=r {
+                    mm[r][cc] -= f * mm[cc][c];
+                }
+            }
+        }
+        false
+    }
+}
+
+/// The [`GUESSES`] lowest keys offered, with their positions, ascending; ties by position.
+#[derive(Clone, Copy)]
+struct Lowest([(f64, usize); GUESSES]);
+
+impl Default for Lowest {
+    fn default() -> Self {
+        Lowest([(f64::INFINITY, usize::MAX); GUESSES])
+    }
+}
+
+impl Lowest {
+    #[inline]
+    fn offer(&mut self, key: f64, p: usize) {
+        let before = |a: (f64, usize), b: (f64, usize)| a.0 < b.0 || (a.0 == b.0 && a.1 < b.1);
+        if before((key, p), self.0[GUESSES - 1]) {
+            let mut k = GUESSES - 1;
+            while k > 0 && before((key, p), self.0[k - 1]) {
+                self.0[k] = self.0[k - 1];
+                k -= 1;
+            }
+            self.0[k] = (key, p);
+        }
+    }
+
+    /// The entries offered (fewer than `GUESSES` when fewer were).
+    fn entries(&self) -> &[(f64, usize)] {
+        let len = self.0.iter().take_while(|e| e.1 != usize::MAX).count();
+        &self.0[..len]
+    }
+
+    fn holds(&self, p: usize) -> bool {
+        self.0.iter().any(|e| e.1 == p)
+    }
+}
+
+/// A candidate waiting for its exact score: (key, position), ordered so that std's max-heap
+/// pops the lowest key first, ties by position.
 #[derive(Clone, Copy)]
 struct Queued(f64, usize);
 
@@ -450,116 +601,6 @@ impl PartialEq for Queued {
 }
 
 impl Eq for Queued {}
-
-/// Tier 1 of [`eliminate`] for one candidate, the hot half: the Rayleigh-quotient weights of
-/// its kept eigenvectors, [hi; lo]. yᵀ(H − b·bᵀ)y / yᵀy = hi[0]·H11 + hi[1]·H12 + hi[2]·H22 +
-/// hi[3] is a lower bound on λ'max, xᵀ(L − a·aᵀ)x / xᵀx likewise (lo) an upper bound on λ'min
-/// (see there). True when they put the score above `cut`. All zero: nothing kept.
-#[inline]
-fn rules_out(w: &[f64; 8], b: &[f64; 6], cut: f64, floor: f64) -> bool {
-    let num = w[0] * b[3] + w[1] * b[4] + w[2] * b[5] + w[3];
-    let den = w[4] * b[0] + w[5] * b[1] + w[6] * b[2] + w[7];
-    den > floor && num > cut * den
-}
-
-/// Tier 1 of [`eliminate`] for one candidate, the cold half: its projections on the bound basis
-/// U and its kept eigenvectors (coordinates in U), from which the hot weights are made.
-#[derive(Clone, Copy, Default)]
-struct Kept {
-    /// [a1, a2, b1, b2] = Uᵀr: two low, two high directions.
-    proj: [f64; 4],
-    /// [x1, x2, y1, y2]: the kept low and high eigenvectors; zero = none kept.
-    x: [f64; 4],
-}
-
-impl Kept {
-    /// The hot weights of the kept eigenvectors with the current projections.
-    fn weights(&self) -> [f64; 8] {
-        let [a1, a2, b1, b2] = self.proj;
-        let [x1, x2, y1, y2] = self.x;
-        let mut w = [0.0; 8];
-        if y1 != 0.0 || y2 != 0.0 {
-            w[..4].copy_from_slice(&weights([y1, y2], [b1, b2]));
-        }
-        if x1 != 0.0 || x2 != 0.0 {
-            w[4..].copy_from_slice(&weights([x1, x2], [a1, a2]));
-        }
-        w
-    }
-
-    /// Solves both 2×2 compressions afresh, keeps their extreme eigenvectors (and their hot
-    /// weights in `w`), and returns the bound λmax(H − b·bᵀ)/λmin(L − a·aᵀ) (0 = no
-    /// information: a nearly singular downdate, too much cancellation to trust).
-    #[inline]
-    fn renew(&mut self, w: &mut [f64; 8], b: &[f64; 6], floor: f64) -> f64 {
-        let [la, lb, lc, ha, hb, hc] = *b;
-        let [a1, a2, b1, b2] = self.proj;
-        // Smallest eigenvalue of L − a·aᵀ via its determinant (the z⁴ terms cancel exactly), and
-        // the largest of H − b·bᵀ.
-        let (p1, p2, off) = (la - a1 * a1, lc - a2 * a2, lb - a1 * a2);
-        let det = la * lc - lb * lb - la * a2 * a2 - lc * a1 * a1 + 2.0 * lb * a1 * a2;
-        let rad = (0.25 * (p1 - p2) * (p1 - p2) + off * off).sqrt();
-        let lmin = if det > DET_FLOOR * la * lc && det > 0.0 {
-            det / (0.5 * (p1 + p2) + rad)
-        } else {
-            0.0
-        };
-        let (q1, q2, hoff) = (ha - b1 * b1, hc - b2 * b2, hb - b1 * b2);
-        let hrad = (0.25 * (q1 - q2) * (q1 - q2) + hoff * hoff).sqrt();
-        let hmax = 0.5 * (q1 + q2) + hrad;
-        let y = eigvec(q1, q2, hoff, hmax);
-        w[..4].copy_from_slice(&weights(y, [b1, b2]));
-        let x = if lmin > floor {
-            eigvec(p1, p2, off, lmin)
-        } else {
-            [0.0; 2]
-        };
-        if lmin > floor {
-            w[4..].copy_from_slice(&weights(x, [a1, a2]));
-        } else {
-            w[4..].fill(0.0);
-        }
-        self.x = [x[0], x[1], y[0], y[1]];
-        if lmin > 0.0 {
-            hmax / lmin
-        } else {
-            0.0
-        }
-    }
-}
-
-/// An eigenvector of [[p, o], [o, q]] for its eigenvalue `l` (the better conditioned of the two
-/// formulas). Any vector gives a valid Rayleigh quotient; this one makes it sharp.
-#[inline]
-fn eigvec(p: f64, q: f64, o: f64, l: f64) -> [f64; 2] {
-    let (u, v) = ([o, l - p], [l - q, o]);
-    let nu = u[0] * u[0] + u[1] * u[1];
-    let nv = v[0] * v[0] + v[1] * v[1];
-    if nu >= nv && nu > 0.0 {
-        u
-    } else if nv > 0.0 {
-        v
-    } else {
-        [1.0, 0.0]
-    }
-}
-
-/// The Rayleigh quotient xᵀ(M − a·aᵀ)x / xᵀx as weights on M11, M12, M22 and a constant.
-#[inline]
-fn weights(x: [f64; 2], a: [f64; 2]) -> [f64; 4] {
-    let inv = 1.0 / (x[0] * x[0] + x[1] * x[1]);
-    let (w1, w2, w3) = (
-        x[0] * x[0] * inv,
-        2.0 * x[0] * x[1] * inv,
-        x[1] * x[1] * inv,
-    );
-    [
-        w1,
-        w2,
-        w3,
-        -(w1 * a[0] * a[0] + w2 * a[0] * a[1] + w3 * a[1] * a[1]),
-    ]
-}
 
 /// The lower (score, index) pair: the greedy's choice with its tie-break.
 #[inline]
@@ -592,27 +633,56 @@ fn slack(lam: &[f64]) -> f64 {
 /// arithmetic for the reference and the bounded search. Entries are independent sums, so rows
 /// of the triangle are computed in parallel without changing a bit.
 fn gram(j: &[f64], m: usize, rows: &[usize]) -> DMatrix<f64> {
-    let tri = |a: usize| -> Vec<f64> {
-        let mut acc = vec![0.0; m - a];
+    // Triangle rows a0..a1, one pass over the rows: every entry is still its own sum in row
+    // order, only the memory traffic is shared.
+    let band = |(a0, a1): (usize, usize)| -> Vec<f64> {
+        let mut acc = vec![0.0; (a0..a1).map(|a| m - a).sum()];
         for &i in rows {
             let r = &j[i * m..(i + 1) * m];
-            let ra = r[a];
-            for (s, &rb) in acc.iter_mut().zip(&r[a..]) {
-                *s += ra * rb;
+            let mut at = 0;
+            for a in a0..a1 {
+                let ra = r[a];
+                for (s, &rb) in acc[at..at + m - a].iter_mut().zip(&r[a..]) {
+                    *s += ra * rb;
+                }
+                at += m - a;
             }
         }
         acc
     };
-    let upper: Vec<Vec<f64>> = if rows.len() * m >= PARALLEL_GRAM {
-        (0..m).into_par_iter().map(tri).collect()
+    // Bands of about equal work.
+    let parts = if rows.len() * m >= PARALLEL_GRAM {
+        GRAM_BANDS
     } else {
-        (0..m).map(tri).collect()
+        1
+    };
+    let total = m * (m + 1) / 2;
+    let mut cuts = vec![0];
+    let mut done = 0;
+    for a in 0..m {
+        done += m - a;
+        if done * parts >= total * cuts.len() && cuts.len() < parts {
+            cuts.push(a + 1);
+        }
+    }
+    if *cuts.last().unwrap_or(&0) != m {
+        cuts.push(m);
+    }
+    let spans: Vec<(usize, usize)> = cuts.windows(2).map(|w| (w[0], w[1])).collect();
+    let bands: Vec<Vec<f64>> = if parts > 1 {
+        spans.par_iter().copied().map(band).collect()
+    } else {
+        spans.iter().copied().map(band).collect()
     };
     let mut g = DMatrix::<f64>::zeros(m, m);
-    for (a, acc) in upper.iter().enumerate() {
-        for (k, &v) in acc.iter().enumerate() {
-            g[(a, a + k)] = v;
-            g[(a + k, a)] = v;
+    for (&(a0, a1), acc) in spans.iter().zip(&bands) {
+        let mut at = 0;
+        for a in a0..a1 {
+            for (k, &v) in acc[at..at + m - a].iter().enumerate() {
+                g[(a, a + k)] = v;
+                g[(a + k, a)] = v;
+            }
+            at += m - a;
         }
     }
     g
@@ -655,39 +725,24 @@ const BOUND_MARGIN: f64 = 1e-9;
 /// exceeds 2·10⁻³, so the bounds would have to beat the best score by that much anyway, and the
 /// secular roots' absolute rounding (ε·‖z‖²) is no longer small against λ'min.
 const EXHAUSTIVE_RATIO: f64 = 1e10;
-/// Eigen-directions at each end of the spectrum that the sharper (Ritz) bound resolves; greedy
-/// elimination clusters the extreme eigenvalues, where the one-direction bound is weak. With 3,
-/// about 7 times as many candidates reached the exact score on the 20,000-pose bench pool (most
-/// of them at n of a few thousand, where the extremes cluster most); 5 costs 4 more projections.
-const RITZ_K: usize = 5;
-/// Relative distance between a secular iterate and its Rayleigh quotient at which
-/// [`secular_bound`] stops: the quotient's error is about its square, far finer than the
-/// differences between candidates' scores that the bound has to resolve.
-const RITZ_TOL: f64 = 1e-7;
-/// Secular steps [`secular_bound`] takes at most (it stops far earlier as a rule).
-const SECULAR_BOUND_STEPS: usize = 40;
-/// Below this relative size of the 2×2 determinant the closed-form bound is not trusted.
-const DET_FLOOR: f64 = 1e-6;
-/// Steps between recomputations of the bound basis and the projections on it: at least
-/// `REFRESH_MIN`, doubling up to `REFRESH_MAX` while the bounds stay strong (a queue of at most
-/// `QUEUE_TOLERANCE` + n/256 candidates), halving when they do not.
+/// Steps between recomputations of the test basis and the projections on it: at least
+/// `REFRESH_MIN`, doubling up to `REFRESH_MAX` while the test stays strong (at most
+/// `DIRECT` + n/1024 candidates left), halving when it does not.
 const REFRESH_MIN: usize = 8;
 const REFRESH_MAX: usize = 64;
-const QUEUE_TOLERANCE: usize = 16;
-/// How many of a step's best candidates seed the next step's cut.
-const LEADERS: usize = 10;
-/// Blocks of the ascending-bound visit at least this long get their Ritz bounds in parallel.
-const PARALLEL_RITZ: usize = 64;
-/// Candidates in the first block of the ascending-bound visit; each further block is twice as
-/// long, up to `RITZ_BLOCK_MAX`.
-const RITZ_BLOCK: usize = 16;
-const RITZ_BLOCK_MAX: usize = 256;
+/// Exact scores per step (beyond the guesses and n/1024) above which the basis is refreshed
+/// sooner.
+const DIRECT: usize = 24;
+/// Candidates with the lowest keys whose exact scores set a step's first cut.
+const GUESSES: usize = 4;
 /// Candidates per chunk of the bound pass (one rayon task each).
 const BOUND_CHUNK: usize = 1024;
 /// Below this size a step is too short to pay for rayon.
 const PARALLEL_BOUND: usize = 2048;
 /// Below this many row × column products a Gram rebuild is too short to pay for rayon.
 const PARALLEL_GRAM: usize = 20_000;
+/// Bands of the Gram triangle built in parallel (a few more than cores, for balance).
+const GRAM_BANDS: usize = 4;
 
 /// The reference for [`eliminate`]: the same greedy, scoring every candidate exactly at every
 /// step (one secular solve pair per candidate). Kept for tests and the benchmark.
@@ -741,109 +796,6 @@ pub fn eliminate_reference(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)
         }
     }
     (removed, curve)
-}
-
-/// The 2k extreme eigenvectors for [`ritz_bound`], transposed: entry (b, e) at `b * 2 * RITZ_K + e`
-/// holds component b of eigenvector e (e < k: the k lowest, ascending; k ≤ e < 2k: the k highest,
-/// ascending), so a row's projections on all of them are one pass over the row with 2k
-/// independent sums.
-fn extremes_transposed(vt: &[f64], m: usize, k: usize, ext: &mut [f64]) {
-    ext.fill(0.0);
-    for b in 0..m {
-        let slot = &mut ext[b * 2 * RITZ_K..(b + 1) * 2 * RITZ_K];
-        for i in 0..k {
-            slot[i] = vt[i * m + b];
-            slot[k + i] = vt[(m - k + i) * m + b];
-        }
-    }
-}
-
-/// Bounds on the extremes after removing row `r` (‖r‖² = `rr`): (h, l) with λ'max ≥ h and
-/// λ'min ≤ l, sharper than Rayleigh's: the k eigen-directions at each end are kept exactly and
-/// the rest of z is lumped into one extra direction on the far pole. With t = ‖r‖² − Σ_{i≤k} zᵢ²,
-/// the term Σ_{i>k} zᵢ²/(λᵢ − x) of the secular function is at least t/(λₘ − x) for x < λ₁, so the
-/// smallest root of the lumped (k+1)-term equation lies above λ'min; at the top,
-/// Σ_{i≤m−k} zᵢ²/(x − λᵢ) is at least t'/(x − λ₁), so the largest lumped root lies below λ'max.
-/// The lumped equations are those of (k+1)×(k+1) matrices diag − z̃·z̃ᵀ; their extremes are bounded
-/// by Rayleigh quotients ([`secular_bound`]), valid however far the iteration got. `ext` is
-/// [`extremes_transposed`]. l ≤ 0 = no information.
-fn ritz_bound(lam: &[f64], ext: &[f64], r: &[f64], rr: f64, k: usize) -> (f64, f64) {
-    let m = lam.len();
-    let mut p = [0.0; 2 * RITZ_K];
-    for (slot, &x) in ext.chunks_exact(2 * RITZ_K).zip(r) {
-        for (pe, &v) in p.iter_mut().zip(slot) {
-            *pe += v * x;
-        }
-    }
-    let mut l = [0.0; RITZ_K + 1];
-    let mut z = [0.0; RITZ_K + 1];
-    l[..k].copy_from_slice(&lam[..k]);
-    z[..k].copy_from_slice(&p[..k]);
-    let head: f64 = z[..k].iter().map(|v| v * v).sum();
-    l[k] = lam[m - 1];
-    z[k] = (rr - head).max(0.0).sqrt();
-    let zz: f64 = z[..=k].iter().map(|v| v * v).sum();
-    let lo = secular_bound(&l[..=k], &z[..=k], l[0] - zz, l[0], 0, true);
-    l[0] = lam[0];
-    l[1..=k].copy_from_slice(&lam[m - k..]);
-    z[1..=k].copy_from_slice(&p[k..2 * k]);
-    let tail: f64 = z[1..=k].iter().map(|v| v * v).sum();
-    z[0] = (rr - tail).max(0.0).sqrt();
-    let zz: f64 = z[..=k].iter().map(|v| v * v).sum();
-    let hi = secular_bound(&l[..=k], &z[..=k], l[k - 1].max(l[k] - zz), l[k], k, false);
-    (hi, lo)
-}
-
-/// A bound on an extreme eigenvalue of M = diag(l) − z·zᵀ, whose secular root lies in (a, b) next
-/// to the pole `pole` (see [`secular_root`]): on the smallest when `low` (the result is ≥ it),
-/// else on the largest (the result is ≤ it). The secular iteration is [`secular_root`]'s, but
-/// each point x it visits also yields the Rayleigh quotient of w = (diag(l) − x)⁻¹z, the
-/// inverse-iteration vector for shift x: a bound on the extreme whatever x is (any vector's
-/// quotient is one), and one that is exact at the root with an error quadratic in x's. So a
-/// coarse x gives a sharp bound: the iteration stops once x and its quotient agree to
-/// [`RITZ_TOL`]. The bracket end on the far side of the root is a bound too (the fallback).
-fn secular_bound(l: &[f64], z: &[f64], mut a: f64, mut b: f64, pole: usize, low: bool) -> f64 {
-    let scale = b.abs().max(a.abs()).max(f64::MIN_POSITIVE);
-    let lp = l[pole];
-    let mut best = if low { b } else { a };
-    let mut x = 0.5 * (a + b);
-    for _ in 0..SECULAR_BOUND_STEPS {
-        // v = zᵀw = ψ(x), d = wᵀw = ψ'(x), lw = wᵀ·diag(l)·w.
-        let (mut v, mut d, mut lw) = (0.0, 0.0, 0.0);
-        for (&li, &zi) in l.iter().zip(z) {
-            let w = zi / (li - x);
-            v += zi * w;
-            d += w * w;
-            lw += li * w * w;
-        }
-        let q = (lw - v * v) / d;
-        if q.is_finite() {
-            best = if low { best.min(q) } else { best.max(q) };
-        }
-        if (q - x).abs() <= RITZ_TOL * scale {
-            break;
-        }
-        let f = 1.0 - v;
-        if f > 0.0 {
-            a = x;
-        } else if f < 0.0 {
-            b = x;
-        } else {
-            break;
-        }
-        let c = d * (lp - x) * (lp - x);
-        let e = v - c / (lp - x);
-        let mut next = if e < 1.0 {
-            lp - c / (1.0 - e)
-        } else {
-            f64::NAN
-        };
-        if !(next > a && next < b) {
-            next = 0.5 * (a + b);
-        }
-        x = next;
-    }
-    best
 }
 
 fn cond_of(lmin: f64, lmax: f64) -> f64 {
@@ -1103,6 +1055,83 @@ mod tests {
         }
         check_bits(&j, 12, "columns over six decades");
         check_bits(&random_matrix(300, 2, 31), 2, "m = 2");
+        // Fewer columns than the bound basis has directions: its blocks share directions.
+        check_bits(&random_matrix(300, 3, 32), 3, "m = 3");
+        check_bits(&random_matrix(300, 5, 33), 5, "m = 5");
+    }
+
+    /// The bounds themselves, against exact scores: every key is at most the candidate's score,
+    /// and the full test rules a candidate out only at a cut below its score, for bases that are
+    /// stale (the eigenvectors of a Gram matrix with other rows), floors from interlacing and
+    /// cuts on both sides of the score.
+    #[test]
+    fn keys_and_test_never_exceed_the_exact_score() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(50);
+        for m in [2, 3, 4, 5, 8, 22] {
+            for trial in 0..4 {
+                let n = m + 40 + 30 * trial;
+                let j = random_matrix(n + 5, m, rng.random());
+                let old: Vec<usize> = (0..n + 5).collect();
+                let now: Vec<usize> = (5..n + 5).collect();
+                let (lam_old, vt_old) = spectrum(&gram(&j, m, &old));
+                let g = gram(&j, m, &now);
+                let (lam, vt) = spectrum(&g);
+                let mut bounds = Bounds::new(m);
+                let mut proj: [Vec<f64>; KEYED] = std::array::from_fn(|_| vec![0.0; n]);
+                let ids: Vec<usize> = now.clone();
+                bounds.refresh(&vt_old, &j, &ids, &mut proj);
+                // λₘ₋₁ of `g` is at least λₘ₋₆ of the Gram matrix with five rows more.
+                let floor = if m >= 7 {
+                    lam_old[m - 7]
+                } else {
+                    f64::NEG_INFINITY
+                };
+                bounds.update(&g, floor);
+                let mut keys = vec![0.0; n];
+                bounds.keys(&proj, 0, &mut keys);
+                let (mut ruled, mut close) = (0, 0);
+                for (p, &i) in ids.iter().enumerate() {
+                    let r = &j[i * m..(i + 1) * m];
+                    let z: Vec<f64> = (0..m)
+                        .map(|k| {
+                            vt[k * m..(k + 1) * m]
+                                .iter()
+                                .zip(r)
+                                .map(|(v, x)| v * x)
+                                .sum()
+                        })
+                        .collect();
+                    let (lo, hi) = downdated_extremes(&lam, &z);
+                    assert!(lo > 0.0, "m {m}: a random design stays regular");
+                    let score = hi / lo;
+                    let tol = 1e-12 * score;
+                    assert!(
+                        keys[p] <= score + tol,
+                        "m {m}, row {i}: key {} > score {score}",
+                        keys[p]
+                    );
+                    close += usize::from(keys[p] > 0.5 * score);
+                    for rel in [-0.5, -0.1, -1e-2, -1e-3, -1e-6, -1e-9, 1e-9, 1e-6, 1e-3] {
+                        let cut = score * (1.0 + rel);
+                        bounds.set_cut(cut);
+                        if bounds.rules_out(&proj, p, r) {
+                            ruled += 1;
+                            assert!(
+                                score > cut - tol,
+                                "m {m}, row {i}: ruled out at cut {cut} above its score {score}"
+                            );
+                        }
+                    }
+                }
+                // And neither is vacuous: keys come near the scores, and cuts below the scores
+                // do rule candidates out.
+                assert!(
+                    close > n / 2,
+                    "m {m}: only {close} of {n} keys above half the score"
+                );
+                assert!(ruled > 0, "m {m}: the test ruled nothing out");
+            }
+        }
     }
 
     #[test]
