@@ -352,6 +352,7 @@ struct Bounds {
     inv_cut: f64,
     /// False where nothing may be ruled out (no finite positive cut: G numerically singular).
     on: bool,
+    /// Scratch: G·u for every basis row.
     gu: Vec<f64>,
 }
 
@@ -367,7 +368,7 @@ impl Bounds {
             floor: f64::NEG_INFINITY,
             inv_cut: 0.0,
             on: false,
-            gu: vec![0.0; m],
+            gu: vec![0.0; (K_LO + 2) * m],
         }
     }
 
@@ -425,18 +426,17 @@ impl Bounds {
     fn update(&mut self, g: &DMatrix<f64>, floor: f64) {
         let m = self.m;
         let gs = g.as_slice();
-        let mut quad = |x: usize, y: usize| -> f64 {
-            // G is symmetric: (G·u)ₐ is column a of G (contiguous) times u.
-            for (a, out) in self.gu.iter_mut().enumerate() {
-                *out = gs[a * m..(a + 1) * m]
-                    .iter()
-                    .zip(&self.basis[y * m..(y + 1) * m])
-                    .map(|(p, q)| p * q)
-                    .sum();
+        // G·u for every basis row used (G is symmetric: (G·u)ₐ is column a of G times u).
+        for d in (0..self.klo).chain(K_LO..K_LO + 2) {
+            let u = &self.basis[d * m..(d + 1) * m];
+            for (a, out) in self.gu[d * m..(d + 1) * m].iter_mut().enumerate() {
+                *out = gs[a * m..(a + 1) * m].iter().zip(u).map(|(p, q)| p * q).sum();
             }
+        }
+        let quad = |x: usize, y: usize| -> f64 {
             self.basis[x * m..(x + 1) * m]
                 .iter()
-                .zip(&self.gu)
+                .zip(&self.gu[y * m..(y + 1) * m])
                 .map(|(p, q)| p * q)
                 .sum()
         };
@@ -705,16 +705,11 @@ fn spectrum(g: &DMatrix<f64>) -> (Vec<f64>, Vec<f64>) {
     let mut order: Vec<usize> = (0..m).collect();
     order.sort_by(|&a, &b| eig.eigenvalues[a].total_cmp(&eig.eigenvalues[b]));
     let lam: Vec<f64> = order.iter().map(|&k| eig.eigenvalues[k]).collect();
-    let vt: Vec<f64> = order
-        .iter()
-        .flat_map(|&k| {
-            eig.eigenvectors
-                .column(k)
-                .iter()
-                .copied()
-                .collect::<Vec<_>>()
-        })
-        .collect();
+    let vectors = eig.eigenvectors.as_slice();
+    let mut vt = Vec::with_capacity(m * m);
+    for &k in &order {
+        vt.extend_from_slice(&vectors[k * m..(k + 1) * m]);
+    }
     (lam, vt)
 }
 
