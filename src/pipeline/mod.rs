@@ -25,7 +25,7 @@ use crate::model::{self, Identifiability, IdentifyOptions, MeasurementModel, N_P
 use crate::order;
 use crate::robot::Robot;
 use crate::safety::path::{self as safepath, Plan};
-use crate::safety::Checker;
+use crate::safety::{Checker, LineMemo};
 use crate::sample::{self, Progress, SampleConfig, SampleReport};
 use crate::select::{self, SelectConfig};
 use crate::units::{fmt_fixed, to_deg, to_mm};
@@ -665,6 +665,9 @@ fn select_order_plan(
 ) -> Result<Planned, PipelineError> {
     let pool = &sections.pool.candidates;
     let speeds = ck.robot.max_speeds();
+    // The rounds plan mostly the same moves: the planner checks each once.
+    let memo = LineMemo::default();
+    let planner = ck.remembering(&memo);
     let mut usable: Vec<usize> = (0..pool.len()).collect();
     let mut replaced = 0;
     let mut round = 0;
@@ -690,7 +693,7 @@ fn select_order_plan(
         progress.stage("order");
         let (ordered, time_unsorted) = sections.order(&chosen, &opts.start, &speeds)?;
         progress.stage("plan");
-        let plan = safepath::plan_sections(ck, &ordered, opts.blend, &speeds, opts.seed);
+        let plan = safepath::plan_sections(&planner, &ordered, opts.blend, &speeds, opts.seed);
         if plan.dropped.is_empty()
             || round == REPAIR_ROUNDS
             || usable.len() <= id.count() + plan.dropped.len()

@@ -102,6 +102,52 @@ pub struct Checker<'a> {
     sweep: [f64; 6],
     lo: [f64; 6],
     hi: [f64; 6],
+    /// The planner's memory of straight moves already checked (see [`LineMemo`]); none for
+    /// `verify`, which re-checks everything.
+    memo: Option<&'a LineMemo>,
+}
+
+/// The verdicts of straight moves already checked, with the extremes each met, so that the
+/// planner checks a move once however often its searches reach it (the repair rounds, the
+/// roadmap searches of neighbouring legs and the insertion of deferred poses go over the same
+/// moves again and again: on a ±360° arm half of them were repeats). A verdict is a function of
+/// the move and the checker (bar mounted or not), so replaying it changes nothing: the same
+/// result and, merged, the same extremes. Shared by the planning threads; a move two threads
+/// check at once is checked twice and stored once.
+#[derive(Default)]
+pub struct LineMemo {
+    seen: std::sync::Mutex<std::collections::HashMap<LineKey, Checked>>,
+}
+
+/// A straight move: the checker's mode and the bits of both ends.
+#[derive(Clone, Copy, PartialEq, Eq, Hash)]
+struct LineKey(bool, [u64; 12]);
+
+impl LineKey {
+    fn new(mounted: bool, a: &[f64; 6], b: &[f64; 6]) -> Self {
+        LineKey(
+            mounted,
+            std::array::from_fn(|k| if k < 6 { a[k] } else { b[k - 6] }.to_bits()),
+        )
+    }
+}
+
+/// What a check of one move found: its extremes and its verdict.
+type Checked = (Extremes, Result<(), (f64, Violation)>);
+
+impl LineMemo {
+    fn get(&self, key: &LineKey) -> Option<Checked> {
+        self.lock().get(key).cloned()
+    }
+
+    fn put(&self, key: LineKey, checked: Checked) {
+        self.lock().insert(key, checked);
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, std::collections::HashMap<LineKey, Checked>> {
+        // A panic elsewhere cannot leave a half-written entry: insert is one call.
+        self.seen.lock().unwrap_or_else(|e| e.into_inner())
+    }
 }
 
 impl<'a> Checker<'a> {
@@ -128,6 +174,18 @@ impl<'a> Checker<'a> {
             sweep: scene.sweep_radius(),
             lo,
             hi,
+            memo: None,
+        }
+    }
+
+    /// The same checker with the planner's memory of checked moves (for planning only).
+    pub fn remembering<'m>(&self, memo: &'m LineMemo) -> Checker<'m>
+    where
+        'a: 'm,
+    {
+        Checker {
+            memo: Some(memo),
+            ..*self
         }
     }
 
@@ -432,7 +490,20 @@ impl<'a> Checker<'a> {
         ext: &mut Extremes,
     ) -> Result<(), (f64, Violation)> {
         let var: [f64; 6] = std::array::from_fn(|i| (b[i] - a[i]).abs());
-        self.curve(&|s| lerp(a, b, s), &var, ext)
+        let Some(memo) = self.memo else {
+            return self.curve(&|s| lerp(a, b, s), &var, ext);
+        };
+        let key = LineKey::new(self.mounted, a, b);
+        let (met, verdict) = memo.get(&key).unwrap_or_else(|| {
+            let mut met = Extremes::default();
+            let verdict = self.curve(&|s| lerp(a, b, s), &var, &mut met);
+            memo.put(key, (met.clone(), verdict.clone()));
+            (met, verdict)
+        });
+        // Extremes are minima, maxima and a count: merging what the move met is the same as
+        // having met it sample by sample.
+        ext.merge(&met);
+        verdict
     }
 }
 

@@ -89,6 +89,25 @@ pub fn plan(
         .into_par_iter()
         .map(|idx| leg(ck, &tour[idx - 1], &tour[idx], &roadmap, speeds, seed, idx))
         .collect();
+    // Where a leg fails, its pose is deferred and the tour goes on from the pose before it: those
+    // legs too are worked out in parallel beforehand (the same function of the same poses and
+    // seed, so the walk below comes out as if it had made them itself).
+    let skips: Vec<Option<Leg>> = (1..tour.len())
+        .into_par_iter()
+        .map(|idx| {
+            (idx + 1 < tour.len() && legs[idx - 1].is_err()).then(|| {
+                leg(
+                    ck,
+                    &tour[idx - 1],
+                    &tour[idx + 1],
+                    &roadmap,
+                    speeds,
+                    seed,
+                    idx + 1,
+                )
+            })
+        })
+        .collect();
     for (idx, q) in tour.iter().enumerate() {
         let Some(last) = wps.last().map(|w| w.q) else {
             match ck.pose(q) {
@@ -107,6 +126,10 @@ pub fn plan(
         let fresh;
         let l = if last == tour[idx - 1] {
             &legs[idx - 1]
+        } else if let Some(Some(skip)) =
+            (idx >= 2 && last == tour[idx - 2]).then(|| &skips[idx - 2])
+        {
+            skip
         } else {
             fresh = leg(ck, &last, q, &roadmap, speeds, seed, idx);
             &fresh
@@ -143,8 +166,9 @@ pub fn plan(
             })
             .collect();
         places.sort_by(|x, y| x.0.total_cmp(&y.0).then(x.1.cmp(&y.1)));
-        let mut placed = false;
-        for (rank, &(_, i)) in places.iter().take(INSERT_TRIES).enumerate() {
+        places.truncate(INSERT_TRIES);
+        // The places are tried in parallel; the first that works, in rank order, is taken.
+        let attempt = |(rank, &(_, i)): (usize, &(f64, usize))| {
             let mut e = Extremes::default();
             let a = wps[i].q;
             let b = wps.get(i + 1).map(|w| w.q);
@@ -155,8 +179,7 @@ pub fn plan(
                 super::roadmap::connect(ck, &a, &q, &roadmap, speeds, &mut e)
             } else {
                 None
-            };
-            let Some(into) = into else { continue };
+            }?;
             let out = match b {
                 None => Some(Vec::new()),
                 Some(b) if ck.line(&q, &b, &mut e).is_ok() => Some(Vec::new()),
@@ -164,8 +187,17 @@ pub fn plan(
                     super::roadmap::connect(ck, &q, &b, &roadmap, speeds, &mut e)
                 }
                 Some(_) => None,
-            };
-            let Some(out) = out else { continue };
+            }?;
+            Some((i, into, out, e))
+        };
+        let found = places
+            .par_iter()
+            .enumerate()
+            .map(attempt)
+            .find_first(Option::is_some)
+            .flatten();
+        let mut placed = false;
+        if let Some((i, into, out, e)) = found {
             ext.merge(&e);
             supports += into.len() + out.len();
             let support = |v: [f64; 6]| Waypoint {
@@ -179,7 +211,6 @@ pub fn plan(
             seq.extend(out.into_iter().map(support));
             wps.splice(i + 1..i + 1, seq);
             placed = true;
-            break;
         }
         if !placed {
             dropped.push(Dropped {
