@@ -291,6 +291,9 @@ struct Ctx<'a> {
     /// base rotation and its horizontal length.
     zrow: Vector3<f64>,
     zrowh: f64,
+    /// sin and cos of θ1 + q1 for the q1 grid values k·step, k = k_lo..=k_hi (the held value
+    /// alone when joint 1 is held): computed once, not per pose.
+    sc1: Vec<(f64, f64)>,
 }
 
 /// Slack of the whole-circle and whole-branch tests (m): they only ever skip what the exact
@@ -329,7 +332,15 @@ impl<'a> Ctx<'a> {
         let radix = std::array::from_fn(|i| grids[i].len());
         let a0 = model.base.r.transpose() * cell.fixture_axis;
         let zrow = model.base.r.row(2).transpose();
+        let g1 = &grids[0];
+        let sc1 = match g1.held {
+            Some(v) => vec![(dh[0].theta + v).sin_cos()],
+            None => (g1.k_lo..=g1.k_hi)
+                .map(|k| (dh[0].theta + k as f64 * g1.step).sin_cos())
+                .collect(),
+        };
         Ctx {
+            sc1,
             cell,
             base: model.base,
             grids,
@@ -432,7 +443,7 @@ impl<'a> Ctx<'a> {
     ) {
         let g = &self.grids[0];
         if let Some(v) = g.held {
-            self.check(x, cup, v, 0, idx, cfg, acc);
+            self.check(x, cup, v, self.sc1[0], 0, idx, cfg, acc);
             return;
         }
         let (rmin, mut rmax) = (self.cell.bar_min, self.cell.bar_max);
@@ -538,6 +549,7 @@ impl<'a> Ctx<'a> {
                     x,
                     cup,
                     k as f64 * g.step,
+                    self.sc1[(k - g.k_lo) as usize],
                     (k - g.k_lo) as u64,
                     idx,
                     cfg,
@@ -548,7 +560,7 @@ impl<'a> Ctx<'a> {
         }
     }
 
-    /// The exact test of one pose.
+    /// The exact test of one pose; `(s, c)` = sin and cos of θ1 + q1.
     #[inline]
     #[allow(clippy::too_many_arguments)]
     fn check(
@@ -556,13 +568,13 @@ impl<'a> Ctx<'a> {
         x: &Vector3<f64>,
         cup: &Vector3<f64>,
         q1: f64,
+        (s, c): (f64, f64),
         j1: u64,
         idx: &[u64; 6],
         cfg: &SampleConfig,
         acc: &mut Acc,
     ) {
         acc.evaluated += 1;
-        let (s, c) = (self.theta1 + q1).sin_cos();
         let p0 = Vector3::new(c * x.x - s * x.y, s * x.x + c * x.y, x.z);
         let p = self.base.apply(&p0);
         let cup0 = Vector3::new(c * cup.x - s * cup.y, s * cup.x + c * cup.y, cup.z);
