@@ -186,6 +186,7 @@ fn eliminate_in_pool(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
     let mut proj: [Vec<f64>; KEYED] = std::array::from_fn(|_| vec![0.0; n0]);
     let mut keys = vec![0.0; n0];
     let mut heap: std::collections::BinaryHeap<Queued> = std::collections::BinaryHeap::new();
+    let mut parts: Vec<Vec<Queued>> = Vec::new();
     let mut z = vec![0.0; m];
     let mut period = REFRESH_MIN;
     // Step 0's spectrum, basis and keys; every later step gets its spectrum and its keys
@@ -242,16 +243,32 @@ fn eliminate_in_pool(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
         }
         // The others whose key does not exceed the cut, likeliest first (a heap: as a rule only
         // a few come off it before a key exceeds the cut).
-        heap.clear();
-        heap.extend(
+        let below = |start: usize, ks: &[f64], out: &mut Vec<Queued>| {
+            out.clear();
+            for (k, &key) in ks.iter().enumerate() {
+                let p = start + k;
+                if key.partial_cmp(&cut) != Some(std::cmp::Ordering::Greater) && !guesses.holds(p) {
+                    out.push(Queued(key, p));
+                }
+            }
+        };
+        let mut list = heap.into_vec();
+        if n >= PARALLEL_BOUND {
+            let chunks = n.div_ceil(BOUND_CHUNK);
+            parts.resize_with(chunks.max(parts.len()), Vec::new);
             keys[..n]
-                .iter()
+                .par_chunks(BOUND_CHUNK)
+                .zip(parts[..chunks].par_iter_mut())
                 .enumerate()
-                .filter(|&(p, &key)| {
-                    key.partial_cmp(&cut) != Some(std::cmp::Ordering::Greater) && !guesses.holds(p)
-                })
-                .map(|(p, &key)| Queued(key, p)),
-        );
+                .for_each(|(c, (ks, out))| below(c * BOUND_CHUNK, ks, out));
+            list.clear();
+            for part in &parts[..chunks] {
+                list.extend_from_slice(part);
+            }
+        } else {
+            below(0, &keys[..n], &mut list);
+        }
+        heap = std::collections::BinaryHeap::from(list);
         while let Some(Queued(key, p)) = heap.pop() {
             if key > cut {
                 break;
@@ -265,6 +282,19 @@ fn eliminate_in_pool(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
             period = (period * 2).min(REFRESH_MAX);
         }
         let (_, i, p) = best;
+        // The next step's λₘ₋₁, bounded from below without its eigendecomposition: the second
+        // largest root of this step's secular equation for the row removed.
+        let floor = {
+            let r = row(i);
+            for k in 0..m {
+                z[k] = vt[k * m..(k + 1) * m]
+                    .iter()
+                    .zip(r)
+                    .map(|(v, x)| v * x)
+                    .sum();
+            }
+            second_downdated(&lam, &z)
+        };
         ids.swap_remove(p);
         for col in &mut proj {
             col.swap_remove(p);
@@ -284,20 +314,13 @@ fn eliminate_in_pool(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
             continue;
         }
         // The next step's keys need no eigendecomposition of its Gram matrix: the basis may
-        // come from this step's (any orthonormal one will do), and its λₘ₋₁ is at least this
-        // step's λₘ₋₂ (interlacing). So its spectrum is computed alongside them.
+        // come from this step's (any orthonormal one will do), and its floor is above. So its
+        // spectrum is computed alongside them.
         if age >= period {
             age = 0;
             bounds.refresh(&vt, j, &ids, &mut proj);
         }
-        bounds.update(
-            &g,
-            if m >= 3 {
-                lam[m - 3]
-            } else {
-                f64::NEG_INFINITY
-            },
-        );
+        bounds.update(&g, floor);
         let n = ids.len();
         ((lam, vt), lows) = rayon::join(
             || spectrum(&g),
@@ -430,7 +453,11 @@ impl Bounds {
         for d in (0..self.klo).chain(K_LO..K_LO + 2) {
             let u = &self.basis[d * m..(d + 1) * m];
             for (a, out) in self.gu[d * m..(d + 1) * m].iter_mut().enumerate() {
-                *out = gs[a * m..(a + 1) * m].iter().zip(u).map(|(p, q)| p * q).sum();
+                *out = gs[a * m..(a + 1) * m]
+                    .iter()
+                    .zip(u)
+                    .map(|(p, q)| p * q)
+                    .sum();
             }
         }
         let quad = |x: usize, y: usize| -> f64 {
@@ -729,7 +756,7 @@ const REFRESH_MAX: usize = 64;
 /// sooner.
 const DIRECT: usize = 24;
 /// Candidates with the lowest keys whose exact scores set a step's first cut.
-const GUESSES: usize = 4;
+const GUESSES: usize = 8;
 /// Candidates per chunk of the bound pass (one rayon task each).
 const BOUND_CHUNK: usize = 1024;
 /// Below this size a step is too short to pay for rayon.
@@ -800,6 +827,46 @@ fn cond_of(lmin: f64, lmax: f64) -> f64 {
         f64::INFINITY
     }
 }
+
+/// A lower bound on the second largest eigenvalue of diag(λ) − z·zᵀ (λ ascending): by
+/// interlacing it lies in [λₘ₋₂, λₘ₋₁], where the secular function f(x) = 1 − Σ zᵢ²/(λᵢ − x)
+/// falls through its root; bisection keeps a point where f > 0, below the root. (Where
+/// zₘ₋₁ = 0, λₘ₋₁ itself stays an eigenvalue, and the point found is below it.) For m = 2 the
+/// bracket is the smallest eigenvalue's, [λ₁ − ‖z‖², λ₁].
+fn second_downdated(lam: &[f64], z: &[f64]) -> f64 {
+    let m = lam.len();
+    if m < 2 {
+        return f64::NEG_INFINITY;
+    }
+    let zz: f64 = z.iter().map(|v| v * v).sum();
+    let (mut a, mut b) = if m >= 3 {
+        (lam[m - 3], lam[m - 2])
+    } else {
+        (lam[0] - zz, lam[0])
+    };
+    for _ in 0..SECOND_BISECTIONS {
+        let x = 0.5 * (a + b);
+        if !(x > a && x < b) {
+            break;
+        }
+        let f: f64 = 1.0
+            - lam
+                .iter()
+                .zip(z)
+                .map(|(l, zi)| zi * zi / (l - x))
+                .sum::<f64>();
+        if f > 0.0 {
+            a = x;
+        } else {
+            b = x;
+        }
+    }
+    a
+}
+
+/// Bisection steps of [`second_downdated`]: 2⁻⁴⁰ of the bracket, far below the differences
+/// between candidates' scores.
+const SECOND_BISECTIONS: usize = 40;
 
 /// Smallest and largest eigenvalue of diag(λ) − z·zᵀ (λ ascending), from the secular equation
 /// f(x) = 1 − Σ zᵢ²/(λᵢ − x) = 0. Interlacing brackets them: λ'₁ ∈ [λ₁ − ‖z‖², λ₁] and
@@ -914,6 +981,15 @@ mod tests {
             let (lo, hi) = downdated_extremes(&lam, &z);
             let rr = DMatrix::from_fn(m, m, |a, b| r[a] * r[b]);
             let want = SymmetricEigen::new(g - rr).eigenvalues;
+            // The floor for the next step: at most the second largest, and close to it.
+            let mut sorted: Vec<f64> = want.iter().copied().collect();
+            sorted.sort_by(f64::total_cmp);
+            let second = sorted[m - 2];
+            let floor = second_downdated(&lam, &z);
+            assert!(
+                floor <= second + 1e-12 * want.max() && floor >= second - 1e-9 * want.max(),
+                "m {m}: floor {floor} vs second largest {second}"
+            );
             assert!(
                 (lo - want.min()).abs() <= 1e-9 * want.max(),
                 "{lo} vs {}",
