@@ -25,17 +25,22 @@ pub use cost::move_time;
 /// exceeds 1 s) to be accepted, so rounding noise can never make the search cycle.
 const EPS: f64 = 1e-12;
 
-/// Perturbations tried per 100 poses after the first local optimum (see `local::perturb`). On
-/// the NJ-130 bench pool of 3,400 poses, over 4 kick seeds, 1,800 / 2,400 / 3,000 gave a mean gap
-/// to LKH-3 of 0.27 / 0.25 / 0.22 % in 0.45 / 0.59 / 0.74 s (the old 1,500 with strict acceptance:
-/// 0.34 % in 0.87 s on the same loaded machine); 2,400 keeps the 1 s target with a margin.
-const KICKS_PER_100_POSES: usize = 2400;
+/// Perturbations after the first local optimum (see `local::perturb`): [`MIN_KICKS`] plus
+/// this many per pose, at most [`MAX_KICKS_PER_POSE`] per pose. A kick on a big pool costs more
+/// than on a small one (its repair moves reverse and shift longer stretches of the array: about
+/// 4,200 positions per kick at 3,400 poses against 1,100 at 1,000), so the count grows slower than
+/// the pool. On the NJ-130 bench pool of 3,400 poses, over 5 kick seeds, 60,400 kicks (this rule)
+/// gave a mean gap to LKH-3 of 0.259 % (0.232-0.291 %) in 0.83-0.94 s, the former 2,400 per 100
+/// poses (81,600) 0.254 % (0.231-0.277 %) in 1.10-1.18 s on the same (slow) machine; at 1,000
+/// poses 46,000 kicks gave 0.166 % where 40,000 gave 0.202 %.
+const KICKS_PER_POSE: usize = 6;
 /// Fewest perturbations on instances big enough to use them (at most [`MAX_KICKS_PER_POSE`] per
 /// pose): smaller pools are cheap to kick, and their gap to LKH-3 varies more with the seed. At
 /// 1,000 poses 40,000 instead of 24,000 took the mean gap over 4 seeds from 0.22 to 0.16 % (worst
 /// 0.28 to 0.20 %) for 0.28 s.
 const MIN_KICKS: usize = 40_000;
-/// Caps [`MIN_KICKS`] on tiny instances (35 poses are solved exactly long before 40,000 kicks).
+/// Caps the count on small instances (35 poses are solved exactly long before 40,000 kicks; a
+/// compile's tours, of tens of poses, get 200 per pose).
 const MAX_KICKS_PER_POSE: usize = 200;
 /// Fixed seed of the perturbation generator: the tour is a function of the input alone.
 const KICK_SEED: u64 = 0x6564_6262;
@@ -105,7 +110,7 @@ pub fn solve(poses: &[[f64; 6]], start: usize, max_speed: &[f64; 6]) -> Result<T
         &nbrs,
         &mut order,
         eps,
-        (n * KICKS_PER_100_POSES / 100).max(MIN_KICKS.min(n * MAX_KICKS_PER_POSE)),
+        (MIN_KICKS + KICKS_PER_POSE * n).min(MAX_KICKS_PER_POSE * n),
         KICK_SEED,
     );
 
