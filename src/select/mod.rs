@@ -141,17 +141,18 @@ pub fn knee(curve: &[(usize, f64)], m: usize) -> (usize, String) {
 /// of removing row r is λ'max/λ'min, the extreme eigenvalues of G − r·rᵀ. By Rayleigh-Ritz, for
 /// any orthonormal U the smallest eigenvalue of Uᵀ(G − r·rᵀ)U bounds λ'min from above and the
 /// largest, for another U, bounds λ'max from below; interlacing adds λ'max ≥ λₘ₋₁. U holds the
-/// [`K_LO`] lowest and the two highest eigenvectors of a recent step, and every row's
+/// `K_LO` (4) lowest and the two highest eigenvectors of a recent step, and every row's
 /// projections on four of them are kept from that step (a refresh, when the bounds grow weak);
 /// each step forms the blocks L (low) and H (high) of UᵀGU once. Greedy elimination clusters
 /// the extreme eigenvalues (two to four nearly equal at each end, candidates' scores 10⁻⁵
 /// apart), and a row moves them by less than the clusters are wide, so the blocks follow the
 /// turning of a cluster exactly and an old basis serves well. Per step:
 /// 1. every candidate's key, λmax(H − b·bᵀ)/λmin(L₂ − a·aᵀ) on the leading 2 × 2 blocks (closed
-///    form; the numerator at least λₘ₋₁), a lower bound on its score: one branch-free,
-///    vectorised pass, in parallel, and computed alongside the step's eigendecomposition (the
-///    keys do not need it);
-/// 2. the candidates with the lowest keys ([`GUESSES`]) are scored exactly: the best of them is
+///    form; the numerator at least a lower bound on λₘ₋₁, the second root of the previous
+///    step's secular equation for the row it removed), a lower bound on its score: one
+///    branch-free, vectorised pass, in parallel, and computed alongside the step's
+///    eigendecomposition (the keys do not need it);
+/// 2. the candidates with the lowest keys (`GUESSES`, 8) are scored exactly: the best of them is
 ///    as a rule the step's best, and it sets the cut;
 /// 3. the candidates whose key does not exceed the cut are visited in ascending key order
 ///    until a key exceeds it; each is tested with the whole low block (L − a·aᵀ − (h/cut)·I
