@@ -206,14 +206,7 @@ fn eliminate_in_pool(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
         let slack = slack(&lam);
         age += 1;
         let exact = |p: usize, z: &mut [f64]| -> (f64, usize, usize) {
-            let r = row(ids[p]);
-            for k in 0..m {
-                z[k] = vt[k * m..(k + 1) * m]
-                    .iter()
-                    .zip(r)
-                    .map(|(v, x)| v * x)
-                    .sum();
-            }
+            eigen_coordinates(&vt, row(ids[p]), z);
             let (lo, hi) = downdated_extremes(&lam, z);
             let score = if lo > 0.0 { hi / lo } else { f64::INFINITY };
             (score, ids[p], p)
@@ -285,17 +278,8 @@ fn eliminate_in_pool(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
         let (_, i, p) = best;
         // The next step's λₘ₋₁, bounded from below without its eigendecomposition: the second
         // largest root of this step's secular equation for the row removed.
-        let floor = {
-            let r = row(i);
-            for k in 0..m {
-                z[k] = vt[k * m..(k + 1) * m]
-                    .iter()
-                    .zip(r)
-                    .map(|(v, x)| v * x)
-                    .sum();
-            }
-            second_downdated(&lam, &z)
-        };
+        eigen_coordinates(&vt, row(i), &mut z);
+        let floor = second_downdated(&lam, &z);
         ids.swap_remove(p);
         for col in &mut proj {
             col.swap_remove(p);
@@ -726,6 +710,19 @@ fn downdate(g: &mut DMatrix<f64>, r: &[f64]) {
     }
 }
 
+/// z = Vᵀr: the coordinates of row `r` in the eigenbasis `vt` (eigenvectors as rows), each a
+/// sum in component order (the same bits in the reference and the bounded search).
+fn eigen_coordinates(vt: &[f64], r: &[f64], z: &mut [f64]) {
+    let m = r.len();
+    for (k, zk) in z.iter_mut().enumerate() {
+        *zk = vt[k * m..(k + 1) * m]
+            .iter()
+            .zip(r)
+            .map(|(v, x)| v * x)
+            .sum();
+    }
+}
+
 /// Eigenvalues ascending and the eigenvectors as rows in the same order (row-major m × m).
 fn spectrum(g: &DMatrix<f64>) -> (Vec<f64>, Vec<f64>) {
     let m = g.nrows();
@@ -790,13 +787,7 @@ pub fn eliminate_reference(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)
                 || vec![0.0; m],
                 |z, (pos, &i)| {
                     let r = row(i);
-                    for k in 0..m {
-                        z[k] = vt[k * m..(k + 1) * m]
-                            .iter()
-                            .zip(r)
-                            .map(|(v, x)| v * x)
-                            .sum();
-                    }
+                    eigen_coordinates(&vt, r, z);
                     let (lo, hi) = downdated_extremes(&lam, z);
                     let score = if lo > 0.0 { hi / lo } else { f64::INFINITY };
                     (score, i, pos)
