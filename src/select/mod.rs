@@ -745,17 +745,15 @@ const BOUND_MARGIN: f64 = 1e-9;
 /// exceeds 2·10⁻³, so the bounds would have to beat the best score by that much anyway, and the
 /// secular roots' absolute rounding (ε·‖z‖²) is no longer small against λ'min.
 const EXHAUSTIVE_RATIO: f64 = 1e10;
-/// Steps between recomputations of the test basis and the projections on it: at least
-/// `REFRESH_MIN`, doubling up to `REFRESH_MAX` while the test stays strong (at most
-/// `DIRECT` + n/1024 candidates left), halving when it does not.
+/// Steps between recomputations of the bound basis and the projections on it: at least
+/// `REFRESH_MIN`, doubling up to `REFRESH_MAX` while the bounds stay strong (at most
+/// `GUESSES` + `DIRECT` + n/1024 exact scores a step), halving when they do not.
 const REFRESH_MIN: usize = 8;
 const REFRESH_MAX: usize = 64;
-/// Exact scores per step (beyond the guesses and n/1024) above which the basis is refreshed
-/// sooner.
 const DIRECT: usize = 24;
 /// Candidates with the lowest keys whose exact scores set a step's first cut.
 const GUESSES: usize = 8;
-/// Candidates per chunk of the bound pass (one rayon task each).
+/// Candidates per chunk of the key pass and the key filter (one rayon task each).
 const BOUND_CHUNK: usize = 1024;
 /// Below this size a step is too short to pay for rayon.
 const PARALLEL_BOUND: usize = 2048;
