@@ -1264,6 +1264,41 @@ mod tests {
         check_bits(&j, m, "large outlier rows");
     }
 
+    proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig {
+            cases: 24,
+            ..Default::default()
+        })]
+        /// Random shapes and designs: the bounded search makes the exhaustive choices, bit for bit.
+        #[test]
+        fn bit_identical_on_random_shapes(
+            m in 2usize..=24,
+            extra in 1usize..=260,
+            design in 0u8..4,
+            seed in proptest::prelude::any::<u64>(),
+        ) {
+            let n = m + extra;
+            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+            let mut j = random_matrix(n, m, seed);
+            match design {
+                // Random signs: a nearly orthogonal design, clustered spectra from the start.
+                1 => j.iter_mut().for_each(|v| *v = if rng.random_bool(0.5) { 1.0 } else { -1.0 }),
+                // Columns over four decades.
+                2 => j
+                    .iter_mut()
+                    .enumerate()
+                    .for_each(|(k, v)| *v *= 10f64.powi((k % m) as i32 % 5 - 2)),
+                // A third of the rows repeated (exact ties).
+                3 => {
+                    let copies = j[..(n / 3) * m].to_vec();
+                    j[n * m - copies.len()..].copy_from_slice(&copies);
+                }
+                _ => {}
+            }
+            check_bits(&j, m, &format!("m {m}, n {n}, design {design}, seed {seed}"));
+        }
+    }
+
     #[test]
     fn bounded_elimination_equals_exhaustive_greedy_on_an_nj130_pool() {
         use crate::units::{DEG, MM};
