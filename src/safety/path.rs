@@ -196,7 +196,6 @@ pub fn plan(
             .map(attempt)
             .find_first(Option::is_some)
             .flatten();
-        let mut placed = false;
         if let Some((i, into, out, e)) = found {
             ext.merge(&e);
             supports += into.len() + out.len();
@@ -210,9 +209,7 @@ pub fn plan(
             seq.push(measure(&q));
             seq.extend(out.into_iter().map(support));
             wps.splice(i + 1..i + 1, seq);
-            placed = true;
-        }
-        if !placed {
+        } else {
             dropped.push(Dropped {
                 index: idx,
                 q,

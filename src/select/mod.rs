@@ -1153,15 +1153,8 @@ mod tests {
                 let (mut ruled, mut close) = (0, 0);
                 for (p, &i) in ids.iter().enumerate() {
                     let r = &j[i * m..(i + 1) * m];
-                    let z: Vec<f64> = (0..m)
-                        .map(|k| {
-                            vt[k * m..(k + 1) * m]
-                                .iter()
-                                .zip(r)
-                                .map(|(v, x)| v * x)
-                                .sum()
-                        })
-                        .collect();
+                    let mut z = vec![0.0; m];
+                    eigen_coordinates(&vt, r, &mut z);
                     let (lo, hi) = downdated_extremes(&lam, &z);
                     assert!(lo > 0.0, "m {m}: a random design stays regular");
                     let score = hi / lo;
