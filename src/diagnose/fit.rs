@@ -277,6 +277,7 @@ impl Problem {
             q: Vec::with_capacity(n),
             length: Vec::with_capacity(n),
             temp: with_temp.then(|| Vec::with_capacity(n)),
+            ..Measured::default()
         };
         let mut ranges = Vec::with_capacity(runs.len());
         let mut run = Vec::with_capacity(n);

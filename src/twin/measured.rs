@@ -19,13 +19,34 @@ pub const COLUMNS: [&str; 8] = [
     "length_mm",
 ];
 
-/// One recorded run, sorted by time. SI: s, rad, m, °C.
+/// How a run's readings were taken: the effects that can be fitted to it depend on it.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Form {
+    /// A continuous recording: one row per bar sample while the robot moves, joints
+    /// interpolated to the bar's time stamps (the paper's Section 3.1).
+    #[default]
+    Continuous,
+    /// One reading per pose at standstill (the static CSV form without `t_s`, or the plateaus
+    /// of a stop-and-measure bar log). `timed`: `t` holds real times (plateau midpoints on the
+    /// bar's clock); otherwise `t` is the row's order (0, 1, 2, ...) and no time-dependent
+    /// effect may be fitted. Velocities are zero; the approach direction of a reading is
+    /// the motion from the previous row.
+    Static { timed: bool },
+}
+
+/// One recorded run, in the order taken (sorted by time when timed). SI: s, rad, m, °C.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Measured {
     pub t: Vec<f64>,
     pub q: Vec<[f64; 6]>,
     pub length: Vec<f64>,
     pub temp: Option<Vec<f64>>,
+    /// Per-reading standard uncertainty of `length` (m), where the data state it: the static
+    /// form's `std_um`, a plateau's standard error. `None`: estimated from the residual.
+    pub std: Option<Vec<f64>>,
+    /// Bar samples averaged into each reading (the static form's `n`, a plateau's samples).
+    pub samples: Option<Vec<u32>>,
+    pub form: Form,
 }
 
 impl Measured {

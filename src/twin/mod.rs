@@ -97,6 +97,7 @@ pub fn simulate(
             .as_ref()
             .filter(|th| th.temp_log)
             .map(|_| Vec::with_capacity(n)),
+        ..Measured::default()
     };
     for &ts in &times {
         let t = ts - t0;
