@@ -50,4 +50,5 @@ pub mod sample;
 pub mod select;
 pub mod twin;
 pub mod units;
+pub mod timing;
 pub mod verify;

@@ -214,6 +214,10 @@ pub struct VerifyArgs {
     /// Print the summary as JSON.
     #[arg(long)]
     pub json: bool,
+    /// A recorded run of the program (t_s,q1_deg,...,q6_deg in the controller's axis values):
+    /// check the executed path, how close it passed each measurement pose, and its time.
+    #[arg(long, value_name = "TRACE.csv")]
+    pub trace: Option<PathBuf>,
 }
 
 #[derive(Args, Debug)]

@@ -181,6 +181,7 @@ fn load_robot(path: &Path, cell: &CellArgs, spec: &CellSpec) -> Result<Robot, Er
         flange_link: cell.flange.clone(),
         package_paths: cell.package_path.clone(),
         speeds: spec.speeds,
+        accelerations: spec.accelerations,
         ..LoadOptions::default()
     };
     Ok(robot::load(path, &opts)?)
@@ -830,7 +831,10 @@ fn run_verify(a: &VerifyArgs) -> Result<i32, Error> {
     let model = MeasurementModel::new(&robot, fixture, map);
     let (scene, scene_report) = pipeline::build_scene(&robot, &spec, &fixture, &map)?;
     let ck = crate::safety::Checker::new(&robot, &model, &cell, &scene, spec.margin);
-    match crate::verify::check(&ck, &robot, &parsed) {
+    if let Some(path) = &a.trace {
+        return verify_trace(a, path, &ck, &robot, &parsed, dialect, &axes);
+    }
+    match crate::verify::check(&ck, &robot, &parsed, dialect) {
         Ok(s) => {
             if a.json {
                 let report = VerifyReport {
@@ -873,6 +877,76 @@ fn run_verify(a: &VerifyArgs) -> Result<i32, Error> {
         }
         Err(f) => {
             eprintln!("edbbgen: {}: {f}", a.program.display());
+            Ok(1)
+        }
+    }
+}
+
+/// `verify --trace`: the program checked as usual, then the recorded run against it.
+fn verify_trace(
+    a: &VerifyArgs,
+    path: &Path,
+    ck: &crate::safety::Checker,
+    robot: &Robot,
+    parsed: &crate::dialect::Parsed,
+    dialect: &crate::dialect::Dialect,
+    axes: &crate::controller::ControllerMap,
+) -> Result<i32, Error> {
+    let text = read_input(path, "trace", crate::files::Kind::Measured)?;
+    let trace = crate::verify::trace::read(&text, axes).map_err(|msg| Error::File {
+        path: path.display().to_string(),
+        msg,
+    })?;
+    let (summary, executed) = match crate::verify::rebuild(ck, robot, parsed, dialect) {
+        Ok(x) => x,
+        Err(f) => {
+            eprintln!("edbbgen: {}: {f}", a.program.display());
+            return Ok(1);
+        }
+    };
+    match crate::verify::trace::check(ck, &executed, &trace, summary.duration) {
+        Ok(r) => {
+            if a.json {
+                #[derive(serde::Serialize)]
+                struct Out<'a> {
+                    schema: &'static str,
+                    program: &'a crate::verify::Summary,
+                    trace: &'a crate::verify::trace::TraceReport,
+                }
+                let out = Out {
+                    schema: "edbbgen.verify-trace/1",
+                    program: &summary,
+                    trace: &r,
+                };
+                println!("{}", serde_json::to_string_pretty(&out).unwrap_or_default());
+            } else {
+                let worst = r
+                    .poses
+                    .iter()
+                    .max_by(|x, y| x.miss_mm.total_cmp(&y.miss_mm));
+                println!(
+                    "{}: ok: {} samples; {} measurement poses passed within {} mm at the MAP{}; executed {} s, estimated {} s; bar {}..{} mm; max cone angles {} deg (socket), {} deg (cup)",
+                    path.display(),
+                    r.samples,
+                    r.poses.len(),
+                    fmt_fixed(r.worst_miss_mm, 3),
+                    worst.map_or(String::new(), |w| format!(" (worst: pose {}, line {})", w.pose, w.line)),
+                    fmt_fixed(r.executed_s, 2),
+                    fmt_fixed(r.estimated_s, 2),
+                    fmt_fixed(to_mm(r.extremes.min_length), 2),
+                    fmt_fixed(to_mm(r.extremes.max_length), 2),
+                    fmt_fixed(r.extremes.max_socket_angle / DEG, 1),
+                    fmt_fixed(r.extremes.max_cup_angle / DEG, 1),
+                );
+            }
+            Ok(0)
+        }
+        Err(f) if f.violation.reason == crate::ir::Reason::Program => Err(Error::File {
+            path: path.display().to_string(),
+            msg: format!("line {}: {}", f.line, f.violation.detail),
+        }),
+        Err(f) => {
+            eprintln!("edbbgen: {}: {f}", path.display());
             Ok(1)
         }
     }

@@ -116,9 +116,11 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
         let comment_text = comment;
         if let Some(b) = blend_cmd {
             blend = if b {
-                let p = p_word.ok_or_else(|| err("G64 needs P (blend distance, mm)".into()))?;
+                // P is LinuxCNC's path tolerance on X Y Z; without it the planner keeps the best
+                // speed. Either way a corner may take up to half of each move (the corner model).
+                let p = p_word.unwrap_or(0.0);
                 if !(p.is_finite() && p >= 0.0) {
-                    return Err(err("G64 P must be a distance >= 0".into()));
+                    return Err(err("G64 P must be a tolerance >= 0".into()));
                 }
                 Some(p)
             } else {
@@ -176,6 +178,7 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                     axes: target,
                     timing,
                     blend,
+                    corner: None,
                 },
                 comment: comment_text.clone(),
             });

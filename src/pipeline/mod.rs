@@ -18,7 +18,8 @@ pub use sections::{
 use crate::cell::CellSpec;
 use crate::collision::{self, Scene, SceneReport};
 use crate::controller::ControllerMap;
-use crate::dialect::Template;
+use crate::dialect::{Dialect, Template};
+use crate::timing::{self, Limits};
 use crate::emit;
 use crate::ir::{Candidate, Cell, Path, Pool, Program, Reason, Selection};
 use crate::model::{self, Identifiability, IdentifyOptions, MeasurementModel, N_PARAMS};
@@ -480,10 +481,17 @@ pub fn compile(
     let pool_q: Vec<[f64; 6]> = sections.pool.candidates.iter().map(|c| c.q).collect();
     let identifiability = model::analyse(&model.rows(&pool_q), &IdentifyOptions::default());
     warnings.extend(map_warnings(&model, &identifiability));
-    let planned = select_order_plan(&ck, &sections, &identifiability, opts, progress)?;
+    let mut planned = select_order_plan(&ck, &sections, &identifiability, opts, progress)?;
+    progress.stage("blend");
+    blend(&ck, &mut planned.plan, opts, template.dialect, &axes);
     warnings.extend(planned.warnings());
     sections.report.measured_per_section = sections::measured_per_section(&planned.plan);
-    let path = timed_path(&planned.plan, planned.time_unsorted, &speeds);
+    let path = timed_path(
+        &planned.plan,
+        planned.time_unsorted,
+        &Limits::of(robot),
+        template.dialect,
+    );
     progress.stage("path, predict");
     let predicted = predict(&ck, &identifiability, &path, &planned.plan, opts);
     let base = program::base(&ck, opts, &identifiability, &planned, &path, &predicted);
@@ -693,7 +701,7 @@ fn select_order_plan(
         progress.stage("order");
         let (ordered, time_unsorted) = sections.order(&chosen, &opts.start, &speeds)?;
         progress.stage("plan");
-        let plan = safepath::plan_sections(&planner, &ordered, opts.blend, &speeds, opts.seed);
+        let plan = safepath::plan_sections(&planner, &ordered, &speeds, opts.seed);
         if plan.dropped.is_empty()
             || round == REPAIR_ROUNDS
             || usable.len() <= id.count() + plan.dropped.len()
@@ -712,25 +720,46 @@ fn select_order_plan(
     }
 }
 
+/// The blend stage: every corner of the plan blended or stopped by the dialect's corner model
+/// (what its controller's blend instruction bounds), [`safepath::blend_corners`].
+fn blend(ck: &Checker, plan: &mut Plan, opts: &CompileOptions, dialect: &Dialect, map: &ControllerMap) {
+    safepath::blend_corners(
+        ck,
+        plan,
+        &safepath::CornerSpec {
+            corner: &dialect.corner,
+            distance: opts.blend,
+            map,
+        },
+    );
+}
+
 /// The path on exactly the joint values the program carries (the 0.001° grid every dialect
-/// prints), each move timed on those values, so the emitted feed never asks an axis for more
-/// than its speed.
-fn timed_path(plan: &Plan, time_unsorted: f64, speeds: &[f64; 6]) -> Path {
+/// prints), each move timed on those values (so the emitted feed never asks an axis for more
+/// than its speed): its cruise at the slowest joint's speed (Eq. 7) and its duration with the
+/// ramps at the joints' accelerations (the dialect's controller scales them on moves that
+/// blend); the total takes the blends' overlaps off ([`crate::timing`]).
+pub fn timed_path(plan: &Plan, time_unsorted: f64, lim: &Limits, dialect: &Dialect) -> Path {
     let wq: Vec<[f64; 6]> = plan
         .waypoints
         .iter()
         .map(|w| w.q.map(|r| emit::round_deg(to_deg(r)).to_radians()))
         .collect();
-    let move_times: Vec<f64> = std::iter::once(0.0)
-        .chain(
-            wq.windows(2)
-                .map(|w| order::move_time(&w[0], &w[1], speeds)),
-        )
+    let cruise_times: Vec<f64> = std::iter::once(0.0)
+        .chain(wq.windows(2).map(|w| timing::eq7(&w[0], &w[1], &lim.speed)))
         .collect();
-    let time_sorted = move_times.iter().sum();
+    let blended: Vec<bool> = plan.waypoints.iter().map(|w| w.blend > 0.0).collect();
+    let (move_times, time_sorted) = timing::program(
+        &wq,
+        &cruise_times,
+        &blended,
+        lim,
+        dialect.corner.blend_acceleration,
+    );
     Path {
         poses: wq,
         move_times,
+        cruise_times,
         time_unsorted,
         time_sorted,
     }
@@ -858,7 +887,29 @@ pub fn retarget(
         &scene,
         opts.cell.margin,
     );
-    let (program, text, _) = finish(&ck, robot, opts, &compiled.program, &template, &map)?;
+    // The same poses and order; the corners by this dialect's controller, timed for it.
+    let mut planned = Planned {
+        selection: compiled.selection.clone(),
+        time_unsorted: compiled.path.time_unsorted,
+        plan: compiled.plan.clone(),
+        replaced: compiled.report.replaced_unreachable,
+    };
+    blend(&ck, &mut planned.plan, opts, template.dialect, &map);
+    let path = timed_path(
+        &planned.plan,
+        planned.time_unsorted,
+        &Limits::of(robot),
+        template.dialect,
+    );
+    let base = program::base(
+        &ck,
+        opts,
+        &compiled.identifiability,
+        &planned,
+        &path,
+        &compiled.report.predicted_position_std_um,
+    );
+    let (program, text, _) = finish(&ck, robot, opts, &base, &template, &map)?;
     Ok((program, text))
 }
 
