@@ -11,6 +11,7 @@ mod catalogue;
 mod cli;
 mod cli_errors;
 mod compile;
+mod corners;
 mod determinism;
 mod diagnose;
 mod dialects;

@@ -159,6 +159,10 @@ pub struct CompileArgs {
     /// Corner blend distance at the MAP, mm.
     #[arg(long, value_name = "MM", default_value = "10")]
     pub blend: String,
+    /// What the tour minimises: each move with its acceleration ramps (trapezoid), or Eq. 7 (the
+    /// slowest joint at its maximum speed, the paper's).
+    #[arg(long, value_name = "COST", default_value = "trapezoid", value_parser = ["trapezoid", "eq7"])]
+    pub tour_cost: String,
     /// The bar's noise per reading, um: what the predicted calibration uncertainty assumes.
     #[arg(long, value_name = "UM", default_value = "1.0")]
     pub bar_noise: String,

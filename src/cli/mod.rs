@@ -467,6 +467,11 @@ fn run_compile(a: &CompileArgs) -> Result<i32, Error> {
         program_name,
         bar_noise: bar_noise * 1e-6,
         bar_rate,
+        tour_cost: if a.tour_cost == "eq7" {
+            pipeline::TourCost::Eq7
+        } else {
+            pipeline::TourCost::Trapezoid
+        },
     };
     let bar = Bar::new(a.cell.quiet, "sampling");
     let timed = Timed::new(&bar, a.timings, "load", started);

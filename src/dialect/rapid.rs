@@ -431,7 +431,7 @@ mod tests {
         ));
         assert!(matches!(steps[1], Step::Pause));
         assert!(
-            matches!(steps[2], Step::Move { timing: Timing::Duration(t), blend: Some(b), target, .. } if *t == 0.7 && *b == 10.0 && target[0] == 2.0)
+            matches!(steps[2], Step::Move { timing: Timing::Duration(t), blend: Some(b), target, .. } if *t == 0.7 && *b == 15.0 && target[0] == 2.0)
         );
         assert_eq!(p.lines[2].comment.as_deref(), Some("support"));
         assert!(matches!(steps[3], Step::End));

@@ -59,6 +59,20 @@ pub struct CompileOptions {
     /// Not part of the input hash: the text carries it.
     #[serde(skip)]
     pub program_name: String,
+    /// What the tour minimises.
+    #[serde(default)]
+    pub tour_cost: TourCost,
+}
+
+/// The tour's cost per move (`--tour-cost`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum TourCost {
+    /// The move between exact stops with its acceleration ramps ([`crate::timing`]).
+    #[default]
+    Trapezoid,
+    /// Eq. 7: the slowest joint at its maximum speed, no acceleration (the paper's).
+    Eq7,
 }
 
 impl CompileOptions {
@@ -76,6 +90,7 @@ impl CompileOptions {
             bar_noise: DEFAULT_BAR_NOISE_UM * 1e-6,
             bar_rate: DEFAULT_BAR_RATE_HZ,
             program_name: DEFAULT_PROGRAM_NAME.to_string(),
+            tour_cost: TourCost::default(),
         }
     }
 }
@@ -699,7 +714,21 @@ fn select_order_plan(
             continue;
         }
         progress.stage("order");
-        let (ordered, time_unsorted) = sections.order(&chosen, &opts.start, &speeds)?;
+        // The tour cost: each move with its acceleration ramps, or Eq. 7 as in the paper.
+        let accel = ck.robot.max_accelerations();
+        let (ordered, _) = sections.order(
+            &chosen,
+            &opts.start,
+            &speeds,
+            (opts.tour_cost == TourCost::Trapezoid).then_some(&accel),
+        )?;
+        // The "unsorted" time: the chosen poses in pool order, each move with its ramps and
+        // an exact stop (the tour's estimate counts the same way).
+        let lim = Limits::of(ck.robot);
+        let time_unsorted: f64 = chosen
+            .windows(2)
+            .map(|w| timing::move_time(&pool[w[0]].q, &pool[w[1]].q, &lim, 1.0))
+            .sum();
         progress.stage("plan");
         let plan = safepath::plan_sections(&planner, &ordered, &speeds, opts.seed);
         if plan.dropped.is_empty()

@@ -168,6 +168,160 @@ pub fn rebuild(
             ));
         }
     }
+    let (motions, mount_at, blended, total) = timed_motions(robot, parsed, dialect)?;
+    let n = motions.len();
+    let free = ck.unmounted();
+    let mut ext = Extremes::default();
+    let mut time = 0.0;
+    let mut min_clear = Contact {
+        distance: f64::INFINITY,
+        a: String::new(),
+        b: String::new(),
+    };
+    let mut blends = 0;
+    let note_clear = |q: &[f64; 6], min_clear: &mut Contact| {
+        let c = ck.clearance(q);
+        if c.distance < min_clear.distance {
+            *min_clear = c;
+        }
+    };
+    let mut executed = Vec::with_capacity(n);
+    for j in 0..n {
+        let m = &motions[j];
+        let with = if m.mounted { ck } else { &free };
+        let start = time;
+        if j == 0 {
+            // The approach starts wherever the robot is: only its target can be checked.
+            with.pose(&m.target).map_err(|v| Failure {
+                line: m.line,
+                time,
+                violation: v,
+            })?;
+        } else {
+            let a = motions[j - 1].target;
+            let mut e = Extremes::default();
+            if let Err((s, v)) = with.line(&a, &m.target, &mut e) {
+                return Err(Failure {
+                    line: m.line,
+                    time: time + s * m.duration,
+                    violation: v,
+                });
+            }
+            ext.merge(&e);
+            time += m.duration;
+        }
+        executed.push(Executed {
+            line: m.line,
+            target: m.target,
+            mounted: m.mounted,
+            support: m.support,
+            start,
+            end: time,
+            pause_after: m.pause_after,
+        });
+        // Where the bar goes in, the pose must hold it.
+        if mount_at.contains(&(j + 1)) {
+            ck.pose(&m.target).map_err(|v| Failure {
+                line: m.line,
+                time,
+                violation: Violation {
+                    reason: v.reason,
+                    detail: format!("where the bar is mounted: {}", v.detail),
+                },
+            })?;
+        }
+        if m.mounted {
+            note_clear(&m.target, &mut min_clear);
+        }
+        // The corner at the end of this move: the whole region the controller may execute.
+        if blended[j] {
+            let (a, b) = (&motions[j - 1], &motions[j + 1]);
+            let len = |x: &[f64; 6], y: &[f64; 6]| {
+                (0..6).map(|i| (x[i] - y[i]).powi(2)).sum::<f64>().sqrt()
+            };
+            let value = m.blend.unwrap_or(0.0);
+            let at_corner = |v: Violation| Failure {
+                line: m.line,
+                time,
+                violation: Violation {
+                    reason: v.reason,
+                    detail: format!(
+                        "in the corner region of its blend ({} {}{}): {}",
+                        dialect.corner.instruction,
+                        fmt_fixed(value, 3),
+                        if dialect.corner.unit.is_empty() {
+                            String::new()
+                        } else {
+                            format!(" {}", dialect.corner.unit)
+                        },
+                        v.detail
+                    ),
+                },
+            };
+            let r = blend::region(
+                ck,
+                &dialect.corner,
+                m.corner,
+                &a.target,
+                &m.target,
+                &b.target,
+                value,
+                (len(&a.axes, &m.axes), len(&m.axes, &b.axes)),
+            )
+            .map_err(|why| {
+                at_corner(Violation {
+                    reason: Reason::Program,
+                    detail: why.to_string(),
+                })
+            })?;
+            let (e1, e2) = r.edges();
+            let mut e = Extremes::default();
+            ck.patch(&r.corner, &e1, &e2, &mut e)
+                .map_err(|(_, v)| at_corner(v))?;
+            ext.merge(&e);
+            note_clear(&r.point(0.5, 0.5), &mut min_clear);
+            blends += 1;
+        }
+    }
+    debug_assert!((time - total).abs() >= 0.0);
+    if min_clear.distance < ck.margin {
+        return Err(fail(
+            0,
+            time,
+            Reason::Collision,
+            describe_contact(&min_clear, ck.margin),
+        ));
+    }
+    Ok((
+        Summary {
+            moves: n,
+            poses: motions.iter().filter(|m| !m.support).count(),
+            supports: motions.iter().filter(|m| m.support).count(),
+            sections: mount_at.len(),
+            blends,
+            duration: total,
+            extremes: ext,
+            min_clearance: min_clear,
+        },
+        executed,
+    ))
+}
+
+/// The program's estimated duration as `verify` times it (each move with its ramps at the robot's
+/// accelerations, scaled where the dialect's controller blends; the blended corners' overlaps
+/// taken off), without any safety check: what a recorded run of any program is compared with.
+pub fn estimate(robot: &Robot, parsed: &Parsed, dialect: &Dialect) -> Result<f64, Failure> {
+    Ok(timed_motions(robot, parsed, dialect)?.3)
+}
+
+/// The motions of a program with their mount state, the motions after which the bar goes in,
+/// which corners blend, and the total time.
+#[allow(clippy::type_complexity)]
+fn timed_motions(
+    robot: &Robot,
+    parsed: &Parsed,
+    dialect: &Dialect,
+) -> Result<(Vec<Motion>, Vec<usize>, Vec<bool>, f64), Failure> {
     let speeds = robot.max_speeds();
     let lim = Limits::of(robot);
     // Collect the motions; the bar is mounted at the first pause, removed at the next, and so
@@ -319,141 +473,7 @@ pub fn rebuild(
     for (m, d) in motions.iter_mut().zip(&durations) {
         m.duration = *d;
     }
-    let free = ck.unmounted();
-    let mut ext = Extremes::default();
-    let mut time = 0.0;
-    let mut min_clear = Contact {
-        distance: f64::INFINITY,
-        a: String::new(),
-        b: String::new(),
-    };
-    let mut blends = 0;
-    let note_clear = |q: &[f64; 6], min_clear: &mut Contact| {
-        let c = ck.clearance(q);
-        if c.distance < min_clear.distance {
-            *min_clear = c;
-        }
-    };
-    let mut executed = Vec::with_capacity(n);
-    for j in 0..n {
-        let m = &motions[j];
-        let with = if m.mounted { ck } else { &free };
-        let start = time;
-        if j == 0 {
-            // The approach starts wherever the robot is: only its target can be checked.
-            with.pose(&m.target).map_err(|v| Failure {
-                line: m.line,
-                time,
-                violation: v,
-            })?;
-        } else {
-            let a = motions[j - 1].target;
-            let mut e = Extremes::default();
-            if let Err((s, v)) = with.line(&a, &m.target, &mut e) {
-                return Err(Failure {
-                    line: m.line,
-                    time: time + s * m.duration,
-                    violation: v,
-                });
-            }
-            ext.merge(&e);
-            time += m.duration;
-        }
-        executed.push(Executed {
-            line: m.line,
-            target: m.target,
-            mounted: m.mounted,
-            support: m.support,
-            start,
-            end: time,
-            pause_after: m.pause_after,
-        });
-        // Where the bar goes in, the pose must hold it.
-        if mount_at.contains(&(j + 1)) {
-            ck.pose(&m.target).map_err(|v| Failure {
-                line: m.line,
-                time,
-                violation: Violation {
-                    reason: v.reason,
-                    detail: format!("where the bar is mounted: {}", v.detail),
-                },
-            })?;
-        }
-        if m.mounted {
-            note_clear(&m.target, &mut min_clear);
-        }
-        // The corner at the end of this move: the whole region the controller may execute.
-        if blended[j] {
-            let (a, b) = (&motions[j - 1], &motions[j + 1]);
-            let len = |x: &[f64; 6], y: &[f64; 6]| {
-                (0..6).map(|i| (x[i] - y[i]).powi(2)).sum::<f64>().sqrt()
-            };
-            let value = m.blend.unwrap_or(0.0);
-            let at_corner = |v: Violation| Failure {
-                line: m.line,
-                time,
-                violation: Violation {
-                    reason: v.reason,
-                    detail: format!(
-                        "in the corner region of its blend ({} {}{}): {}",
-                        dialect.corner.instruction,
-                        fmt_fixed(value, 3),
-                        if dialect.corner.unit.is_empty() {
-                            String::new()
-                        } else {
-                            format!(" {}", dialect.corner.unit)
-                        },
-                        v.detail
-                    ),
-                },
-            };
-            let r = blend::region(
-                ck,
-                &dialect.corner,
-                m.corner,
-                &a.target,
-                &m.target,
-                &b.target,
-                value,
-                (len(&a.axes, &m.axes), len(&m.axes, &b.axes)),
-            )
-            .map_err(|why| {
-                at_corner(Violation {
-                    reason: Reason::Program,
-                    detail: why.to_string(),
-                })
-            })?;
-            let (e1, e2) = r.edges();
-            let mut e = Extremes::default();
-            ck.patch(&r.corner, &e1, &e2, &mut e)
-                .map_err(|(_, v)| at_corner(v))?;
-            ext.merge(&e);
-            note_clear(&r.point(0.5, 0.5), &mut min_clear);
-            blends += 1;
-        }
-    }
-    debug_assert!((time - total).abs() >= 0.0);
-    if min_clear.distance < ck.margin {
-        return Err(fail(
-            0,
-            time,
-            Reason::Collision,
-            describe_contact(&min_clear, ck.margin),
-        ));
-    }
-    Ok((
-        Summary {
-            moves: n,
-            poses: motions.iter().filter(|m| !m.support).count(),
-            supports: motions.iter().filter(|m| m.support).count(),
-            sections: mount_at.len(),
-            blends,
-            duration: total,
-            extremes: ext,
-            min_clearance: min_clear,
-        },
-        executed,
-    ))
+    Ok((motions, mount_at, blended, total))
 }
 
 /// The cruise time of a move whose whole time (ramps included) is `total`: T = T₇ + T_a²/T₇

@@ -104,7 +104,7 @@ HOME_SEQUENCE = 0
 
 HAL = """loadrt [KINS]KINEMATICS
 loadrt [EMCMOT]EMCMOT servo_period_nsec=[EMCMOT]SERVO_PERIOD num_joints=[KINS]JOINTS
-loadrt sampler cfg=ffffff depth=4000
+loadrt sampler cfg=ffffff depth=60000
 addf motion-command-handler servo-thread
 addf motion-controller servo-thread
 addf sampler.0 servo-thread
@@ -198,9 +198,12 @@ def main():
     out = opts["-o"]
     with open(program) as f:
         acc = header_accelerations(f.read())
-    dir = tempfile.mkdtemp(prefix="edbb-lcnc-")
+    # Outside /tmp, which the run replaces with a private one.
+    dir = tempfile.mkdtemp(prefix="edbb-lcnc-", dir=opts.get("--dir", "/var/tmp"))
     try:
         os.chmod(dir, 0o777)
+        shutil.copy(program, f"{dir}/program.ngc")
+        program = f"{dir}/program.ngc"
         setup(dir, program, vel, acc, period_us * 1000, os.path.abspath(__file__))
         env = dict(os.environ)
         env.pop("DISPLAY", None)
@@ -209,8 +212,12 @@ def main():
             env["RTAPI_FIFO_PATH"] = f"{dir}/rtapi_fifo"
         env["HOME"] = dir
         cmd = ["linuxcnc", f"{dir}/sim.ini"]
-        if shutil.which("unshare") and os.geteuid() == 0:
-            cmd = ["unshare", "--ipc"] + cmd
+        if os.geteuid() == 0 and shutil.which("unshare"):
+            # A machine of its own: LinuxCNC's shared memory (IPC namespace), its lock file in
+            # /tmp and the processes its scripts find and kill by name (PID namespace), so
+            # several runs may go at once.
+            cmd = ["unshare", "--ipc", "--pid", "--fork", "--mount-proc", "--mount", "sh", "-c",
+                   'mount -t tmpfs tmpfs /tmp && exec "$@"', "sh"] + cmd
         r = subprocess.run(cmd, env=env, cwd=dir, stdin=subprocess.DEVNULL,
                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, timeout=900)
         if not os.path.exists(f"{dir}/done"):
@@ -222,7 +229,11 @@ def main():
                 v = line.split()
                 if len(v) != 7:
                     continue
-                rows.append(f"{int(v[0]) * period:.6f}," + ",".join(v[1:]))
+                # halsampler numbers the samples: a gap is a FIFO overrun (samples lost).
+                if rows and int(v[0]) != last + 1:
+                    sys.exit(f"sim.py: the sampler lost samples after {last}")
+                last = int(v[0])
+                rows.append(f"{last * period:.6f}," + ",".join(v[1:]))
         with open(out, "w") as f:
             f.write("t_s,q1_deg,q2_deg,q3_deg,q4_deg,q5_deg,q6_deg\n")
             f.write("\n".join(rows) + "\n")
