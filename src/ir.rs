@@ -255,12 +255,10 @@ pub struct Header {
     pub cond: f64,
     pub time_unsorted_s: f64,
     pub time_s: f64,
-    /// The joint accelerations the times assume (program axis units per s², controller axes
-    /// 1-6; filled for one controller by `emit::target`), and in model joints (deg/s²).
+    /// The joint accelerations the times assume: deg/s² per model joint in the dialect-neutral
+    /// program, per controller axis in its units (per s²) once `emit::target` has filled it.
     #[serde(default)]
     pub accelerations: [f64; 6],
-    #[serde(default)]
-    pub accelerations_deg_s2: [f64; 6],
     pub inputs_sha256: String,
     pub joint_names: Vec<String>,
     /// What the program buys: the predicted 1σ MAP position uncertainty after calibrating

@@ -48,7 +48,7 @@ pub mod robot;
 pub mod safety;
 pub mod sample;
 pub mod select;
+pub mod timing;
 pub mod twin;
 pub mod units;
-pub mod timing;
 pub mod verify;

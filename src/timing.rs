@@ -39,7 +39,11 @@ impl Limits {
 /// Eq. 7: the time of the slowest joint at its maximum speed (no acceleration).
 #[inline]
 pub fn eq7(a: &[f64; 6], b: &[f64; 6], speed: &[f64; 6]) -> f64 {
-    crate::order::move_time(a, b, speed)
+    let mut t = 0.0_f64;
+    for i in 0..6 {
+        t = t.max((a[i] - b[i]).abs() / speed[i]);
+    }
+    t
 }
 
 /// T_a: the square root of the longest time-squared any joint needs at its acceleration,
@@ -138,7 +142,12 @@ mod tests {
     /// bang-coast-bang on one joint).
     #[test]
     fn trapezoid_matches_a_stepped_integration() {
-        for &(d, v, acc) in &[(1.0, 2.0, 4.0), (1.0, 2.0, 1.0), (0.3, 1.5, 20.0), (2.0, 0.5, 0.3)] {
+        for &(d, v, acc) in &[
+            (1.0, 2.0, 4.0),
+            (1.0, 2.0, 1.0),
+            (0.3, 1.5, 20.0),
+            (2.0, 0.5, 0.3),
+        ] {
             let lim = Limits {
                 speed: [v; 6],
                 accel: [acc; 6],
@@ -163,7 +172,10 @@ mod tests {
                 x += s * dt;
                 time += dt;
             }
-            assert!((t - time).abs() < 2e-3 * t.max(1.0), "{d} {v} {acc}: {t} vs {time}");
+            assert!(
+                (t - time).abs() < 2e-3 * t.max(1.0),
+                "{d} {v} {acc}: {t} vs {time}"
+            );
         }
     }
 
@@ -193,7 +205,11 @@ mod tests {
             speed: [1.0; 6],
             accel: [2.0; 6],
         };
-        let poses = [[0.0; 6], [2.0, 0.0, 0.0, 0.0, 0.0, 0.0], [2.0, 2.0, 0.0, 0.0, 0.0, 0.0]];
+        let poses = [
+            [0.0; 6],
+            [2.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+            [2.0, 2.0, 0.0, 0.0, 0.0, 0.0],
+        ];
         let cruise = [0.0, 2.0, 2.0];
         let (t, total) = program(&poses, &cruise, &[false; 3], &lim, 1.0);
         assert_eq!(t, vec![0.0, 2.5, 2.5]);

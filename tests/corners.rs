@@ -1,8 +1,8 @@
 //! Issue 21: for every dialect, `verify` checks the corner region its controller may execute by
 //! the vendor's documentation, not edbbgen's old convention (the blend distance at the MAP,
 //! a joint-space Bézier from where the MAP first comes within it). Each test builds by hand a
-//! corner on the NJ-130 cell — two moves of 160 mm at the MAP, at right angles across the bar —
-//! blends it with the value the old convention would write (60 mm, or `CNT60`), and puts a
+//! corner on the NJ-130 cell — two moves of 160 or 240 mm at the MAP, at right angles across the
+//! bar — blends it with the value the old convention would write (60 or 110 mm, `CNT60`), and puts a
 //! sphere where the controller's documented region reaches but the old convention's blend and
 //! the two moves do not: the old convention passes the corner, `verify` must refuse it.
 
@@ -14,12 +14,16 @@ use edbbgen::robot::Frame;
 use edbbgen::safety::{blend, path::check_blend, Checker, Extremes};
 use nalgebra::{Matrix6, Vector3, Vector6};
 
-const MOVE_MM: f64 = 160.0;
-const BLEND_MM: f64 = 60.0;
-
 fn hand_made_corner_fails(d: &str) {
     let c = cell("nj130_cell");
     let dl = dialect::by_name(d).unwrap();
+    // A TCP-distance region reaches about 1.4 blend distances from the pose, the moves pass
+    // one blend distance from that point: the tool's bodies need room there.
+    let (move_mm, blend_mm): (f64, f64) = if dl.corner.kind == CornerKind::TcpDistance {
+        (240.0, 110.0)
+    } else {
+        (160.0, 60.0)
+    };
     let spec = c.opts.cell.clone();
     let fixture = spec.fixture.unwrap();
     let tool = c.compiled.cell.map;
@@ -35,8 +39,9 @@ fn hand_made_corner_fails(d: &str) {
     let emitted = |q: [f64; 6]| edbbgen::emit::emitted(&q);
     let map_at = |q: &[f64; 6]| model.map_position(&model.nominal, q);
     let flange = |q: &[f64; 6]| {
-        edbbgen::robot::kinematics::chain_frames(&model.base, &model.nominal.dh, &model.flange, q)[7]
-            .r
+        edbbgen::robot::kinematics::chain_frames(&model.base, &model.nominal.dh, &model.flange, q)
+            [7]
+        .r
     };
     // The corner: a measurement pose of the program with its bar near mid-range and the bar
     // well inside both cones (the moves turn the bar by about 20 degrees).
@@ -85,7 +90,9 @@ fn hand_made_corner_fails(d: &str) {
                 jac[(r + 3, i)] = w[r];
             }
         }
-        let Some(inv) = jac.try_inverse() else { continue };
+        let Some(inv) = jac.try_inverse() else {
+            continue;
+        };
         let r = (map_at(k) - fixture).normalize();
         let e1 = r.cross(&Vector3::z()).normalize();
         let e2 = r.cross(&e1);
@@ -94,7 +101,7 @@ fn hand_made_corner_fails(d: &str) {
             let u1 = e1 * phi.cos() + e2 * phi.sin();
             let u2 = r.cross(&u1);
             let step = |v: Vector3<f64>| -> [f64; 6] {
-                let v = v * MOVE_MM * 1e-3;
+                let v = v * move_mm * 1e-3;
                 let dq = inv * Vector6::new(v.x, v.y, v.z, 0.0, 0.0, 0.0);
                 std::array::from_fn(|i| dq[i])
             };
@@ -106,7 +113,8 @@ fn hand_made_corner_fails(d: &str) {
                 len(map.apply(&deg(&a)), map.apply(&deg(&k))),
                 len(map.apply(&deg(&k)), map.apply(&deg(&b))),
             );
-            let region = blend::region(&ck0, &corner, None, &a, &k, &b, BLEND_MM, axis_len).unwrap();
+            let region =
+                blend::region(&ck0, &corner, None, &a, &k, &b, blend_mm, axis_len).unwrap();
             let far = region.point(1.0, 1.0);
             let mut spec = spec.clone();
             spec.environment.push(Shape {
@@ -114,11 +122,12 @@ fn hand_made_corner_fails(d: &str) {
                 origin: Frame::translation(map_at(&far)),
                 kind: ShapeKind::Sphere { radius: 0.02 },
             });
-            let (scene, _) = edbbgen::pipeline::build_scene(&c.robot, &spec, &fixture, &tool).unwrap();
+            let (scene, _) =
+                edbbgen::pipeline::build_scene(&c.robot, &spec, &fixture, &tool).unwrap();
             let ck = Checker::new(&c.robot, &model, &cellv, &scene, spec.margin);
             // The old convention passes: both moves and its Bézier blend keep every margin.
             let mut e = Extremes::default();
-            let old = blend::geometry(&model, &a, &k, &b, BLEND_MM * 1e-3).unwrap();
+            let old = blend::geometry(&model, &a, &k, &b, blend_mm * 1e-3).unwrap();
             if ck.line(&a, &k, &mut e).is_ok()
                 && ck.line(&k, &b, &mut e).is_ok()
                 && check_blend(&ck, &old, &mut e).is_ok()
@@ -155,13 +164,13 @@ fn hand_made_corner_fails(d: &str) {
         }
     };
     let mut moves = vec![mv(a, None, 1), mv(k, Some(a), 2), mv(b, Some(k), 3)];
-    moves[1].blend_mm = BLEND_MM;
-    moves[1].blend_value = BLEND_MM;
+    moves[1].blend_mm = blend_mm;
+    moves[1].blend_value = blend_mm;
     let mut hand = Program {
         header: program.header.clone(),
         moves,
     };
-    hand.header.blend_mm = BLEND_MM;
+    hand.header.blend_mm = blend_mm;
     hand.header.poses = 3;
     hand.header.supports = 0;
     hand.header.sections = 1;
@@ -170,8 +179,8 @@ fn hand_made_corner_fails(d: &str) {
     let mut text = edbbgen::emit::render(&template, &hand).unwrap();
     if d == "fanuc" {
         // The old convention's FANUC form: CNTn for an n mm blend.
-        text = text.replace("CR60", "CNT60");
-        assert!(text.contains("CNT60"), "{text}");
+        text = text.replace(&format!("CR{blend_mm}"), &format!("CNT{blend_mm}"));
+        assert!(text.contains(&format!("CNT{blend_mm}")), "{text}");
     }
     let f = edbbgen::verify::check_text(&ck, &c.robot, &text, dl, &map)
         .expect_err("verify passes a corner its controller may cut into the obstacle");

@@ -431,10 +431,7 @@ fn all_blended(text: &str) -> String {
 fn linuxcnc_executes_every_shipped_cells_program_as_verified_and_in_the_estimated_time() {
     let cells = crate::dialects::cells();
     let dir = tempdir();
-    let jobs: Vec<_> = cells
-        .iter()
-        .flat_map(|c| [(c, false), (c, true)])
-        .collect();
+    let jobs: Vec<_> = cells.iter().flat_map(|c| [(c, false), (c, true)]).collect();
     // Five machines at a time: each needs a servo thread every millisecond.
     let results: Vec<String> = jobs.chunks(5).flat_map(|chunk| std::thread::scope(|s| {
         let handles: Vec<_> = chunk
@@ -530,7 +527,10 @@ fn verify_trace_checks_the_recorded_path() {
         for (t, q) in rows {
             s += &format!(
                 "{t:.3},{}\n",
-                q.iter().map(|v| format!("{v:.6}")).collect::<Vec<_>>().join(",")
+                q.iter()
+                    .map(|v| format!("{v:.6}"))
+                    .collect::<Vec<_>>()
+                    .join(",")
             );
         }
         let p = dir.path().join(name);
@@ -557,7 +557,8 @@ fn verify_trace_checks_the_recorded_path() {
     let r = run(&write("own.csv", &rows));
     assert_eq!(r.code, 0, "{}", r.stderr);
     assert!(
-        r.stdout.contains("measurement poses passed within 0.000 mm"),
+        r.stdout
+            .contains("measurement poses passed within 0.000 mm"),
         "{}",
         r.stdout
     );
@@ -570,19 +571,39 @@ fn verify_trace_checks_the_recorded_path() {
     assert!(r.stderr.contains("in the trace at t = "), "{}", r.stderr);
     // Bad input: exit 2, one line naming the file.
     for (name, body, why) in [
-        ("header.csv", "t,q1,q2,q3,q4,q5,q6\n0,0,0,0,0,0,0\n", "header"),
-        ("number.csv", "t_s,q1_deg,q2_deg,q3_deg,q4_deg,q5_deg,q6_deg\n0,0,0,x,0,0,0\n1,0,0,0,0,0,0\n", "not a number"),
-        ("time.csv", "t_s,q1_deg,q2_deg,q3_deg,q4_deg,q5_deg,q6_deg\n1,0,0,0,0,0,0\n1,0,0,0,0,0,0\n", "does not increase"),
+        (
+            "header.csv",
+            "t,q1,q2,q3,q4,q5,q6\n0,0,0,0,0,0,0\n",
+            "header",
+        ),
+        (
+            "number.csv",
+            "t_s,q1_deg,q2_deg,q3_deg,q4_deg,q5_deg,q6_deg\n0,0,0,x,0,0,0\n1,0,0,0,0,0,0\n",
+            "not a number",
+        ),
+        (
+            "time.csv",
+            "t_s,q1_deg,q2_deg,q3_deg,q4_deg,q5_deg,q6_deg\n1,0,0,0,0,0,0\n1,0,0,0,0,0,0\n",
+            "does not increase",
+        ),
     ] {
         let p = dir.path().join(name);
         std::fs::write(&p, body).unwrap();
         let r = run(&p);
         assert_eq!(r.code, 2, "{name}: {}", r.stderr);
         assert_eq!(r.stderr.lines().count(), 1, "{name}: {}", r.stderr);
-        assert!(r.stderr.contains(name) && r.stderr.contains(why), "{name}: {}", r.stderr);
+        assert!(
+            r.stderr.contains(name) && r.stderr.contains(why),
+            "{name}: {}",
+            r.stderr
+        );
     }
     let half = write("half.csv", &rows[..rows.len() / 2]);
     let r = run(&half);
     assert_eq!(r.code, 2, "{}", r.stderr);
-    assert!(r.stderr.contains("does not follow the program"), "{}", r.stderr);
+    assert!(
+        r.stderr.contains("does not follow the program"),
+        "{}",
+        r.stderr
+    );
 }

@@ -86,7 +86,7 @@ pub fn target(
     h.axis_units = map.units.name().to_string();
     h.axis_decimals = decimals;
     // The accelerations the times assume, per controller axis in its units.
-    h.accelerations = map.axis_speeds(&h.accelerations_deg_s2.map(|a| a * crate::units::DEG));
+    h.accelerations = map.axis_speeds(&h.accelerations.map(|a| a * crate::units::DEG));
     // Degrees: the plan's grid, printed exactly. Radians: cut toward zero at the printed
     // decimals, so a pose on a limit that contains zero (joint ranges, harness ranges) stays
     // inside it when read back.

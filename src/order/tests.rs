@@ -436,7 +436,9 @@ fn trapezoid_cost_tours_match_brute_force() {
         let n = rng.random_range(3..8);
         // Short and long moves mixed: triangles and trapezoids.
         let poses: Vec<[f64; 6]> = (0..n)
-            .map(|_| std::array::from_fn(|_| rng.random_range(-1.0..1.0) * rng.random_range(0.02..2.0)))
+            .map(|_| {
+                std::array::from_fn(|_| rng.random_range(-1.0..1.0) * rng.random_range(0.02..2.0))
+            })
             .collect();
         let tour = super::solve_with(&poses, 0, &speed, Some(&accel)).unwrap();
         let cost = |order: &[usize]| -> f64 {
@@ -453,7 +455,11 @@ fn trapezoid_cost_tours_match_brute_force() {
             best = best.min(cost(&order));
         });
         assert!((tour.time_sorted - cost(&tour.order)).abs() < 1e-12);
-        assert!(tour.time_sorted <= best * (1.0 + 1e-9), "{} vs {best}", tour.time_sorted);
+        assert!(
+            tour.time_sorted <= best * (1.0 + 1e-9),
+            "{} vs {best}",
+            tour.time_sorted
+        );
     }
 }
 

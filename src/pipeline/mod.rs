@@ -19,7 +19,6 @@ use crate::cell::CellSpec;
 use crate::collision::{self, Scene, SceneReport};
 use crate::controller::ControllerMap;
 use crate::dialect::{Dialect, Template};
-use crate::timing::{self, Limits};
 use crate::emit;
 use crate::ir::{Candidate, Cell, Path, Pool, Program, Reason, Selection};
 use crate::model::{self, Identifiability, IdentifyOptions, MeasurementModel, N_PARAMS};
@@ -29,6 +28,7 @@ use crate::safety::path::{self as safepath, Plan};
 use crate::safety::{Checker, LineMemo};
 use crate::sample::{self, Progress, SampleConfig, SampleReport};
 use crate::select::{self, SelectConfig};
+use crate::timing::{self, Limits};
 use crate::units::{fmt_fixed, to_deg, to_mm};
 use crate::verify;
 use nalgebra::Vector3;
@@ -751,7 +751,13 @@ fn select_order_plan(
 
 /// The blend stage: every corner of the plan blended or stopped by the dialect's corner model
 /// (what its controller's blend instruction bounds), [`safepath::blend_corners`].
-fn blend(ck: &Checker, plan: &mut Plan, opts: &CompileOptions, dialect: &Dialect, map: &ControllerMap) {
+fn blend(
+    ck: &Checker,
+    plan: &mut Plan,
+    opts: &CompileOptions,
+    dialect: &Dialect,
+    map: &ControllerMap,
+) {
     safepath::blend_corners(
         ck,
         plan,

@@ -64,7 +64,9 @@ pub struct Region {
 impl Region {
     pub fn point(&self, u: f64, w: f64) -> [f64; 6] {
         std::array::from_fn(|i| {
-            self.corner[i] + u * (self.q_in[i] - self.corner[i]) + w * (self.q_out[i] - self.corner[i])
+            self.corner[i]
+                + u * (self.q_in[i] - self.corner[i])
+                + w * (self.q_out[i] - self.corner[i])
         })
     }
 
@@ -113,10 +115,7 @@ pub fn region(
         }
         CornerKind::TcpDistance => {
             let d = value.max(0.0) * 1e-3;
-            (
-                tcp_reach(ck, k, a, d, cap),
-                tcp_reach(ck, k, b, d, cap),
-            )
+            (tcp_reach(ck, k, a, d, cap), tcp_reach(ck, k, b, d, cap))
         }
     };
     Ok(Region {

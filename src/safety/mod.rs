@@ -514,14 +514,16 @@ impl<'a> Checker<'a> {
         ext: &mut Extremes,
     ) -> Result<(), ((f64, f64), Violation)> {
         let (n1, n2) = self.patch_grid(e1, e2);
-        let at = |u: f64, w: f64| -> [f64; 6] { std::array::from_fn(|i| o[i] + u * e1[i] + w * e2[i]) };
-        let check = |u: f64, w: f64, ext: &mut Extremes| -> Result<PoseInfo, ((f64, f64), Violation)> {
-            let info = self.pose(&at(u, w)).map_err(|v| ((u, w), v))?;
-            if self.mounted {
-                ext.add(&info);
-            }
-            Ok(info)
-        };
+        let at =
+            |u: f64, w: f64| -> [f64; 6] { std::array::from_fn(|i| o[i] + u * e1[i] + w * e2[i]) };
+        let check =
+            |u: f64, w: f64, ext: &mut Extremes| -> Result<PoseInfo, ((f64, f64), Violation)> {
+                let info = self.pose(&at(u, w)).map_err(|v| ((u, w), v))?;
+                if self.mounted {
+                    ext.add(&info);
+                }
+                Ok(info)
+            };
         // One row of the grid at a time: memory O(n2).
         let mut prev: Vec<PoseInfo> = Vec::with_capacity(n2 + 1);
         for j in 0..=n2 {
@@ -578,12 +580,14 @@ impl<'a> Checker<'a> {
         let max_len = max(&|p| p.length);
         let lmin = min_len - h;
         let ang = if lmin > 0.0 { h / lmin } else { f64::INFINITY };
-        let ok_len = max_len + h <= cl.bar_max + BAR_TOLERANCE && min_len - h >= cl.bar_min - BAR_TOLERANCE;
+        let ok_len =
+            max_len + h <= cl.bar_max + BAR_TOLERANCE && min_len - h >= cl.bar_min - BAR_TOLERANCE;
         let socket_limit = cl.fixture_cone_cos.clamp(-1.0, 1.0).acos();
         let cup_limit = cl.tool_cone_cos.clamp(-1.0, 1.0).acos();
-        let ok_socket =
-            cl.fixture_cone_cos <= -1.0 || max(&|p| p.socket) + ang <= socket_limit + ANGLE_TOLERANCE;
-        let ok_cup = cl.tool_cone_cos <= -1.0 || max(&|p| p.cup) + ang + w <= cup_limit + ANGLE_TOLERANCE;
+        let ok_socket = cl.fixture_cone_cos <= -1.0
+            || max(&|p| p.socket) + ang <= socket_limit + ANGLE_TOLERANCE;
+        let ok_cup =
+            cl.tool_cone_cos <= -1.0 || max(&|p| p.cup) + ang + w <= cup_limit + ANGLE_TOLERANCE;
         if ok_len && ok_socket && ok_cup {
             return Ok(());
         }
@@ -597,11 +601,12 @@ impl<'a> Checker<'a> {
                 },
             ));
         }
-        let probe = |u: f64, w: f64, ext: &mut Extremes| -> Result<PoseInfo, ((f64, f64), Violation)> {
-            let info = self.pose(&at(u, w)).map_err(|v| ((u, w), v))?;
-            ext.add(&info);
-            Ok(info)
-        };
+        let probe =
+            |u: f64, w: f64, ext: &mut Extremes| -> Result<PoseInfo, ((f64, f64), Violation)> {
+                let info = self.pose(&at(u, w)).map_err(|v| ((u, w), v))?;
+                ext.add(&info);
+                Ok(info)
+            };
         let (u1, w1) = (c.u0 + c.du, c.w0 + c.dw);
         let mid = probe(um, wm, ext)?;
         let left = probe(um, c.w0, ext)?; // (um, w0)
@@ -615,10 +620,42 @@ impl<'a> Checker<'a> {
             du: hu,
             dw: hw,
         };
-        self.refine_cell(at, &sub(c.u0, c.w0), [v[0], low, left, mid], m, r, depth + 1, ext)?;
-        self.refine_cell(at, &sub(c.u0, wm), [low, v[1], mid, right], m, r, depth + 1, ext)?;
-        self.refine_cell(at, &sub(um, c.w0), [left, mid, v[2], high], m, r, depth + 1, ext)?;
-        self.refine_cell(at, &sub(um, wm), [mid, right, high, v[3]], m, r, depth + 1, ext)
+        self.refine_cell(
+            at,
+            &sub(c.u0, c.w0),
+            [v[0], low, left, mid],
+            m,
+            r,
+            depth + 1,
+            ext,
+        )?;
+        self.refine_cell(
+            at,
+            &sub(c.u0, wm),
+            [low, v[1], mid, right],
+            m,
+            r,
+            depth + 1,
+            ext,
+        )?;
+        self.refine_cell(
+            at,
+            &sub(um, c.w0),
+            [left, mid, v[2], high],
+            m,
+            r,
+            depth + 1,
+            ext,
+        )?;
+        self.refine_cell(
+            at,
+            &sub(um, wm),
+            [mid, right, high, v[3]],
+            m,
+            r,
+            depth + 1,
+            ext,
+        )
     }
 
     /// [`Checker::line`]'s verdict for searches that only need yes or no: a few poses along

@@ -4,10 +4,10 @@
 //! a blend or an exact stop for every corner, by the controller's corner model.
 
 use super::blend::{self, Blend};
-use crate::controller::ControllerMap;
-use crate::dialect::{Corner, CornerKind};
 use super::roadmap::Nearest;
 use super::{lerp, Checker, Extremes, Violation};
+use crate::controller::ControllerMap;
+use crate::dialect::{Corner, CornerKind};
 use crate::order::move_time;
 use rand::{Rng, SeedableRng};
 use rayon::prelude::*;
@@ -282,12 +282,7 @@ pub struct Section {
 
 /// Plans every section (bar mounted) and the transits between them (bar removed). A section
 /// whose transit cannot be made safe is dropped whole.
-pub fn plan_sections(
-    ck: &Checker,
-    sections: &[Section],
-    speeds: &[f64; 6],
-    seed: u64,
-) -> Plan {
+pub fn plan_sections(ck: &Checker, sections: &[Section], speeds: &[f64; 6], seed: u64) -> Plan {
     let free = ck.unmounted();
     let mut out = Plan {
         waypoints: Vec::new(),
@@ -298,13 +293,7 @@ pub fn plan_sections(
     };
     let mut offset = 0;
     for (k, sec) in sections.iter().enumerate() {
-        let mut p = plan(
-            ck,
-            &sec.tour,
-            &sec.pool,
-            speeds,
-            seed ^ k as u64,
-        );
+        let mut p = plan(ck, &sec.tour, &sec.pool, speeds, seed ^ k as u64);
         for d in &mut p.dropped {
             d.index += offset;
         }
@@ -425,7 +414,10 @@ fn corner_blend(
     measured: bool,
 ) -> Option<(f64, Extremes)> {
     let d_mm = crate::units::to_mm(spec.distance);
-    let axes = |x: &[f64; 6]| spec.map.apply(&crate::emit::emitted(x).map(crate::units::to_deg));
+    let axes = |x: &[f64; 6]| {
+        spec.map
+            .apply(&crate::emit::emitted(x).map(crate::units::to_deg))
+    };
     let len = |x: &[f64; 6], y: &[f64; 6]| {
         let (x, y) = (axes(x), axes(y));
         (0..6).map(|i| (x[i] - y[i]).powi(2)).sum::<f64>().sqrt()
@@ -455,7 +447,10 @@ fn corner_blend(
     let r = blend::region(ck, spec.corner, None, a, q, b, value, axis_len).ok()?;
     // At a measurement pose the path must pass the pose within the blend distance: it runs
     // through the blend's ends (a TCP-distance blend begins within the distance by definition).
-    if measured && kind != CornerKind::TcpDistance && blend::end_distance(ck, &r) > spec.distance * (1.0 + 1e-9) {
+    if measured
+        && kind != CornerKind::TcpDistance
+        && blend::end_distance(ck, &r) > spec.distance * (1.0 + 1e-9)
+    {
         return None;
     }
     let (e1, e2) = r.edges();

@@ -27,11 +27,11 @@ pub mod gcode {
 use crate::collision::Contact;
 use crate::controller::ControllerMap;
 use crate::dialect::{CornerKind, Dialect, MoveTime, Parsed, Step};
-use crate::timing::{self, Limits};
 use crate::ir::Reason;
 use crate::order::move_time;
 use crate::robot::Robot;
 use crate::safety::{blend, describe_contact, Checker, Extremes, Violation};
+use crate::timing::{self, Limits};
 use crate::units::{fmt_fixed, DEG};
 use serde::{Deserialize, Serialize};
 

@@ -106,12 +106,8 @@ pub fn check(
     estimated: f64,
 ) -> Result<TraceReport, Failure> {
     let n = trace.q.len();
-    let dist = |a: &[f64; 6], b: &[f64; 6]| {
-        (0..6)
-            .map(|i| (a[i] - b[i]).powi(2))
-            .sum::<f64>()
-            .sqrt()
-    };
+    let dist =
+        |a: &[f64; 6], b: &[f64; 6]| (0..6).map(|i| (a[i] - b[i]).powi(2)).sum::<f64>().sqrt();
     let model = ck.model;
     let map_at = |q: &[f64; 6]| model.map_position(&model.nominal, q);
     // Where the trace arrives at each target, and the MAP's closest pass.
