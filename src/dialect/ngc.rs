@@ -9,8 +9,8 @@
 //!   absolute (G90) or incremental (G91);
 //! - G0 (rapid, at the joints' maximum speeds) and G1 with feed in G94 (units/min along the
 //!   joint-space path) or G93 (inverse time: the move takes 1/F minutes);
-//! - G64 [P] (LinuxCNC's path blending, P its tolerance on X Y Z) and G61 (exact stop); G4 P
-//!   (dwell, s);
+//! - G64, with or without P (LinuxCNC's path blending, P its tolerance on X Y Z), and G61
+//!   (exact stop); G4 P (dwell, s);
 //! - M0/M1 (pause), M2/M30 (end); comments in parentheses or after ';'; optional N words;
 //! - G21 only (millimetre mode; G20 is refused: degrees do not scale with inches).
 
