@@ -55,6 +55,8 @@
 //! offset = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0]   # controller value at model zero (deg)
 //! j3_coupling = 0                     # J3 = sign3*q3 + k*q2 + offset3: -1, 0, 1 or "auto"
 //! units = "deg"                       # "deg" | "rad", where the language leaves it open
+//! pulses_per_deg = [...]              # encoder pulses per axis degree (compensate: FANUC
+//!                                     # master-count changes)
 //! ```
 
 use crate::controller::ControllerSpec;
