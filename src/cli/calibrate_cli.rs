@@ -153,6 +153,20 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
         opts.prior_angle = v[1] * DEG;
     }
 
+    // --baseline: the previous report is read before any work.
+    let baseline = match &a.baseline {
+        Some(path) => {
+            let text = super::read_input(path, "calibration report", crate::files::Kind::Config)?;
+            let value: serde_json::Value = serde_json::from_str(&text)
+                .map_err(|e| file_err(path, format!("not JSON: {e}")))?;
+            Some((
+                drift::read_report(&value).map_err(|e| file_err(path, e))?,
+                name(path),
+            ))
+        }
+        None => None,
+    };
+
     let load_opts = LoadOptions {
         flange_link: a.flange.clone(),
         package_paths: a.package_path.clone(),
@@ -181,22 +195,11 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
         .collect();
     let labels: Vec<String> = a.measured.iter().map(|p| name(p)).collect();
     // --baseline: the fit starts from the previous calibration and states what moved since.
-    let (cal, drift) = match &a.baseline {
-        Some(path) => {
-            let text = super::read_input(path, "calibration report", crate::files::Kind::Config)?;
-            let value: serde_json::Value = serde_json::from_str(&text)
-                .map_err(|e| file_err(path, format!("not JSON: {e}")))?;
-            let baseline = drift::read_report(&value).map_err(|e| file_err(path, e))?;
-            let (cal, d) = drift::calibrate_against(
-                &model,
-                &robot,
-                &runs,
-                &labels,
-                &opts,
-                &baseline,
-                &name(path),
-            )
-            .map_err(|e| file_err(&a.measured[0], e))?;
+    let (cal, drift) = match &baseline {
+        Some((baseline, label)) => {
+            let (cal, d) =
+                drift::calibrate_against(&model, &robot, &runs, &labels, &opts, baseline, label)
+                    .map_err(|e| file_err(&a.measured[0], e))?;
             (cal, Some(d))
         }
         None => (

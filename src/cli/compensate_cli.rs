@@ -102,6 +102,7 @@ pub fn compensate(a: &CompensateArgs) -> Result<i32, Error> {
     let load_opts = LoadOptions {
         flange_link: a.flange.clone(),
         package_paths: a.package_path.clone(),
+        speeds: spec.as_ref().and_then(|s| s.speeds),
         ..LoadOptions::default()
     };
     let nominal = robot::load(&a.nominal, &load_opts)?;
@@ -120,24 +121,26 @@ pub fn compensate(a: &CompensateArgs) -> Result<i32, Error> {
             ));
         }
     }
+    // The tool point: --tcp on both robots; else the MAP: the cell's (what the programs were
+    // planned with) or the nominal file's on the nominal robot, the calibrated file's own (its
+    // calibrated MAP) on the calibrated one.
     let (tcp_n, tcp_c) = match tcp {
         Some(t) => (t, t),
         None => {
-            let need = |r: &Robot, p: &Path| {
-                r.tool.map(Frame::translation).ok_or_else(|| {
+            let n = spec
+                .as_ref()
+                .and_then(|s| s.map)
+                .or(nominal.tool)
+                .map(Frame::translation)
+                .ok_or_else(|| {
                     usage(format!(
-                        "--tcp: required: {} declares no tool point (MAP)",
-                        p.display()
+                        "--tcp: required: {} declares no tool point (MAP) and no cell gives one",
+                        a.nominal.display()
                     ))
-                })
-            };
-            (
-                need(&nominal, &a.nominal)?,
-                need(&calibrated, &a.calibrated)?,
-            )
+                })?;
+            (n, calibrated.tool.map(Frame::translation).unwrap_or(n))
         }
     };
-
     // The program (its dialect decides the mapping's defaults and the mastering's family).
     let program_text = match &a.program {
         Some(p) => Some(super::read_input(

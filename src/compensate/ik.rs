@@ -110,9 +110,27 @@ pub struct Solution {
 }
 
 /// The rotation vector (axis · angle, base frame) that turns `from` into `to`: log(to · fromᵀ).
+/// Below 90° from the skew-symmetric part, sin θ · axis, and θ = atan2(sin θ, cos θ): exact to
+/// the last bits for the tiny rotations a convergence test compares (the usual acos of the
+/// trace resolves no angle below ~1e-8 rad).
 #[inline]
 pub fn rotation_error(to: &Matrix3<f64>, from: &Matrix3<f64>) -> Vector3<f64> {
-    Rotation3::from_matrix_unchecked(to * from.transpose()).scaled_axis()
+    let m = to * from.transpose();
+    let c = 0.5 * (m.trace() - 1.0);
+    if c <= 0.0 {
+        return Rotation3::from_matrix_unchecked(m).scaled_axis();
+    }
+    let v = 0.5
+        * Vector3::new(
+            m[(2, 1)] - m[(1, 2)],
+            m[(0, 2)] - m[(2, 0)],
+            m[(1, 0)] - m[(0, 1)],
+        );
+    let s = v.norm();
+    if s == 0.0 {
+        return Vector3::zeros();
+    }
+    v * (s.atan2(c) / s)
 }
 
 /// The error vector of `cur` against `goal`: position (m), then orientation scaled by
@@ -287,6 +305,20 @@ mod tests {
                 assert!((dv[a] - j[(a, i)]).abs() < 1e-6, "joint {i} v{a}");
                 assert!((dw[a] - j[(a + 3, i)]).abs() < 1e-6, "joint {i} w{a}");
             }
+        }
+    }
+
+    #[test]
+    fn rotation_error_is_exact_for_tiny_and_large_rotations() {
+        let axis = Vector3::new(0.3, -0.5, 0.8).normalize();
+        let base = crate::robot::axis_angle(&Vector3::new(0.1, 0.7, -0.2).normalize(), 1.3);
+        for angle in [1e-12, 3e-9, 1e-4, 0.5, 1.5, 2.5, 3.1] {
+            let to = crate::robot::axis_angle(&axis, angle) * base;
+            let e = rotation_error(&to, &base);
+            assert!(
+                (e - axis * angle).norm() <= 1e-15 + 1e-12 * angle,
+                "{angle}: {e:?}"
+            );
         }
     }
 

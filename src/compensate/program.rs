@@ -458,8 +458,9 @@ fn ngc_words(line: &str) -> Vec<(char, usize, usize, String)> {
     out
 }
 
-/// SINUMERIK: `NAME=value` with the mapping's axis names (missing ones added after the last
-/// present one); a G93 F rewritten when the move is slowed. G91 is refused.
+/// SINUMERIK: the axis words `NAME=value` (the mapping's axis names) become all six compensated
+/// ones (at the place of the first); a G93 F is rewritten when the move is slowed. G91 is
+/// refused.
 fn sinumerik(
     lines: &mut [String],
     edits: &[Edit],
@@ -496,45 +497,45 @@ fn sinumerik(
         if let Some(s) = start {
             words.push((s, end));
         }
+        let full = map
+            .axis_names
+            .iter()
+            .zip(&e.axes)
+            .map(|(n, v)| format!("{n}={v}"))
+            .collect::<Vec<_>>()
+            .join(" ");
         let mut spans: Vec<(usize, usize, String)> = Vec::new();
-        let mut present = [false; 6];
-        let mut last_axis = None;
+        let mut first = true;
+        let mut feed = false;
         for &(a, b) in &words {
             let w = &line[a..b];
             if let Some((name, _)) = w.split_once('=') {
-                if let Some(i) = map
-                    .axis_names
-                    .iter()
-                    .position(|n| n.eq_ignore_ascii_case(name))
-                {
-                    spans.push((a + name.len() + 1, b, e.axes[i].clone()));
-                    present[i] = true;
-                    last_axis = Some(b);
+                if map.axis_names.iter().any(|n| n.eq_ignore_ascii_case(name)) {
+                    spans.push((a, b, if first { full.clone() } else { String::new() }));
+                    first = false;
                 }
             } else if let Some(rest) = w.strip_prefix(['F', 'f']) {
-                if let (Some(t), true) = (e.time, rest.parse::<f64>().is_ok()) {
-                    spans.push((a + 1, b, crate::emit::inverse_time_feed(t)));
+                if rest.parse::<f64>().is_ok() {
+                    feed = true;
+                    if let Some(t) = e.time {
+                        spans.push((a + 1, b, crate::emit::inverse_time_feed(t)));
+                    }
                 }
             }
         }
-        let at =
-            last_axis.ok_or_else(|| unsupported(e.line, "no axis words on the move's line"))?;
-        let missing: String = (0..6)
-            .filter(|&i| !present[i])
-            .map(|i| format!(" {}={}", map.axis_names[i], e.axes[i]))
-            .collect();
-        if !missing.is_empty() {
-            spans.push((at, at, missing));
+        if first {
+            return Err(unsupported(e.line, "no axis words on the move's line"));
         }
-        if e.time.is_some()
-            && !words
-                .iter()
-                .any(|&(a, b)| line[a..b].starts_with(['F', 'f']))
-        {
+        if e.time.is_some() && !feed {
             return Err(unsupported(e.line, "G93 move without F"));
         }
         spans.sort_by_key(|s| std::cmp::Reverse(s.0));
         for (a, b, with) in spans {
+            let a = if with.is_empty() && a > 0 && line.as_bytes()[a - 1] == b' ' {
+                a - 1
+            } else {
+                a
+            };
             splice(line, (a, b), &with);
         }
     }
