@@ -272,7 +272,34 @@ pub fn compensate(a: &CompensateArgs) -> Result<i32, Error> {
                 return Ok(1);
             }
             Outcome::Written(w) => {
+                // The cell's joint margin: a pose planned at its edge may cross it by the
+                // compensation (hundredths of a degree); say where, and by how much.
+                let margin = spec.as_ref().map_or(0.0, |s| s.joint_margin);
+                let (lo, hi) = nominal.limits();
+                let mut beyond = Vec::new();
+                if spec.is_some() {
+                    for (line, q) in &w.joints {
+                        for i in 0..6 {
+                            let over = (lo[i] + margin - q[i]).max(q[i] - (hi[i] - margin));
+                            if over > 0.0 {
+                                beyond.push((*line, i + 1, round6(over / DEG)));
+                            }
+                        }
+                    }
+                }
+                if !beyond.is_empty() {
+                    notes.push(format!(
+                        "{} moves leave the cell's joint margin of {} deg by up to {} deg (the compensation moves joints by up to {} deg): verify the compensated program with --joint-margin {} or plan with a larger margin",
+                        beyond.len(),
+                        fmt_fixed(margin / DEG, 3),
+                        fmt_fixed(beyond.iter().map(|b| b.2).fold(0.0, f64::max), 4),
+                        fmt_fixed(w.largest_change / DEG, 4),
+                        fmt_fixed(((margin / DEG) - (w.largest_change / DEG)).max(0.0) * 0.999, 3)
+                    ));
+                }
                 program_report = Some(compensate::ProgramReport {
+                    largest_change_deg: round6(w.largest_change / DEG),
+                    beyond_joint_margin: beyond,
                     file: name(path),
                     dialect: d.name.clone(),
                     moves: w.moves,

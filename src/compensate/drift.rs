@@ -169,7 +169,8 @@ fn round6(v: f64) -> f64 {
 /// Decimals that show a standard uncertainty with one or two significant digits.
 fn decimals(std: f64) -> usize {
     if std > 0.0 {
-        ((-std.log10()).ceil() as i64).clamp(3, 6) as usize
+        // 1.05: an uncertainty of 0.00099 reads 0.001, not 0.0010.
+        ((-(1.05 * std).log10()).ceil() as i64).clamp(3, 6) as usize
     } else {
         3
     }

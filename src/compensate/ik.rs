@@ -235,6 +235,79 @@ pub fn solve(chain: &Chain, goal: &Goal, seed: &[f64; 6], opts: &Options) -> Sol
     }
 }
 
+/// Trades orientation error (rad) against joint motion (rad) in [`solve_position_first`]: a
+/// direction of the orientation that costs more than 1/ORIENTATION_DAMPING rad of joint motion
+/// per rad is given up rather than chased (near a wrist singularity); the same scale as the
+/// singularity threshold of the compensation (`SINGULAR_MIN`).
+pub const ORIENTATION_DAMPING: f64 = 0.01;
+
+/// The TCP position of `goal` exactly, and its orientation as closely as the chain allows
+/// without large joint motions: the Gauss–Newton iteration of min ‖orientation error‖² +
+/// μ²‖q − seed‖² subject to the position (μ = [`ORIENTATION_DAMPING`]), each step the
+/// minimum-norm position step plus the damped orientation step in the position's null space.
+/// Where the orientation can be reached without strain (away from singularities) it is reached
+/// exactly; near a wrist singularity the unreachable part stays as the remaining angle error.
+pub fn solve_position_first(
+    chain: &Chain,
+    goal: &Frame,
+    seed: &[f64; 6],
+    opts: &Options,
+) -> Solution {
+    let mu2 = ORIENTATION_DAMPING * ORIENTATION_DAMPING;
+    let anchor = Vector6::from_column_slice(seed);
+    let mut q = *seed;
+    let mut it = 0;
+    let mut last_step = f64::INFINITY;
+    loop {
+        let (cur, j) = chain.jacobian(&q);
+        let ep = goal.t - cur.t;
+        let eo = rotation_error(&goal.r, &cur.r);
+        let done = ep.norm() <= opts.tol_position && last_step < 1e-12;
+        if done || it >= opts.max_iterations {
+            return Solution {
+                q,
+                position_error: ep.norm(),
+                angle_error: eo.norm(),
+                converged: ep.norm() <= opts.tol_position && last_step < 1e-9,
+                iterations: it,
+            };
+        }
+        it += 1;
+        let jp = j.fixed_view::<3, 6>(0, 0).into_owned();
+        let jo = j.fixed_view::<3, 6>(3, 0).into_owned();
+        let Some(a) = (jp * jp.transpose() + Matrix3::identity() * 1e-14).try_inverse() else {
+            break;
+        };
+        let pinv = jp.transpose() * a; // 6 × 3
+        let d1 = pinv * ep;
+        let n = Matrix6::identity() - pinv * jp;
+        let jon = jo * n;
+        let r = Vector6::from_column_slice(&q) - anchor + d1;
+        let rhs = jon.transpose() * (eo - jo * d1) - n * r * mu2;
+        let m = jon.transpose() * jon + Matrix6::identity() * mu2;
+        let Some(z) = m.cholesky().map(|c| c.solve(&rhs)) else {
+            break;
+        };
+        let mut d = d1 + n * z;
+        let big = d.amax();
+        if big > opts.max_step {
+            d *= opts.max_step / big;
+        }
+        last_step = d.amax();
+        for i in 0..6 {
+            q[i] += d[i];
+        }
+    }
+    let cur = chain.pose(&q);
+    Solution {
+        q,
+        position_error: (goal.t - cur.t).norm(),
+        angle_error: rotation_error(&goal.r, &cur.r).norm(),
+        converged: false,
+        iterations: it,
+    }
+}
+
 /// How far from singular the chain is at `q` for a goal of this kind: the smallest over the
 /// largest singular value of the Jacobian (orientation rows scaled by [`ANGLE_SCALE`]; only the
 /// linear rows for a position goal). 0 = singular, 1 = isotropic.
@@ -320,6 +393,33 @@ mod tests {
                 "{angle}: {e:?}"
             );
         }
+    }
+
+    #[test]
+    fn position_first_keeps_the_position_exact_and_the_orientation_close() {
+        let robot = nj130();
+        let chain = Chain::new(&robot, &Frame::translation(Vector3::new(0.06, 0.03, 0.12)));
+        // Near (q5 = 0.6) and at the wrist singularity (q5 = 0): the position exact, the
+        // orientation closer than the plain position solve (minimum joint change) leaves it;
+        // at the singularity the part of the turn the wrist cannot make (one direction) stays.
+        let mut errors = Vec::new();
+        for q5 in [0.6, 0.0] {
+            let q = [0.3, -0.2, 0.4, 1.1, q5, 2.0];
+            let mut goal = chain.pose(&q);
+            goal.r =
+                crate::robot::axis_angle(&Vector3::new(0.3, 0.8, -0.5).normalize(), 3e-4) * goal.r;
+            goal.t += Vector3::new(1e-4, -2e-4, 5e-5);
+            let s = solve_position_first(&chain, &goal, &q, &Options::default());
+            assert!(s.converged && s.position_error < 1e-10, "{s:?}");
+            let plain = solve(&chain, &Goal::Position(goal.t), &q, &Options::default());
+            let plain_turn = rotation_error(&goal.r, &chain.pose(&plain.q).r).norm();
+            let turn = rotation_error(&goal.r, &chain.pose(&s.q).r).norm();
+            assert!((turn - s.angle_error).abs() < 1e-15);
+            assert!(turn < plain_turn, "{turn} against {plain_turn}");
+            errors.push(turn);
+        }
+        assert!(errors[0] < 0.1 * 3e-4 && errors[1] < 3e-4, "{errors:?}");
+        assert!(errors[0] < errors[1], "{errors:?}");
     }
 
     #[test]

@@ -339,8 +339,8 @@ impl Compensator {
         let (q, free) = if full.converged && full_cond >= SINGULAR_MIN {
             (full.q, false)
         } else {
-            // The position alone, with the smallest joint change.
-            let pos = ik::solve(&self.calibrated, &Goal::Position(pose.t), &qn, &opts);
+            // The position exactly, the orientation as close as small joint motions allow.
+            let pos = ik::solve_position_first(&self.calibrated, &pose, &qn, &opts);
             let pos_cond = ik::conditioning(&self.calibrated, &pos.q, true);
             if !pos.converged {
                 let status = if pos_cond < SINGULAR_MIN {
@@ -477,4 +477,10 @@ pub struct ProgramReport {
     pub printed_residual_um: offsets::Um,
     /// Lines whose stated duration was lengthened so that no axis runs faster than allowed.
     pub retimed_lines: Vec<usize>,
+    /// The largest change of a joint by the compensation (deg).
+    pub largest_change_deg: f64,
+    /// Moves whose compensated joints leave the cell's joint margin (a program planned up to
+    /// the margin's edge crosses it by up to the largest change): line, joint (1-based), by
+    /// how much (deg).
+    pub beyond_joint_margin: Vec<(usize, usize, f64)>,
 }

@@ -66,6 +66,10 @@ pub struct Rewritten {
     pub printed_residual: Vec<f64>,
     /// Lines whose stated duration was lengthened.
     pub retimed: Vec<usize>,
+    /// Per move: its line and the model joints as printed (rad).
+    pub joints: Vec<(usize, [f64; 6])>,
+    /// The largest change of a joint by the compensation (rad).
+    pub largest_change: f64,
 }
 
 pub enum Outcome {
@@ -86,6 +90,10 @@ struct Edit {
     axes: [String; 6],
     /// The new duration token (s), when it changes.
     time: Option<f64>,
+    /// The new axis speed percentages (KRL `$VEL_AXIS`, FANUC `n%`), when they change.
+    percent: Option<[f64; 6]>,
+    /// The percentages in force before (to restore them after the move in KRL).
+    old_percent: [f64; 6],
 }
 
 /// Rewrites `text` (in `dialect`, read with `map`) with compensated joints. `speeds` are the
@@ -150,7 +158,11 @@ pub fn rewrite(
     let mut printed_residual = Vec::with_capacity(moves.len());
     let mut retimed = Vec::new();
     let mut expected: Vec<[f64; 6]> = Vec::with_capacity(moves.len());
+    let mut joints = Vec::with_capacity(moves.len());
+    let mut largest_change: f64 = 0.0;
     let mut prev: Option<([f64; 6], [f64; 6])> = None; // (old, new) model joints, rad
+    let mut prev_axes = [0.0; 6]; // the previous move's new axis values, as printed
+    let axis_speeds = map.axis_speeds(speeds);
     for (m, c) in moves.iter().zip(&results) {
         let q = c.q.unwrap_or([0.0; 6]);
         let axes = map.apply(&q.map(|r| r / DEG));
@@ -159,7 +171,14 @@ pub fn rewrite(
         let new_q = map.undo(&values).map(|d| d * DEG);
         printed_residual.push(comp.residual(&c.target, &new_q));
         let old_q = m.1.map(|d| d * DEG);
+        joints.push((m.0, new_q));
+        largest_change = (0..6).fold(largest_change, |a, i| a.max((new_q[i] - old_q[i]).abs()));
         let mut time = None;
+        let mut percent = None;
+        let old_percent = match m.3 {
+            Timing::AxisPercent(p) => p,
+            _ => [100.0; 6],
+        };
         if let Some((po, pn)) = prev {
             let (t_old, t_new) = (
                 move_time(&po, &old_q, speeds),
@@ -178,6 +197,23 @@ pub fn rewrite(
                     };
                     time = Some(scaled.max(t_new * (1.0 + 1e-9)));
                     retimed.push(m.0);
+                }
+                (None, Timing::AxisPercent(p)) => {
+                    // A percentage of every axis's speed: the controller times the move on its
+                    // axes (J3 may follow J2); lower it where the compensated move would be
+                    // faster than the joints allow.
+                    let d = m.3.duration(&prev_axes, &values, &axis_speeds).unwrap_or(f64::INFINITY);
+                    if t_new > 0.0 && d < t_new * (1.0 + 1e-9) {
+                        let full = (0..6)
+                            .map(|i| (values[i] - prev_axes[i]).abs() / axis_speeds[i])
+                            .fold(0.0, f64::max);
+                        let most = (100.0 * full / (t_new * (1.0 + 1e-9))).floor().max(1.0);
+                        let lowered = p.map(|x| x.min(most));
+                        if lowered != p {
+                            percent = Some(lowered);
+                            retimed.push(m.0);
+                        }
+                    }
                 }
                 (None, Timing::PathFeed(_) | Timing::LeadSpeed(_)) => {
                     let d =
@@ -198,11 +234,14 @@ pub fn rewrite(
             }
         }
         prev = Some((old_q, new_q));
+        prev_axes = values;
         expected.push(values);
         edits.push(Edit {
             line: m.0,
             axes: std::array::from_fn(|i| printed[i].0.clone()),
             time,
+            percent,
+            old_percent,
         });
     }
 
@@ -230,6 +269,8 @@ pub fn rewrite(
         decimals: dec,
         printed_residual,
         retimed,
+        joints,
+        largest_change,
     }))
 }
 
@@ -278,11 +319,12 @@ fn check(
                 let ok_axes = (0..6).all(|i| {
                     (axes[i] - expected[k][i]).abs() <= 1e-9 * expected[k][i].abs().max(1.0)
                 });
-                let ok_time = match (ta, tb, edits[k].time) {
-                    (Timing::Duration(_), Timing::Duration(t), Some(want)) => {
+                let ok_time = match (ta, tb, edits[k].time, edits[k].percent) {
+                    (Timing::Duration(_), Timing::Duration(t), Some(want), _) => {
                         *t >= want * (1.0 - 1e-9)
                     }
-                    (x, y, None) => x == y,
+                    (Timing::AxisPercent(_), Timing::AxisPercent(p), _, Some(want)) => *p == want,
+                    (x, y, None, None) => x == y,
                     _ => false,
                 };
                 let q = target.map(|d| d * DEG);
@@ -559,9 +601,20 @@ fn group(s: &str, open: usize, o: u8, c: u8) -> Option<(usize, usize)> {
     None
 }
 
-/// KUKA KRL: the PTP's axis aggregate becomes all six compensated axes.
-fn krl(lines: &mut [String], edits: &[Edit]) -> Result<(), ProgramError> {
+/// KUKA KRL: the PTP's axis aggregate becomes all six compensated axes; a move that must be
+/// slower gets its lowered `$VEL_AXIS` set before it and the previous ones restored after it.
+fn krl(lines: &mut Vec<String>, edits: &[Edit]) -> Result<(), ProgramError> {
+    let mut inserts: Vec<(usize, Vec<String>, Vec<String>)> = Vec::new();
     for e in edits {
+        if let Some(p) = e.percent {
+            let set = |v: &[f64; 6]| -> Vec<String> {
+                (0..6)
+                    .filter(|&i| p[i] != e.old_percent[i])
+                    .map(|i| format!("$VEL_AXIS[{}] = {}", i + 1, v[i] as i64))
+                    .collect()
+            };
+            inserts.push((e.line, set(&p), set(&e.old_percent)));
+        }
         let line = line_mut(lines, e.line)?;
         let end = code_end(line, ';');
         let open = line[..end]
@@ -579,6 +632,16 @@ fn krl(lines: &mut [String], edits: &[Edit]) -> Result<(), ProgramError> {
                 .join(", ")
         );
         splice(line, r, &agg);
+    }
+    // Bottom up, so that the line numbers of the moves above stay.
+    inserts.sort_by_key(|x| std::cmp::Reverse(x.0));
+    for (line, before, after) in inserts {
+        for (k, l) in after.into_iter().enumerate() {
+            lines.insert(line + k, l);
+        }
+        for (k, l) in before.into_iter().enumerate() {
+            lines.insert(line - 1 + k, l);
+        }
     }
     Ok(())
 }
@@ -760,6 +823,16 @@ fn fanuc(lines: &mut [String], edits: &[Edit]) -> Result<(), ProgramError> {
                 start + 1,
                 format!("P[{idx}]: J{} not found", i + 1),
             ));
+        }
+        if let Some(p) = e.percent {
+            let line = line_mut(lines, e.line)?;
+            let pct = line
+                .find('%')
+                .ok_or_else(|| unsupported(e.line, "a J move without its speed n%"))?;
+            let start = line[..pct]
+                .rfind(|c: char| !c.is_ascii_digit())
+                .map_or(0, |j| j + 1);
+            splice(line, (start, pct), &format!("{}", p[0] as i64));
         }
         if let Some(t) = e.time {
             let line = line_mut(lines, e.line)?;
