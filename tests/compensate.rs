@@ -1118,6 +1118,7 @@ fn on_a_twin_the_truth_robot_reaches_the_nominal_targets_as_predicted() {
         std::fs::write(&t, text).unwrap();
         let out = dir.path().join(format!("{kind}.comp.csv"));
         let rj = dir.path().join(format!("{kind}.json"));
+        let html = dir.path().join(format!("{kind}.html"));
         let r = edbbgen([
             "compensate",
             cal.to_str().unwrap(),
@@ -1131,9 +1132,14 @@ fn on_a_twin_the_truth_robot_reaches_the_nominal_targets_as_predicted() {
             json.to_str().unwrap(),
             "--json",
             rj.to_str().unwrap(),
+            "--html",
+            html.to_str().unwrap(),
             "-q",
         ]);
         assert_eq!(r.code, 0, "{kind}: {}", r.stderr);
+        if kind == "joints" {
+            crate::report::assert_page_draws(&html, "compensate", &["fig-accuracy", "fig-targets"]);
+        }
         let rows = compensated_rows(&out);
         let ok: Vec<usize> = (0..rows.len()).filter(|&k| rows[k].is_some()).collect();
         let rep: serde_json::Value =
@@ -1246,5 +1252,130 @@ fn on_a_twin_the_truth_robot_reaches_the_nominal_targets_as_predicted() {
             );
             assert!(real < 2.0 * pred && pred < 2.0 * real, "{real} vs {pred}");
         }
+    }
+}
+
+#[test]
+fn a_percentage_timed_move_with_j3_following_j2_is_slowed_in_krl() {
+    // KRL with the cell's J3 = q3 − q2: the controller times a PTP on its axes (J2 leads), the
+    // joints' limit is joint 3's (it turns 22° while J3 turns 6°). At 80 % the move takes
+    // exactly joint 3's time; a compensation that lengthens joint 3's turn or shortens J2's
+    // must lower $VEL_AXIS for that move, and only for it.
+    let nominal = load(&nj130_dh());
+    let calibrated = load(&cal_file());
+    let tcp = |r: &Robot| Frame::translation(r.tool.unwrap());
+    let comp = Compensator::new(&nominal, &calibrated, &tcp(&nominal), &tcp(&calibrated));
+    let c = |q: &[f64; 6]| {
+        comp.compensate(&Target::Joints(q.map(|v| v * DEG)))
+            .q
+            .unwrap()
+            .map(|r| r / DEG)
+    };
+    let (a, b) = (0..54)
+        .map(|k| {
+            let a = [
+                10.0,
+                -50.0 + 2.0 * k as f64,
+                -70.0 + 2.5 * k as f64,
+                30.0,
+                40.0,
+                0.0,
+            ];
+            let mut b = a;
+            b[1] += 16.0;
+            b[2] += 22.0;
+            (a, b)
+        })
+        .find(|(a, b)| {
+            let (ca, cb) = (c(a), c(b));
+            let j2 = (cb[1] - ca[1]).abs() / 100.0 / 0.8;
+            let q3 = (cb[2] - ca[2]).abs() / 110.0;
+            j2 < q3 * (1.0 - 1e-7)
+        })
+        .expect("a move the compensation makes too fast at 80 %");
+    let axes = |q: &[f64; 6]| {
+        format!(
+            "{{A1 {}, A2 {}, A3 {}, A4 {}, A5 {}, A6 {}}}",
+            q[0],
+            q[1],
+            q[2] - q[1],
+            q[3],
+            q[4],
+            q[5]
+        )
+    };
+    let vel: String = (1..=6).map(|i| format!("$VEL_AXIS[{i}] = 80\n")).collect();
+    let text = format!(
+        "&ACCESS RVP\nDEF speed( )\n{vel}PTP {}\nPTP {}\nPTP {}\nEND\n",
+        axes(&a),
+        axes(&b),
+        axes(&a)
+    );
+    let dir = tempdir();
+    let cell = dir.path().join("cell.toml");
+    std::fs::write(&cell, "[controller]\nj3_coupling = -1\n").unwrap();
+    let p = dir.path().join("speed.src");
+    std::fs::write(&p, &text).unwrap();
+    let out = dir.path().join("comp.src");
+    let r = edbbgen([
+        "compensate",
+        cal_file().to_str().unwrap(),
+        "--nominal",
+        nj130_dh().to_str().unwrap(),
+        "--program",
+        p.to_str().unwrap(),
+        "-o",
+        out.to_str().unwrap(),
+        "--cell",
+        cell.to_str().unwrap(),
+    ]);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    let new = std::fs::read_to_string(&out).unwrap();
+    let lines: Vec<&str> = new.lines().collect();
+    let ptp: Vec<usize> = (0..lines.len())
+        .filter(|&k| lines[k].starts_with("PTP"))
+        .collect();
+    // Before the second PTP J2's percentage comes down; after it, 80 again.
+    let before = lines[ptp[0] + 1..ptp[1]].join("\n");
+    let after = lines[ptp[1] + 1..ptp[2]].join("\n");
+    let lowered: i64 = before
+        .lines()
+        .find(|l| l.starts_with("$VEL_AXIS[2] = "))
+        .unwrap_or_else(|| panic!("{new}"))
+        .rsplit(' ')
+        .next()
+        .unwrap()
+        .parse()
+        .unwrap();
+    assert!(lowered < 80, "{new}");
+    assert!(after.contains("$VEL_AXIS[2] = 80"), "{new}");
+    // Read back on the controller's axes: the move now takes at least joint 3's time.
+    let map = edbbgen::controller::ControllerMap::resolve(
+        edbbgen::cell::load(&cell).unwrap().controller.as_ref(),
+        &edbbgen::dialect::by_name("krl").unwrap().defaults(),
+        "krl",
+        &nominal,
+    )
+    .unwrap();
+    let parsed = edbbgen::dialect::by_name("krl")
+        .unwrap()
+        .read(&new, &map)
+        .unwrap();
+    let moves: Vec<(&[f64; 6], &edbbgen::dialect::Step)> = parsed
+        .lines
+        .iter()
+        .filter_map(|l| match &l.step {
+            s @ edbbgen::dialect::Step::Move { axes, .. } => Some((axes, s)),
+            _ => None,
+        })
+        .collect();
+    let speeds = nominal.max_speeds();
+    let targets: Vec<[f64; 6]> = parsed.targets().map(|(_, t)| t.map(|d| d * DEG)).collect();
+    for k in 1..moves.len() {
+        let d = parsed
+            .duration(moves[k - 1].0, moves[k].1, &speeds)
+            .unwrap();
+        let min = edbbgen::order::move_time(&targets[k - 1], &targets[k], &speeds);
+        assert!(d >= min * (1.0 - 1e-9), "move {k}: {d} s against {min} s");
     }
 }

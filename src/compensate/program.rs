@@ -202,7 +202,9 @@ pub fn rewrite(
                     // A percentage of every axis's speed: the controller times the move on its
                     // axes (J3 may follow J2); lower it where the compensated move would be
                     // faster than the joints allow.
-                    let d = m.3.duration(&prev_axes, &values, &axis_speeds).unwrap_or(f64::INFINITY);
+                    let d =
+                        m.3.duration(&prev_axes, &values, &axis_speeds)
+                            .unwrap_or(f64::INFINITY);
                     if t_new > 0.0 && d < t_new * (1.0 + 1e-9) {
                         let full = (0..6)
                             .map(|i| (values[i] - prev_axes[i]).abs() / axis_speeds[i])
