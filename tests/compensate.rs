@@ -1248,7 +1248,8 @@ fn on_a_twin_the_truth_robot_reaches_the_nominal_targets_as_predicted() {
                 &all_targets,
             );
             eprintln!(
-                "offsets only: realised {real:.1} um RMS, predicted {pred:.1} um (nothing applied {nothing:.1} um; full compensation {err:.2} um)"
+                "offsets only: realised {real:.1} um RMS, predicted {pred:.1} um (nothing applied {nothing:.1} um, model {}; full compensation {err:.2} um)",
+                rep["accuracy"]["uncompensated_um"]["rms"]
             );
             assert!(real < 2.0 * pred && pred < 2.0 * real, "{real} vs {pred}");
         }

@@ -339,6 +339,10 @@ fn end_to_end_a_full_baseline_then_a_short_check_program_finds_a_moved_zero() {
         same["drift"]["verdict"]
     );
     assert!(stdout.contains("since base.json"), "{stdout}");
+    eprintln!(
+        "same robot: {}",
+        stdout.lines().find(|l| l.starts_with("since")).unwrap()
+    );
     // The report states deviations from nominal, as always: the baseline plus the change.
     for (name, p) in base["params"].as_object().unwrap() {
         let (b, s) = (p["value"].as_f64().unwrap(), p["std"].as_f64().unwrap());
@@ -357,9 +361,12 @@ fn end_to_end_a_full_baseline_then_a_short_check_program_finds_a_moved_zero() {
 
     let mut moved = truth.clone();
     moved.geometric[THETA + 1] += 0.01 * DEG;
-    let (after, _, _) = run(&check, &moved, 3, "moved", &["--baseline", b]);
+    let (after, out, _) = run(&check, &moved, 3, "moved", &["--baseline", b]);
     let verdict = after["drift"]["verdict"].as_str().unwrap();
-    eprintln!("verdict: {verdict}");
+    eprintln!(
+        "joint 2 moved: {}",
+        out.lines().find(|l| l.starts_with("since")).unwrap()
+    );
     assert!(
         after["drift"]["moved"]
             .as_array()
