@@ -1243,10 +1243,7 @@ fn on_a_twin_the_truth_robot_reaches_the_nominal_targets_as_predicted() {
                 .collect();
             let all_targets: Vec<Vector3<f64>> = poses.iter().map(|p| p.t).collect();
             let real = registered(&shifted, &all_targets);
-            let nothing = registered(
-                &qs.iter().map(|q| truth_at(q)).collect::<Vec<_>>(),
-                &all_targets,
-            );
+            let nothing = registered(&qs.iter().map(&truth_at).collect::<Vec<_>>(), &all_targets);
             eprintln!(
                 "offsets only: realised {real:.1} um RMS, predicted {pred:.1} um (nothing applied {nothing:.1} um, model {}; full compensation {err:.2} um)",
                 rep["accuracy"]["uncompensated_um"]["rms"]

@@ -914,14 +914,13 @@ fn insert_note(lines: &mut Vec<String>, dialect: &str, note: &str) -> Result<(),
             for l in lines.iter_mut() {
                 let t = l.trim_start();
                 if let Some(rest) = t.strip_prefix("LINE_COUNT") {
-                    if let Some(v) = rest
+                    if let Ok(v) = rest
                         .trim()
                         .trim_start_matches('=')
                         .trim()
                         .trim_end_matches(';')
                         .trim()
                         .parse::<usize>()
-                        .ok()
                     {
                         *l = format!("LINE_COUNT = {};", v + n);
                     }
