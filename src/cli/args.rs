@@ -535,7 +535,7 @@ pub struct CompensateArgs {
     /// (fixed-axis X-Y-Z, deg) [default: each robot file's MAP].
     #[arg(long, value_name = "X,Y,Z[,RX,RY,RZ]", allow_hyphen_values = true)]
     pub tcp: Option<String>,
-    /// Cell file: its [controller] section maps the joint values (targets, program, mastering)
+    /// Cell file: its `[controller]` section maps the joint values (targets, program, mastering)
     /// to the controller's axes.
     #[arg(long, value_name = "CELL.toml")]
     pub cell: Option<PathBuf>,

@@ -134,7 +134,7 @@ pub struct AxisDelta {
     pub delta: f64,
     pub std: Option<f64>,
     pub units: &'static str,
-    /// FANUC: the change of the master count ([controller] pulses_per_deg given).
+    /// FANUC: the change of the master count (`[controller] pulses_per_deg` given).
     pub master_count_delta: Option<i64>,
 }
 
