@@ -162,6 +162,7 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
             Some((
                 drift::read_report(&value).map_err(|e| file_err(path, e))?,
                 name(path),
+                robot::sha256_hex(text.as_bytes()),
             ))
         }
         None => None,
@@ -196,7 +197,7 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
     let labels: Vec<String> = a.measured.iter().map(|p| name(p)).collect();
     // --baseline: the fit starts from the previous calibration and states what moved since.
     let (cal, drift) = match &baseline {
-        Some((baseline, label)) => {
+        Some((baseline, label, _)) => {
             let (cal, d) =
                 drift::calibrate_against(&model, &robot, &runs, &labels, &opts, baseline, label)
                     .map_err(|e| file_err(&a.measured[0], e))?;
@@ -252,7 +253,12 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
     };
     let html = match &a.html {
         Some(_) => {
-            let hash = inputs_hash(&robot, &data, &fixtures, &map, &a.effects);
+            // The baseline is an input too.
+            let effects = match &baseline {
+                Some((_, _, sha)) => format!("{}\nbaseline {sha}", a.effects),
+                None => a.effects.clone(),
+            };
+            let hash = inputs_hash(&robot, &data, &fixtures, &map, &effects);
             let name = format!("{} [{}]", robot.name, robot.source);
             let mut page = crate::report::calibrate::page(&cal, &name, &hash)?;
             if let Some(d) = &drift {

@@ -223,6 +223,9 @@ pub fn compensate(a: &CompensateArgs) -> Result<i32, Error> {
                 .as_f64()?,
         ))
     });
+    if predicted.is_some() && tcp.is_some() {
+        notes.push("the calibration's predicted uncertainty is the MAP's: at another tool point the flange's orientation uncertainty adds, times their distance".into());
+    }
     if predicted.is_none() {
         notes.push("the calibration's predicted accuracy is not known here: give --calibration REPORT.json".into());
     }
