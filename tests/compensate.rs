@@ -446,9 +446,15 @@ fn compensated_joints_are_the_calibrated_arms_closed_form_solution_on_the_same_b
                     }
                     (Status::Ok, _) => {}
                     (s, _) => {
-                        // Only near singularities or limits may a target be refused.
+                        // Only near singularities (where a compensation may also swing to
+                        // another branch) or limits may a target be refused.
                         assert!(
-                            matches!(s, Status::Singular { .. } | Status::Limit { .. }),
+                            matches!(
+                                s,
+                                Status::Singular { .. }
+                                    | Status::Limit { .. }
+                                    | Status::Branch { .. }
+                            ),
                             "{what} {kind}: {q:?}: {s}"
                         );
                     }

@@ -115,6 +115,9 @@ fn a_repeat_run_reads_unchanged_and_a_single_zero_shift_of_001_deg_is_flagged() 
         let d = against(&truth, 100 + r);
         if d.moved.is_empty() {
             assert!(d.verdict.starts_with("unchanged within "), "{}", d.verdict);
+            if r == 0 {
+                eprintln!("a repeat: {}", d.verdict);
+            }
             unchanged += 1;
         } else {
             false_alarms.push(d.verdict);

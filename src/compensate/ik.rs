@@ -253,29 +253,27 @@ pub fn solve_position_first(
     seed: &[f64; 6],
     opts: &Options,
 ) -> Solution {
+    // The position first, by the robust iteration; the orientation is then improved without
+    // giving it up.
+    let turn = |q: &[f64; 6]| rotation_error(&goal.r, &chain.pose(q).r).norm();
+    let plain = solve(chain, &Goal::Position(goal.t), seed, opts);
+    let plain = Solution {
+        angle_error: turn(&plain.q),
+        ..plain
+    };
+    if !plain.converged {
+        return plain;
+    }
     let mu2 = ORIENTATION_DAMPING * ORIENTATION_DAMPING;
     let anchor = Vector6::from_column_slice(seed);
-    let mut q = *seed;
-    let mut it = 0;
-    let mut last_step = f64::INFINITY;
-    loop {
+    let mut q = plain.q;
+    for it in 1..=opts.max_iterations {
         let (cur, j) = chain.jacobian(&q);
         let ep = goal.t - cur.t;
         let eo = rotation_error(&goal.r, &cur.r);
-        let done = ep.norm() <= opts.tol_position && last_step < 1e-12;
-        if done || it >= opts.max_iterations {
-            return Solution {
-                q,
-                position_error: ep.norm(),
-                angle_error: eo.norm(),
-                converged: ep.norm() <= opts.tol_position && last_step < 1e-9,
-                iterations: it,
-            };
-        }
-        it += 1;
         let jp = j.fixed_view::<3, 6>(0, 0).into_owned();
         let jo = j.fixed_view::<3, 6>(3, 0).into_owned();
-        let Some(a) = (jp * jp.transpose() + Matrix3::identity() * 1e-14).try_inverse() else {
+        let Some(a) = (jp * jp.transpose() + Matrix3::identity() * 1e-12).try_inverse() else {
             break;
         };
         let pinv = jp.transpose() * a; // 6 × 3
@@ -293,19 +291,26 @@ pub fn solve_position_first(
         if big > opts.max_step {
             d *= opts.max_step / big;
         }
-        last_step = d.amax();
         for i in 0..6 {
             q[i] += d[i];
         }
+        if big < 1e-12 {
+            let pe = (goal.t - chain.pose(&q).t).norm();
+            let t = turn(&q);
+            // Kept only when it holds the position and turns less than the plain solution.
+            if pe <= opts.tol_position && t <= plain.angle_error {
+                return Solution {
+                    q,
+                    position_error: pe,
+                    angle_error: t,
+                    converged: true,
+                    iterations: plain.iterations + it,
+                };
+            }
+            break;
+        }
     }
-    let cur = chain.pose(&q);
-    Solution {
-        q,
-        position_error: (goal.t - cur.t).norm(),
-        angle_error: rotation_error(&goal.r, &cur.r).norm(),
-        converged: false,
-        iterations: it,
-    }
+    plain
 }
 
 /// How far from singular the chain is at `q` for a goal of this kind: the smallest over the
