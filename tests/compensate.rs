@@ -641,6 +641,55 @@ fn the_compensated_targets_file_is_golden_and_every_refusal_names_its_reason() {
 }
 
 #[test]
+fn compensate_writes_the_same_bytes_on_one_and_two_threads() {
+    let dir = tempdir();
+    let t = dir.path().join("t.csv");
+    let mut text = "x_mm,y_mm,z_mm,rx_deg,ry_deg,rz_deg\n".to_string();
+    for k in 0..40 {
+        let a = k as f64;
+        text += &format!(
+            "{},{},{},180,{},{}\n",
+            1200.0 + 10.0 * a,
+            -300.0 + 15.0 * a,
+            1000.0 + 5.0 * a,
+            a * 0.5,
+            90.0 - a
+        );
+    }
+    std::fs::write(&t, text).unwrap();
+    let run = |threads: &str| {
+        let (out, json) = (
+            dir.path().join(format!("o{threads}.csv")),
+            dir.path().join(format!("r{threads}.json")),
+        );
+        let r = edbbgen_env(
+            [
+                "compensate",
+                cal_file().to_str().unwrap(),
+                "--nominal",
+                nj130_dh().to_str().unwrap(),
+                "--targets",
+                t.to_str().unwrap(),
+                "-o",
+                out.to_str().unwrap(),
+                "--json",
+                json.to_str().unwrap(),
+            ],
+            &[("RAYON_NUM_THREADS", threads)],
+        );
+        assert_eq!(r.code, 0, "{}", r.stderr);
+        (
+            std::fs::read_to_string(out).unwrap(),
+            std::fs::read_to_string(json).unwrap(),
+            r.stdout.replace(&format!("o{threads}.csv"), ""),
+        )
+    };
+    let one = run("1");
+    assert!(one.0.lines().skip(1).filter(|l| l.ends_with(",ok")).count() > 30);
+    assert_eq!(one, run("2"));
+}
+
+#[test]
 fn bad_target_files_exit_2_with_one_line_and_write_nothing() {
     let dir = tempdir();
     for (text, needle) in [

@@ -20,9 +20,10 @@
 //!    solution's: the free orientation is chosen as the one the nominal robot has there.
 //! 2. *The compensated joints* — the calibrated robot's inverse kinematics for that TCP pose,
 //!    started at the nominal solution. Near a wrist singularity the full pose asks large joint
-//!    motions for tiny orientation changes; there the position alone is solved (the smallest
-//!    joint change that puts the TCP on the target), and accepted when the orientation stays
-//!    within [`ORIENTATION_TOLERANCE`] of the target's.
+//!    motions for tiny orientation changes; there the position is solved exactly and the
+//!    orientation as closely as small joint motions allow ([`ik::solve_position_first`]), and
+//!    the result is accepted when the orientation stays within [`ORIENTATION_TOLERANCE`] of the
+//!    target's.
 //! 3. *Checks* — converged (else out of reach), conditioned (else near a singularity), the same
 //!    branch (no joint moves more than [`BRANCH_LIMIT`] from the nominal solution), within the
 //!    joint limits. A target that fails is reported with the reason and never written as
