@@ -56,6 +56,8 @@
 //! offset = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0]   # controller value at model zero (deg)
 //! j3_coupling = 0                     # J3 = sign3*q3 + k*q2 + offset3: -1, 0, 1 or "auto"
 //! units = "deg"                       # "deg" | "rad", where the language leaves it open
+//! # pulses_per_deg = [1e4, 1e4, 1e4, 1e4, 1e4, 1e4]   # encoder pulses per axis degree, for
+//!                                     # compensate's FANUC master-count changes (optional)
 //! ```
 
 use crate::controller::ControllerSpec;

@@ -31,6 +31,7 @@ pub mod calibrate;
 pub mod cell;
 pub mod cli;
 pub mod collision;
+pub mod compensate;
 pub mod controller;
 pub mod diagnose;
 pub mod dialect;

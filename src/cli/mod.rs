@@ -3,6 +3,7 @@
 
 pub mod args;
 mod calibrate_cli;
+mod compensate_cli;
 mod ldbb_cli;
 mod place_cli;
 mod twin_cli;
@@ -76,6 +77,7 @@ pub fn run(argv: Vec<std::ffi::OsString>) -> Result<i32, Error> {
         Some(Command::Dialects(a)) => run_dialects(&a),
         Some(Command::Calibrate(a)) => calibrate_cli::calibrate(&a),
         Some(Command::Place(a)) => place_cli::place(&a),
+        Some(Command::Compensate(a)) => compensate_cli::compensate(&a),
         Some(Command::Completions(a)) => {
             let mut cmd = <Cli as clap::CommandFactory>::command();
             clap_complete::generate(a.shell, &mut cmd, "edbbgen", &mut std::io::stdout());
@@ -455,7 +457,9 @@ fn run_compile(a: &CompileArgs) -> Result<i32, Error> {
             "--bar-rate: {bar_rate} Hz is outside 1..100000 Hz"
         )));
     }
+    let focus = a.focus.as_deref().map(parse_focus).transpose()?;
     let opts = CompileOptions {
+        focus,
         fixture,
         cell: spec,
         step,
@@ -565,6 +569,42 @@ fn run_compile(a: &CompileArgs) -> Result<i32, Error> {
         );
     }
     Ok(0)
+}
+
+/// `--focus`: a calibration report (its drift's moved parameters, then the joint zeros) or a
+/// comma-separated list of parameter names (not the fixture's).
+fn parse_focus(s: &str) -> Result<Vec<usize>, Error> {
+    if s.to_ascii_lowercase().ends_with(".json") {
+        let path = Path::new(s);
+        let text = read_input(path, "calibration report", crate::files::Kind::Config)?;
+        let v: serde_json::Value = serde_json::from_str(&text).map_err(|e| Error::File {
+            path: s.to_string(),
+            msg: format!("not JSON: {e}"),
+        })?;
+        if v.get("schema").and_then(|x| x.as_str()) != Some("edbbgen.calibrate/1") {
+            return Err(Error::File {
+                path: s.to_string(),
+                msg: "not a calibration report (schema edbbgen.calibrate/1)".into(),
+            });
+        }
+        return Ok(crate::compensate::drift::check_parameters(Some(&v)));
+    }
+    let mut out = Vec::new();
+    for name in s.split(',').map(str::trim) {
+        match model::PARAM_NAMES.iter().position(|n| *n == name) {
+            Some(i) if i >= model::ALPHA => {
+                if !out.contains(&i) {
+                    out.push(i);
+                }
+            }
+            _ => {
+                return Err(usage(format!(
+                    "--focus: '{name}' is not a robot parameter (alpha1..6, a1..6, d1..6, theta1..6, x_map, y_map, z_map) or a calibration report (.json)"
+                )))
+            }
+        }
+    }
+    Ok(out)
 }
 
 /// The program name from the output file's stem; languages whose program name must equal the

@@ -55,6 +55,11 @@ pub struct CompileOptions {
     /// calibration uncertainty assumes.
     pub bar_noise: f64,
     pub bar_rate: f64,
+    /// A short check program: the poses are chosen for these parameters only (Eq. 6 indices;
+    /// those the pool cannot identify are left out), e.g. the ones that drifted last time and
+    /// the joint zeros (`--focus`). None: every identifiable parameter.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub focus: Option<Vec<usize>>,
     /// The program's name (KRL's DEF, FANUC's /PROG, RAPID's MODULE): the output file's stem.
     /// Not part of the input hash: the text carries it.
     #[serde(skip)]
@@ -89,6 +94,7 @@ impl CompileOptions {
             start: [0.0; 6],
             bar_noise: DEFAULT_BAR_NOISE_UM * 1e-6,
             bar_rate: DEFAULT_BAR_RATE_HZ,
+            focus: None,
             program_name: DEFAULT_PROGRAM_NAME.to_string(),
             tour_cost: TourCost::default(),
         }
@@ -176,6 +182,8 @@ pub enum PipelineError {
     Controller(#[from] crate::controller::ControllerError),
     #[error("refusing to write an unsafe program: {0}")]
     Unsafe(String),
+    #[error("--focus: {0}")]
+    Focus(String),
 }
 
 impl PipelineError {
@@ -494,8 +502,11 @@ pub fn compile(
     progress.stage("identify");
     // Identifiability over the poses the bar can actually measure: the pool itself.
     let pool_q: Vec<[f64; 6]> = sections.pool.candidates.iter().map(|c| c.q).collect();
-    let identifiability = model::analyse(&model.rows(&pool_q), &IdentifyOptions::default());
+    let mut identifiability = model::analyse(&model.rows(&pool_q), &IdentifyOptions::default());
     warnings.extend(map_warnings(&model, &identifiability));
+    if let Some(focus) = &opts.focus {
+        warnings.extend(focus_on(&mut identifiability, focus)?);
+    }
     let mut planned = select_order_plan(&ck, &sections, &identifiability, opts, progress)?;
     progress.stage("blend");
     blend(&ck, &mut planned.plan, opts, template.dialect, &axes);
@@ -509,7 +520,18 @@ pub fn compile(
     );
     progress.stage("path, predict");
     let predicted = predict(&ck, &identifiability, &path, &planned.plan, opts);
-    let base = program::base(&ck, opts, &identifiability, &planned, &path, &predicted);
+    let mut base = program::base(&ck, opts, &identifiability, &planned, &path, &predicted);
+    if opts.focus.is_some() {
+        base.header.notes.push(format!(
+            "check program: poses chosen for {} (--focus)",
+            identifiability
+                .identifiable
+                .iter()
+                .map(|&i| model::PARAM_NAMES[i])
+                .collect::<Vec<_>>()
+                .join(", ")
+        ));
+    }
     progress.stage("emit, verify");
     // The compiler does not trust its own memory either: `finish` re-reads the text and checks it.
     let (program, text, verified) = finish(&ck, robot, opts, &base, &template, &axes)?;
@@ -563,6 +585,38 @@ pub fn compile(
         report,
         warnings,
     })
+}
+
+/// `--focus`: the selection's columns become the focus parameters the pool identifies; the
+/// others named are left out with a warning.
+fn focus_on(id: &mut Identifiability, focus: &[usize]) -> Result<Vec<String>, PipelineError> {
+    let keep: Vec<usize> = id
+        .identifiable
+        .iter()
+        .copied()
+        .filter(|i| focus.contains(i))
+        .collect();
+    let left: Vec<&str> = focus
+        .iter()
+        .filter(|i| !keep.contains(i))
+        .map(|&i| model::PARAM_NAMES[i])
+        .collect();
+    if keep.is_empty() {
+        return Err(PipelineError::Focus(format!(
+            "none of {} is identifiable from the poses the bar can measure here",
+            left.join(", ")
+        )));
+    }
+    id.identifiable = keep;
+    Ok((!left.is_empty())
+        .then(|| {
+            format!(
+                "--focus: {} not identifiable from the poses the bar can measure here: left out of the check program",
+                left.join(", ")
+            )
+        })
+        .into_iter()
+        .collect())
 }
 
 /// The poses that pass every check, in grid order, with the counts of the two stages.
