@@ -24,3 +24,4 @@ mod report;
 mod safety;
 mod snapshots;
 mod structure;
+mod zero_length;

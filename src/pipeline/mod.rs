@@ -160,6 +160,9 @@ pub enum PipelineError {
     Controller(#[from] crate::controller::ControllerError),
     #[error("refusing to write an unsafe program: {0}")]
     Unsafe(String),
+    /// The compiler's own invariants caught a bug in it (never bad input): nothing is written.
+    #[error("internal error, a bug in edbbgen (please report it with the command line; nothing was written): {0}")]
+    Bug(String),
 }
 
 impl PipelineError {
@@ -180,7 +183,7 @@ impl PipelineError {
     /// Exit code: 1 when the compiler's own safety check failed, 2 for bad input.
     pub fn exit_code(&self) -> i32 {
         match self {
-            PipelineError::Unsafe(_) => 1,
+            PipelineError::Unsafe(_) | PipelineError::Bug(_) => 1,
             _ => 2,
         }
     }
@@ -481,6 +484,13 @@ pub fn compile(
     let identifiability = model::analyse(&model.rows(&pool_q), &IdentifyOptions::default());
     warnings.extend(map_warnings(&model, &identifiability));
     let planned = select_order_plan(&ck, &sections, &identifiability, opts, progress)?;
+    if let Some(k) = planned.plan.repeated_pose() {
+        return Err(PipelineError::Bug(format!(
+            "the planner put the same pose twice in a row (waypoints {} and {}: a zero-length move)",
+            k,
+            k + 1
+        )));
+    }
     warnings.extend(planned.warnings());
     sections.report.measured_per_section = sections::measured_per_section(&planned.plan);
     let path = timed_path(&planned.plan, planned.time_unsorted, &speeds);
@@ -833,6 +843,24 @@ pub fn emit_checked(
         );
     }
     h.inputs_sha256 = inputs_sha256.to_string();
+    // A timed move must take time: one that does not repeats the pose before it, and the
+    // controllers read it as a move without speed (inverse-time F0, a zero \T, t=0). Only a
+    // planner bug makes one, so it is named as such rather than left to the reader's "F0 must
+    // be positive".
+    if let Some((k, m)) = program
+        .moves
+        .iter()
+        .enumerate()
+        .skip(1)
+        .find(|(_, m)| !m.transit && !(m.time_s > 0.0))
+    {
+        return Err(PipelineError::Bug(format!(
+            "move {} of the program (to {} deg) takes {} s: the planner put the same pose twice in a row",
+            k + 1,
+            m.q_deg.map(|v| fmt_fixed(v, 3)).join(", "),
+            fmt_fixed(m.time_s, 3)
+        )));
+    }
     let text = emit::render(template, &program).map_err(PipelineError::Template)?;
     let verified = verify::check_text(ck, robot, &text, template.dialect, map)
         .map_err(|f| PipelineError::Unsafe(f.to_string()))?;
