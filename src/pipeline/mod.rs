@@ -464,6 +464,7 @@ pub fn compile(
         Template::from_source(template).map_err(|e| PipelineError::Template(e.to_string()))?;
     let axes = controller_map(robot, opts, &template)?;
     let (map, mut warnings) = resolve_map(robot, opts.cell.map);
+    warnings.extend(coupling_note(robot, opts, &template));
     warnings.extend(robot.notes.iter().cloned());
     let cell = make_cell(robot, opts.fixture, map, &opts.cell)?;
     let model = MeasurementModel::new(robot, opts.fixture, map);
@@ -802,9 +803,20 @@ pub fn controller_map(
     )?)
 }
 
+/// How [`coupling_note`]s begin (a program's header notes are otherwise the program kind's).
+const COUPLING_NOTE_PREFIX: &str = "J3: ";
+
+/// What the user must know about the controller's axis 3 on a parallel-arm robot when the
+/// cell does not state the J2/J3 coupling ([`ControllerMap::coupling_note`]).
+pub fn coupling_note(robot: &Robot, opts: &CompileOptions, template: &Template) -> Option<String> {
+    let d = template.dialect;
+    ControllerMap::coupling_note(opts.cell.controller.as_ref(), &d.defaults(), &d.name, robot)
+}
+
 /// Writes the planned `base` program for one controller: fills the dialect's fields, renders
 /// the template and checks the text with `verify` (the compiler refuses to hand out a program
-/// that fails). Returns the program, its text and the verify summary.
+/// that fails). Returns the program, its text and the verify summary. The header carries the
+/// controller's J2/J3 note where the axis mapping is ambiguous.
 pub fn finish(
     ck: &Checker,
     robot: &Robot,
@@ -814,7 +826,15 @@ pub fn finish(
     map: &ControllerMap,
 ) -> Result<(Program, String, verify::Summary), PipelineError> {
     let hash = inputs_hash(robot, opts, &template.source);
-    emit_checked(ck, robot, base, template, map, DEFAULT_PROGRAM_NAME, &hash)
+    let mut base = base.clone();
+    // A program written for another dialect (`retarget`) carries that dialect's note.
+    base.header
+        .notes
+        .retain(|n| !n.starts_with(COUPLING_NOTE_PREFIX));
+    base.header
+        .notes
+        .extend(coupling_note(robot, opts, template));
+    emit_checked(ck, robot, &base, template, map, DEFAULT_PROGRAM_NAME, &hash)
 }
 
 /// Any program kind's last step (the compiler's, the LDBB circle's): fills the dialect's fields
