@@ -31,6 +31,83 @@ use crate::safety::{blend, describe_contact, Checker, Extremes, Violation};
 use crate::units::{fmt_fixed, to_mm, DEG};
 use serde::{Deserialize, Serialize};
 
+/// The limits a program's header states it was compiled to (the line `bar range: 300.0..520.0
+/// mm; corner blend: 10.0 mm; safety margin: 10.0 mm; joint margin: 1.0 deg`, in every
+/// dialect; FANUC separates the facts with commas), each None where the header does not state
+/// it. Millimetres and degrees, as printed (0.1 mm and 0.1°).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct HeaderLimits {
+    pub bar_mm: Option<[f64; 2]>,
+    pub blend_mm: Option<f64>,
+    pub margin_mm: Option<f64>,
+    pub joint_margin_deg: Option<f64>,
+}
+
+impl HeaderLimits {
+    /// Reads the limits from a parsed program's header comments. A stated limit that does not
+    /// read as a number is an error naming it (a header edited by hand must not be taken for
+    /// one that states nothing).
+    pub fn read(parsed: &Parsed) -> Result<HeaderLimits, String> {
+        let bar = header_fact(&parsed.header, "bar range", "mm")?
+            .map(|v| {
+                let bad = || format!("program header: bar range '{v}' is not MIN..MAX mm");
+                let (a, b) = v.split_once("..").ok_or_else(bad)?;
+                let (a, b) = (number(a).ok_or_else(bad)?, number(b).ok_or_else(bad)?);
+                if a > 0.0 && b > a {
+                    Ok([a, b])
+                } else {
+                    Err(bad())
+                }
+            })
+            .transpose()?;
+        let scalar = |key: &str, unit: &str| -> Result<Option<f64>, String> {
+            header_fact(&parsed.header, key, unit)?
+                .map(|v| {
+                    number(v).filter(|x| *x >= 0.0).ok_or_else(|| {
+                        format!("program header: {key} '{v}' is not a number of {unit}")
+                    })
+                })
+                .transpose()
+        };
+        Ok(HeaderLimits {
+            bar_mm: bar,
+            blend_mm: scalar("corner blend", "mm")?,
+            margin_mm: scalar("safety margin", "mm")?,
+            joint_margin_deg: scalar("joint margin", "deg")?,
+        })
+    }
+}
+
+fn number(s: &str) -> Option<f64> {
+    s.trim().parse::<f64>().ok().filter(|v| v.is_finite())
+}
+
+/// The value of `key: VALUE UNIT` within a header comment: the key starts the comment or
+/// follows a `;` or `,` separator, and the value runs to the unit. None when no comment has
+/// the key; an error when the unit does not follow.
+fn header_fact<'h>(header: &'h [String], key: &str, unit: &str) -> Result<Option<&'h str>, String> {
+    for h in header {
+        let mut from = 0;
+        while let Some(at) = h[from..].find(key).map(|i| i + from) {
+            let before = h[..at].trim_end();
+            let starts = before.is_empty() || before.ends_with(';') || before.ends_with(',');
+            if let Some(rest) = h[at + key.len()..].strip_prefix(':').filter(|_| starts) {
+                let rest = rest.trim_start();
+                let end = rest
+                    .find(&format!(" {unit}"))
+                    .filter(|&e| {
+                        let after = &rest[e + 1 + unit.len()..];
+                        after.is_empty() || after.starts_with([';', ',', ' '])
+                    })
+                    .ok_or_else(|| format!("program header: {key} '{rest}' has no unit {unit}"))?;
+                return Ok(Some(rest[..end].trim()));
+            }
+            from = at + key.len();
+        }
+    }
+    Ok(None)
+}
+
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Summary {
     /// Motion lines (including the approach).
@@ -126,6 +203,11 @@ pub fn check(ck: &Checker, robot: &Robot, parsed: &Parsed) -> Result<Summary, Fa
             ));
         }
     }
+    // The header's corner blend is the most the program may blend at any corner: a corner
+    // blended more than the program states was not made by the compiler that wrote it.
+    let stated_blend = HeaderLimits::read(parsed)
+        .map_err(|e| fail(0, 0.0, Reason::Program, e))?
+        .blend_mm;
     let speeds = robot.max_speeds();
     // Collect the motions; the bar is mounted at the first pause, removed at the next, and so
     // on: a motion made while it is in place is checked with it.
@@ -180,6 +262,21 @@ pub fn check(ck: &Checker, robot: &Robot, parsed: &Parsed) -> Result<Summary, Fa
                     Some(Step::Move { .. })
                 );
                 let support = l.comment.as_deref().is_some_and(|c| c.contains("support"));
+                if let (Some(b), Some(stated)) = (blend, stated_blend) {
+                    // The header prints 0.1 mm; the program text the blend itself.
+                    if *b > stated + 0.05 + 1e-9 {
+                        return Err(fail(
+                            l.line,
+                            0.0,
+                            Reason::Program,
+                            format!(
+                                "the move blends its corner by {} mm, more than the {} mm corner blend the program header states",
+                                fmt_fixed(*b, 3),
+                                fmt_fixed(stated, 1)
+                            ),
+                        ));
+                    }
+                }
                 motions.push(Motion {
                     line: l.line,
                     target: q,
