@@ -130,10 +130,6 @@ fn a_header_that_states_less_than_the_program_does_fails() {
             "bar_length",
         ),
         (
-            "(bar range: 300.0..520.0 mm; corner blend: 4.0 mm; safety margin: 10.0 mm; joint margin: 1.0 deg)",
-            "more than the 4.0 mm corner blend the program header states",
-        ),
-        (
             "(bar range: 300.0..520.0 mm; corner blend: ten mm; safety margin: 10.0 mm; joint margin: 1.0 deg)",
             "corner blend 'ten' is not a number of mm",
         ),
@@ -144,4 +140,114 @@ fn a_header_that_states_less_than_the_program_does_fails() {
         assert_ne!(v.code, 0, "{edit}");
         assert!(v.stderr.contains(needle), "{edit}: {}", v.stderr);
     }
+}
+
+#[test]
+fn a_tcp_blend_above_the_header_s_corner_blend_fails() {
+    // KRL's C_DIS is a TCP distance (mm at the MAP), the header's kind of corner blend: a
+    // header edited below the program's C_DIS fails, naming the limit.
+    let dir = tempdir();
+    let out = dir.path().join("EDBB.src");
+    let r = edbbgen([
+        nj130_dh().display().to_string(),
+        "--fixture".into(),
+        "258,1468,708".into(),
+        "--step".into(),
+        "20".into(),
+        "--dialect".into(),
+        "krl".into(),
+        "-q".into(),
+        "-o".into(),
+        out.display().to_string(),
+    ]);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    let text = std::fs::read_to_string(&out).unwrap();
+    assert!(text.contains("C_DIS"), "the program blends no corner");
+    assert_eq!(verify(&out, &[]).code, 0);
+    let p = dir.path().join("edited.src");
+    std::fs::write(
+        &p,
+        text.replace("corner blend: 10.0 mm", "corner blend: 4.0 mm"),
+    )
+    .unwrap();
+    let v = verify(&p, &[]);
+    assert_eq!(v.code, 1, "{}", v.stderr);
+    assert!(
+        v.stderr
+            .contains("more than the 4.0 mm corner blend the program header states"),
+        "{}",
+        v.stderr
+    );
+}
+
+#[test]
+fn verify_reads_the_header_s_joint_accelerations_and_names_a_difference() {
+    // The header states the accelerations the program's times assume (per controller axis):
+    // verify checks with the robot's, lists them, and says where the header's differ.
+    let dir = tempdir();
+    let out = dir.path().join("p.nc");
+    let r = edbbgen([
+        nj130_dh().display().to_string(),
+        "--fixture".into(),
+        "258,1468,708".into(),
+        "--step".into(),
+        "20".into(),
+        "-q".into(),
+        "-o".into(),
+        out.display().to_string(),
+    ]);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    let text = std::fs::read_to_string(&out).unwrap();
+    let line = text
+        .lines()
+        .find(|l| l.starts_with("(joint accelerations: "))
+        .expect("the header states the accelerations")
+        .to_string();
+    // The robot's, independently of verify: its file's, in deg/s^2.
+    let robot = load(&nj130_dh());
+    let want = robot.max_accelerations().map(f64::to_degrees);
+    let v = verify(&out, &["--json"]);
+    assert_eq!(v.code, 0, "{}", v.stderr);
+    let j: serde_json::Value = serde_json::from_str(&v.stdout).unwrap();
+    let got: Vec<f64> = serde_json::from_value(j["limits"]["accelerations_deg"].clone()).unwrap();
+    for i in 0..6 {
+        assert!((got[i] - want[i]).abs() < 1e-9, "{got:?} {want:?}");
+    }
+    assert_eq!(j["limits"]["from"]["joint accelerations"], "robot file");
+    assert!(!v
+        .stdout
+        .contains("the program header states joint accelerations"));
+    // The header's first acceleration doubled: still verified (the check uses the robot's),
+    // with a note naming both.
+    let values: Vec<&str> = line["(joint accelerations: ".len()..]
+        .trim_end_matches(" deg/s^2)")
+        .split(", ")
+        .collect();
+    assert_eq!(values.len(), 6, "{line}");
+    let doubled = format!("{:.1}", values[0].parse::<f64>().unwrap() * 2.0);
+    let edited = line.replacen(values[0], &doubled, 1);
+    let p = dir.path().join("edited.nc");
+    std::fs::write(&p, text.replace(&line, &edited)).unwrap();
+    let v = verify(&p, &[]);
+    assert_eq!(v.code, 0, "{}", v.stderr);
+    assert!(
+        v.stderr.contains(&format!(
+            "the program header states joint accelerations {doubled}, "
+        )) && v.stderr.contains("this check uses the robot's"),
+        "{}",
+        v.stderr
+    );
+    // Not a number: refused, naming the field.
+    std::fs::write(
+        &p,
+        text.replace(&line, "(joint accelerations: fast deg/s^2)"),
+    )
+    .unwrap();
+    let v = verify(&p, &[]);
+    assert_eq!(v.code, 2, "{}", v.stderr);
+    assert!(
+        v.stderr.contains("joint accelerations 'fast'"),
+        "{}",
+        v.stderr
+    );
 }
