@@ -292,9 +292,6 @@ pub fn rebuild(
         }
     }
     let (motions, mount_at, blended, total) = timed_motions(robot, parsed, dialect)?;
-    let stated_blend = HeaderLimits::read(parsed)
-        .map_err(|e| fail(0, 0.0, Reason::Program, e))?
-        .blend_mm;
     let n = motions.len();
     let free = ck.unmounted();
     let mut ext = Extremes::default();
@@ -400,25 +397,6 @@ pub fn rebuild(
                     detail: why.to_string(),
                 })
             })?;
-            // At a measurement pose the path must pass the pose within the header's corner
-            // blend (as the compiler made it): a TCP-distance blend is bounded by its value
-            // (checked where it is read); the other models by where the blend may begin and end.
-            let kind = m.corner.unwrap_or(dialect.corner.kind);
-            if let (Some(stated), false, false) =
-                (stated_blend, m.support, kind == CornerKind::TcpDistance)
-            {
-                let d = blend::end_distance(ck, &r);
-                if d > (stated + 0.05) * 1e-3 + 1e-9 {
-                    return Err(at_corner(Violation {
-                        reason: Reason::Program,
-                        detail: format!(
-                            "the blend may pass the measurement pose {} mm away at the MAP, more than the {} mm corner blend the program header states",
-                            fmt_fixed(d * 1e3, 3),
-                            fmt_fixed(stated, 1)
-                        ),
-                    }));
-                }
-            }
             let (e1, e2) = r.edges();
             let mut e = Extremes::default();
             ck.patch(&r.corner, &e1, &e2, &mut e)
