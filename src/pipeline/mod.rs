@@ -985,13 +985,9 @@ pub fn emit_checked(
     // controllers read it as a move without speed (inverse-time F0, a zero \T, t=0). Only a
     // planner bug makes one, so it is named as such rather than left to the reader's "F0 must
     // be positive".
-    if let Some((k, m)) = program
-        .moves
-        .iter()
-        .enumerate()
-        .skip(1)
-        .find(|(_, m)| !m.transit && !(m.time_s > 0.0))
-    {
+    if let Some((k, m)) = program.moves.iter().enumerate().skip(1).find(|(_, m)| {
+        !m.transit && m.time_s.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater)
+    }) {
         return Err(PipelineError::Bug(format!(
             "move {} of the program (to {} deg) takes {} s: the planner put the same pose twice in a row",
             k + 1,

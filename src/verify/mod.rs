@@ -538,8 +538,15 @@ fn timed_motions(
                 // corner models' values are in their own units and bound other things.
                 let tcp = corner.unwrap_or(dialect.corner.kind) == CornerKind::TcpDistance;
                 if let (Some(b), Some(stated), true) = (blend, stated_blend, tcp) {
-                    // The header prints 0.1 mm; the program text the blend itself.
-                    if *b > stated + 0.05 + 1e-9 {
+                    // The header prints 0.1 mm; the program text the blend itself. A TCP blend
+                    // that overrides the dialect's own corner model (FANUC `CR` in a `CNT`
+                    // dialect) is written in whole millimetres: the stated blend rounded up.
+                    let allowed = if corner.is_some() {
+                        (stated - 1e-9).ceil()
+                    } else {
+                        stated + 0.05
+                    };
+                    if *b > allowed + 1e-9 {
                         return Err(fail(
                             l.line,
                             0.0,
