@@ -182,6 +182,9 @@ pub enum PipelineError {
     Controller(#[from] crate::controller::ControllerError),
     #[error("refusing to write an unsafe program: {0}")]
     Unsafe(String),
+    /// The compiler's own invariants caught a bug in it (never bad input): nothing is written.
+    #[error("internal error, a bug in edbbgen (please report it with the command line; nothing was written): {0}")]
+    Bug(String),
     #[error("--focus: {0}")]
     Focus(String),
 }
@@ -204,7 +207,7 @@ impl PipelineError {
     /// Exit code: 1 when the compiler's own safety check failed, 2 for bad input.
     pub fn exit_code(&self) -> i32 {
         match self {
-            PipelineError::Unsafe(_) => 1,
+            PipelineError::Unsafe(_) | PipelineError::Bug(_) => 1,
             _ => 2,
         }
     }
@@ -485,6 +488,7 @@ pub fn compile(
         Template::from_source(template).map_err(|e| PipelineError::Template(e.to_string()))?;
     let axes = controller_map(robot, opts, &template)?;
     let (map, mut warnings) = resolve_map(robot, opts.cell.map);
+    warnings.extend(coupling_note(robot, opts, &template));
     warnings.extend(robot.notes.iter().cloned());
     let cell = make_cell(robot, opts.fixture, map, &opts.cell)?;
     let model = MeasurementModel::new(robot, opts.fixture, map);
@@ -508,6 +512,13 @@ pub fn compile(
         warnings.extend(focus_on(&mut identifiability, focus)?);
     }
     let mut planned = select_order_plan(&ck, &sections, &identifiability, opts, progress)?;
+    if let Some(k) = planned.plan.repeated_pose() {
+        return Err(PipelineError::Bug(format!(
+            "the planner put the same pose twice in a row (waypoints {} and {}: a zero-length move)",
+            k,
+            k + 1
+        )));
+    }
     progress.stage("blend");
     blend(&ck, &mut planned.plan, opts, template.dialect, &axes);
     warnings.extend(planned.warnings());
@@ -910,9 +921,20 @@ pub fn controller_map(
     )?)
 }
 
+/// How [`coupling_note`]s begin (a program's header notes are otherwise the program kind's).
+const COUPLING_NOTE_PREFIX: &str = "J3: ";
+
+/// What the user must know about the controller's axis 3 on a parallel-arm robot when the
+/// cell does not state the J2/J3 coupling ([`ControllerMap::coupling_note`]).
+pub fn coupling_note(robot: &Robot, opts: &CompileOptions, template: &Template) -> Option<String> {
+    let d = template.dialect;
+    ControllerMap::coupling_note(opts.cell.controller.as_ref(), &d.defaults(), &d.name, robot)
+}
+
 /// Writes the planned `base` program for one controller: fills the dialect's fields, renders
 /// the template and checks the text with `verify` (the compiler refuses to hand out a program
-/// that fails). Returns the program, its text and the verify summary.
+/// that fails). Returns the program, its text and the verify summary. The header carries the
+/// controller's J2/J3 note where the axis mapping is ambiguous.
 pub fn finish(
     ck: &Checker,
     robot: &Robot,
@@ -922,7 +944,15 @@ pub fn finish(
     map: &ControllerMap,
 ) -> Result<(Program, String, verify::Summary), PipelineError> {
     let hash = inputs_hash(robot, opts, &template.source);
-    emit_checked(ck, robot, base, template, map, DEFAULT_PROGRAM_NAME, &hash)
+    let mut base = base.clone();
+    // A program written for another dialect (`retarget`) carries that dialect's note.
+    base.header
+        .notes
+        .retain(|n| !n.starts_with(COUPLING_NOTE_PREFIX));
+    base.header
+        .notes
+        .extend(coupling_note(robot, opts, template));
+    emit_checked(ck, robot, &base, template, map, DEFAULT_PROGRAM_NAME, &hash)
 }
 
 /// Any program kind's last step (the compiler's, the LDBB circle's): fills the dialect's fields
@@ -951,6 +981,20 @@ pub fn emit_checked(
         );
     }
     h.inputs_sha256 = inputs_sha256.to_string();
+    // A timed move must take time: one that does not repeats the pose before it, and the
+    // controllers read it as a move without speed (inverse-time F0, a zero \T, t=0). Only a
+    // planner bug makes one, so it is named as such rather than left to the reader's "F0 must
+    // be positive".
+    if let Some((k, m)) = program.moves.iter().enumerate().skip(1).find(|(_, m)| {
+        !m.transit && m.time_s.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater)
+    }) {
+        return Err(PipelineError::Bug(format!(
+            "move {} of the program (to {} deg) takes {} s: the planner put the same pose twice in a row",
+            k + 1,
+            m.q_deg.map(|v| fmt_fixed(v, 3)).join(", "),
+            fmt_fixed(m.time_s, 3)
+        )));
+    }
     let text = emit::render(template, &program).map_err(PipelineError::Template)?;
     let verified = verify::check_text(ck, robot, &text, template.dialect, map)
         .map_err(|f| PipelineError::Unsafe(f.to_string()))?;
