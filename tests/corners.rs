@@ -397,6 +397,11 @@ fn refused_where_the_old_model_passed(d: &str, case: Case) {
     hand.header.poses = 3;
     hand.header.supports = 0;
     hand.header.sections = 1;
+    // A TCP distance is bounded by the header's corner blend too (verify refuses a corner
+    // blended more than the program states): the header states this one.
+    if let Value::Mm(_) = case.value {
+        hand.header.blend_mm = hand.header.blend_mm.max(value);
+    }
     let hand = edbbgen::emit::target(&hand, dl, &map, &c.robot.max_speeds());
     let template = dialect::Template::bundled(d).unwrap();
     let text = edbbgen::emit::render(&template, &hand).unwrap();
