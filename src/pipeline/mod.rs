@@ -54,6 +54,11 @@ pub struct CompileOptions {
     /// calibration uncertainty assumes.
     pub bar_noise: f64,
     pub bar_rate: f64,
+    /// Stop-and-measure (`--dwell S`): an exact stop and a dwell of S seconds at every
+    /// measurement pose. None: a continuous program (absent from the input hash, so continuous
+    /// programs keep theirs).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub dwell: Option<f64>,
     /// The program's name (KRL's DEF, FANUC's /PROG, RAPID's MODULE): the output file's stem.
     /// Not part of the input hash: the text carries it.
     #[serde(skip)]
@@ -74,6 +79,7 @@ impl CompileOptions {
             start: [0.0; 6],
             bar_noise: DEFAULT_BAR_NOISE_UM * 1e-6,
             bar_rate: DEFAULT_BAR_RATE_HZ,
+            dwell: None,
             program_name: DEFAULT_PROGRAM_NAME.to_string(),
         }
     }
@@ -385,6 +391,13 @@ pub struct Predicted {
     pub workspace_p95: f64,
     pub bar_noise_um: f64,
     pub bar_rate_hz: f64,
+    /// Stop-and-measure programs: `workspace_*` are from one reading per measurement pose (the
+    /// plateau means of `plateau_samples` bar samples each); `continuous_workspace_rms` is the
+    /// same program recorded continuously with a synchronous joint log (moves and dwells).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub plateau_samples: Option<usize>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub continuous_workspace_rms: Option<f64>,
 }
 
 /// Every stage's result, for reports and `--emit STAGE`.
@@ -480,7 +493,10 @@ pub fn compile(
     let pool_q: Vec<[f64; 6]> = sections.pool.candidates.iter().map(|c| c.q).collect();
     let identifiability = model::analyse(&model.rows(&pool_q), &IdentifyOptions::default());
     warnings.extend(map_warnings(&model, &identifiability));
-    let planned = select_order_plan(&ck, &sections, &identifiability, opts, progress)?;
+    let mut planned = select_order_plan(&ck, &sections, &identifiability, opts, progress)?;
+    if opts.dwell.is_some() {
+        stop_at_poses(&mut planned.plan);
+    }
     warnings.extend(planned.warnings());
     sections.report.measured_per_section = sections::measured_per_section(&planned.plan);
     let path = timed_path(&planned.plan, planned.time_unsorted, &speeds);
@@ -517,8 +533,8 @@ pub fn compile(
         ],
         max_socket_angle_deg: to_deg(verified.extremes.max_socket_angle),
         max_cup_angle_deg: to_deg(verified.extremes.max_cup_angle),
-        estimated_time_s: path.time_sorted,
-        time_unsorted_s: path.time_unsorted,
+        estimated_time_s: path.time_sorted + dwell_time(opts, &planned.plan),
+        time_unsorted_s: path.time_unsorted + dwell_time(opts, &planned.plan),
         collision_pairs_checked: scene_report.pairs_checked,
         excluded_pairs: scene_report.excluded,
         warnings: warnings.clone(),
@@ -736,8 +752,27 @@ fn timed_path(plan: &Plan, time_unsorted: f64, speeds: &[f64; 6]) -> Path {
     }
 }
 
+/// Stop-and-measure: every measurement pose ends in an exact stop (its dwell follows); the
+/// support poses keep their blends. An exact stop only removes a corner's blend, so every
+/// checked move stays as checked (`verify` re-checks the text anyway).
+fn stop_at_poses(plan: &mut Plan) {
+    for w in plan.waypoints.iter_mut().filter(|w| !w.support) {
+        w.blend = 0.0;
+    }
+}
+
+/// The dwells' share of the program's time (s): one dwell per measurement pose.
+fn dwell_time(opts: &CompileOptions, plan: &Plan) -> f64 {
+    let poses = plan.waypoints.iter().filter(|w| !w.support).count();
+    opts.dwell.unwrap_or(0.0) * poses as f64
+}
+
 /// What the program buys: the MAP position uncertainty after calibrating from its recording
-/// (every move made with the bar, at the bar's rate), over the whole joint space.
+/// (every move made with the bar, at the bar's rate), over the whole joint space. A
+/// stop-and-measure program (`--dwell`) is calibrated from one reading per measurement pose,
+/// the mean of a plateau's core ([`crate::logs::plateau_core_samples`] samples, so the noise
+/// falls by its square root); the same program recorded continuously (moves and dwells, with
+/// a synchronous joint log) is predicted alongside.
 fn predict(
     ck: &Checker,
     id: &Identifiability,
@@ -746,14 +781,53 @@ fn predict(
     opts: &CompileOptions,
 ) -> Predicted {
     use crate::calibrate::predict as p;
-    let segments = recorded_segments(path, plan);
+    let mut segments = recorded_segments(path, plan);
     let space = p::workspace(ck.robot, PREDICTION_POSES, opts.seed);
-    let spread = p::spread(&p::after_recording(
+    let continuous = |segments: &[([f64; 6], [f64; 6], f64)]| {
+        p::spread(&p::after_recording(
+            ck.model,
+            segments,
+            &id.identifiable,
+            opts.bar_noise,
+            opts.bar_rate,
+            &space,
+        ))
+    };
+    let Some(dwell) = opts.dwell else {
+        let spread = continuous(&segments);
+        return Predicted {
+            workspace_rms: spread.rms * 1e6,
+            workspace_p95: spread.p95 * 1e6,
+            bar_noise_um: opts.bar_noise * 1e6,
+            bar_rate_hz: opts.bar_rate,
+            plateau_samples: None,
+            continuous_workspace_rms: None,
+        };
+    };
+    let poses: Vec<[f64; 6]> = path
+        .poses
+        .iter()
+        .zip(&plan.waypoints)
+        .filter(|(_, w)| !w.support)
+        .map(|(q, _)| *q)
+        .collect();
+    // The continuous recording of the same run also holds every dwell: S seconds at the pose.
+    segments.extend(poses.iter().map(|q| (*q, *q, dwell)));
+    let recorded = continuous(&segments);
+    let n = crate::logs::plateau_core_samples(dwell, opts.bar_rate).max(1);
+    let rows: Vec<[f64; N_PARAMS]> = poses
+        .iter()
+        .map(|q| {
+            let mut row = [0.0; N_PARAMS];
+            ck.model.jacobian_row(&ck.model.nominal, q, &mut row);
+            row
+        })
+        .collect();
+    let spread = p::spread(&p::after_readings(
         ck.model,
-        &segments,
+        &rows,
         &id.identifiable,
-        opts.bar_noise,
-        opts.bar_rate,
+        opts.bar_noise / (n as f64).sqrt(),
         &space,
     ));
     Predicted {
@@ -761,6 +835,8 @@ fn predict(
         workspace_p95: spread.p95 * 1e6,
         bar_noise_um: opts.bar_noise * 1e6,
         bar_rate_hz: opts.bar_rate,
+        plateau_samples: Some(n),
+        continuous_workspace_rms: Some(recorded.rms * 1e6),
     }
 }
 

@@ -41,7 +41,12 @@ pub struct Summary {
     /// Bar-mounted sections.
     pub sections: usize,
     pub blends: usize,
-    /// Program duration from the first move on (s), pauses excluded.
+    /// Dwells (G4 and its kin) and their total (s): a stop-and-measure program's standstills.
+    #[serde(default)]
+    pub dwells: usize,
+    #[serde(default)]
+    pub dwell_s: f64,
+    /// Program duration from the first move on (s), dwells included, pauses excluded.
     pub duration: f64,
     pub extremes: Extremes,
     /// Smallest clearance measured at the program's poses and blend midpoints.
@@ -133,6 +138,7 @@ pub fn check(ck: &Checker, robot: &Robot, parsed: &Parsed) -> Result<Summary, Fa
     let mut mounted = false;
     let mut mount_at: Vec<usize> = Vec::new();
     let mut prev: Option<([f64; 6], [f64; 6])> = None;
+    let (mut dwells, mut dwell_s) = (0usize, 0.0f64);
     for (k, l) in parsed.lines.iter().enumerate() {
         match &l.step {
             step @ Step::Move {
@@ -197,7 +203,11 @@ pub fn check(ck: &Checker, robot: &Robot, parsed: &Parsed) -> Result<Summary, Fa
                     mount_at.push(motions.len());
                 }
             }
-            Step::Dwell(_) | Step::End => {}
+            Step::Dwell(s) => {
+                dwells += 1;
+                dwell_s += s;
+            }
+            Step::End => {}
         }
     }
     if motions.is_empty() {
@@ -311,7 +321,9 @@ pub fn check(ck: &Checker, robot: &Robot, parsed: &Parsed) -> Result<Summary, Fa
         supports: motions.iter().filter(|m| m.support).count(),
         sections: mount_at.len(),
         blends,
-        duration: time,
+        dwells,
+        dwell_s,
+        duration: time + dwell_s,
         extremes: ext,
         min_clearance: min_clear,
     })
