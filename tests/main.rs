@@ -17,6 +17,7 @@ mod dialects;
 mod fuzz;
 mod ldbb;
 mod linuxcnc;
+mod logs;
 mod model_cmd;
 mod passive;
 mod place;

@@ -323,6 +323,10 @@ pub struct SimulateArgs {
     /// Poses (1-based, in dwell order) whose plateau the bar log loses.
     #[arg(long, value_name = "K,..")]
     pub missing: Option<String>,
+    /// The controller's moves take this many times the program's time (acceleration ramps, a
+    /// speed override); dwells are exact.
+    #[arg(long, value_name = "F", default_value = "1")]
+    pub move_scale: String,
     /// Controller stops (0.5..3 s) in moves made with the bar: plateaus of no pose.
     #[arg(long, value_name = "N", default_value_t = 0)]
     pub holds: usize,

@@ -75,50 +75,6 @@ pub(super) fn header_xyz(v: &str) -> Option<Vector3<f64>> {
     (nums.len() == 3).then(|| Vector3::new(nums[0], nums[1], nums[2]) * MM)
 }
 
-/// The program header's list of measurement poses (`measure a-b of N: L v, v, ... mm`), in
-/// order; None when the program has none (not a stop-and-measure program).
-pub(super) fn measure_list(parsed: &Parsed) -> Result<Option<Vec<f64>>, String> {
-    let mut out: Vec<f64> = Vec::new();
-    let mut total: Option<usize> = None;
-    for h in &parsed.header {
-        let Some(rest) = h.strip_prefix("measure ") else {
-            continue;
-        };
-        let bad = || format!("header line '{h}' is not 'measure A-B of N: L v, ... mm'");
-        let (range, values) = rest.split_once(':').ok_or_else(bad)?;
-        let (ab, n) = range.split_once(" of ").ok_or_else(bad)?;
-        let (a, b) = ab.split_once('-').ok_or_else(bad)?;
-        let (a, b, n): (usize, usize, usize) = (
-            a.trim().parse().map_err(|_| bad())?,
-            b.trim().parse().map_err(|_| bad())?,
-            n.trim().parse().map_err(|_| bad())?,
-        );
-        let v = values
-            .trim()
-            .strip_prefix('L')
-            .and_then(|r| r.trim().strip_suffix("mm"))
-            .ok_or_else(bad)?;
-        let v: Vec<f64> = v
-            .split(',')
-            .map(|x| x.trim().parse::<f64>().map(|x| x * MM))
-            .collect::<Result<_, _>>()
-            .map_err(|_| bad())?;
-        if a != out.len() + 1 || b + 1 != a + v.len() || total.is_some_and(|t| t != n) {
-            return Err(format!("header line '{h}': poses out of order"));
-        }
-        total = Some(n);
-        out.extend(v);
-    }
-    match total {
-        None => Ok(None),
-        Some(n) if n == out.len() => Ok(Some(out)),
-        Some(n) => Err(format!(
-            "the header lists {} of its {n} measurement poses",
-            out.len()
-        )),
-    }
-}
-
 /// One run read from logs: the data calibrate and diagnose take, and the report's additions.
 pub(super) struct LogRun {
     pub measured: Measured,
@@ -325,7 +281,7 @@ fn stop_and_measure(
         ));
     }
     // The header's key must be the program's own poses, at this fixture and tool.
-    match measure_list(&p.parsed).map_err(|e| file_err(&p.path, e))? {
+    match logs::measure_list(&p.parsed).map_err(|e| file_err(&p.path, e))? {
         None => return Err(file_err(
             &p.path,
             "the header lists no measurement poses (measure ...): compile the program with --dwell",

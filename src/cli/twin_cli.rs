@@ -104,13 +104,13 @@ pub fn simulate(a: &SimulateArgs) -> Result<i32, Error> {
         }
         super::write_all_atomic(&files)?;
         println!(
-            "{}: {} rows on the bar's clock ({} Hz, offset {} s, drift {} ppm), {} plateaus lost, {} controller stops; {}: the {} mounted samples with the true joints{}",
+            "{}: {} rows on the bar's clock ({} Hz, offset {} s, drift {} ppm), {} plateaus lost or cut, {} controller stops; {}: the {} mounted samples with the true joints{}",
             bar_path.display(),
             logs.bar.len(),
             fmt_fixed(lopts.bar_rate, 0),
             fmt_fixed(lopts.offset, 3),
             fmt_fixed(lopts.drift * 1e6, 1),
-            logs.truth.plateaus.iter().filter(|p| p.is_none()).count(),
+            logs.truth.intact.iter().filter(|p| !**p).count(),
             logs.truth.holds.len(),
             a.output.display(),
             logs.synchronous.len(),
@@ -188,6 +188,10 @@ fn log_options(
             a.pause
         )));
     }
+    let move_scale = scalar("--move-scale", &a.move_scale)?;
+    if !(0.2..=5.0).contains(&move_scale) {
+        return Err(usage(format!("--move-scale: {move_scale} is outside 0.2..5")));
+    }
     let dropout = scalar("--dropout", &a.dropout)?;
     if !(0.0..1.0).contains(&dropout) {
         return Err(usage(format!(
@@ -228,6 +232,7 @@ fn log_options(
         dropout,
         missing: poses("--missing", &a.missing)?,
         holds: a.holds,
+        move_scale,
         vibration: poses("--vibration", &a.vibration)?,
         handling: !a.no_handling,
         bar_range,

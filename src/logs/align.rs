@@ -5,26 +5,32 @@
 //!
 //! The match is a sequence alignment (dynamic programming over plateaus × poses, both in time
 //! order) scored as log-likelihood ratios: a pose matched to a plateau earns what its length,
-//! its duration and its timing say for the match; a pose without a plateau (a gap in the log,
-//! the operator) and a plateau without a pose (a stop the controller made, the bar handled
-//! while unmounted) cost what their rarity says. Two passes:
+//! its duration and its timing say for the match against a plateau of no pose; a pose without
+//! a plateau (a gap in the log, the operator) and a plateau without a pose (a stop the
+//! controller made, the longer the rarer; the bar handled while unmounted, between sections,
+//! cheap) cost their rarity. Time between two matched plateaus is the program's moves between
+//! them (and the dwells of poses skipped), with every plateau between them taken out as a
+//! stop; a dwell's plateau lasts at least the dwell (a section's first pose dwells after its
+//! mount pause and its last stands on into the removal pause: no upper bound there). Two
+//! passes:
 //!
-//! 1. **No clock, no zero.** Between consecutive matches only differences count: the change
-//!    of the reading against the change of the nominal length, the time from one plateau's
-//!    end to the next one's start against the program's moves between them (a broad
-//!    log-normal: controllers run moves faster or slower than programmed, never dwells), and
-//!    each plateau's duration against the dwell (a section's first pose dwells after its mount
-//!    pause, its last stands on into the removal pause: only a lower bound there). The best
-//!    alignment (Viterbi) gives a first set of matches.
-//! 2. **Zero and clock estimated.** From those matches: the zero offset (median of reading −
-//!    nominal) and the timeline t_bar = o_s + (1 + drift)·t_prog per section s (pauses have
-//!    unknown lengths: one offset per section, a common drift), fitted robustly to the plateau
-//!    edges the program times (a dwell's end, and its start where no pause precedes it). The
-//!    alignment is scored again with absolute terms (reading − zero − nominal, edge − timeline,
-//!    each against the scatter the first pass left), and the posterior of every (pose,
-//!    plateau) pair is computed over all alignments (forward–backward). A pose is matched
+//! 1. **No zero, no controller timing.** Between consecutive matches only differences count:
+//!    the change of the reading against the change of the nominal length (1 mm scatter,
+//!    heavy-tailed), the gap against the program's (log-normal, a factor 1.4: controllers
+//!    run moves faster or slower than programmed, never dwells). The best alignment (Viterbi).
+//! 2. **Zero and timing estimated.** From pass 1's matches: the bar's zero (median of reading
+//!    − nominal) and the robot's scatter about it (MAD), the controller's move-time ratio
+//!    (median) and the scatter of the gaps about it (MAD, at least a sample and a half). The
+//!    reading is then scored against zero + nominal (Student-t, ν = 5, with a 1e-4 chance of
+//!    any length), each gap against ratio·moves + dwells (Gaussian; a delay up to half a dwell
+//!    at 2 %: a stop too short to leave a plateau; anything else at 1e-5). The posterior of
+//!    every (pose, plateau) pair over all alignments (forward–backward): a pose is matched
 //!    when one plateau holds ≥ 99 % of it, missing when "no plateau" does; anything else is a
 //!    refusal naming the pose.
+//!
+//! The clock is then fitted to the matched plateaus' program-timed edges (a dwell's end, and
+//! its start where no pause precedes it), the controller's stops taken out: t_bar = o_s +
+//! (1 + drift)·t_prog, one offset per section (pauses have unknown lengths), one drift.
 
 use crate::units::{fmt_fixed, to_mm};
 
@@ -64,6 +70,10 @@ pub struct Observed {
     pub from: f64,
     pub to: f64,
     pub mean: f64,
+    /// The plateau's start (end) is at a gap in the log: the standstill may have begun
+    /// earlier (lasted longer).
+    pub cut_before: bool,
+    pub cut_after: bool,
 }
 
 /// The clock relation t_bar = offset_s + (1 + drift)·t_prog, per section (pauses unknown).
@@ -107,10 +117,27 @@ pub enum AlignError {
 // ---- scoring --------------------------------------------------------------------------------
 
 /// A pose without a plateau, and plateaus without a pose inside a section (a controller's
-/// stop) or outside one (the bar handled while unmounted, before the first mount, after the
+/// stop, which costs more the longer it lasts) or outside one (the bar handled while unmounted, before the first mount, after the
 /// last removal): log prior odds.
-const MISS: f64 = -6.0;
-const EXTRA: f64 = -4.0;
+const MISS: f64 = -4.0;
+/// A pose without a plateau where the log has a gap: expected.
+const MISS_IN_GAP: f64 = -0.5;
+const EXTRA: f64 = -3.5;
+/// Pass 2's timing: the rate of a delay too short to leave a plateau, and of any other odd
+/// time between two plateaus.
+const SHORT_STOP: f64 = 0.02;
+const ODD_TIME: f64 = 1e-5;
+/// Pass 2's lengths: the tails of the robot's errors, and the rate of a pose whose nominal
+/// length is off by anything.
+const LENGTH_NU: f64 = 5.0;
+/// Neighbours on either side that set a slot's local zero.
+const LOCAL: usize = 3;
+/// A plateau next to a pause lasts its dwell and at least about this much of the operator's
+/// time (s).
+const PAUSE_SHARE: f64 = 0.5;
+const ODD_LENGTH: f64 = 1e-4;
+/// Pass 2's timing scatter grows by this share of the time predicted (moves vary).
+const TIME_RELATIVE: f64 = 0.01;
 const JUNK: f64 = -0.3;
 /// Consecutive poses a transition may skip, and plateaus inside a section.
 const MAX_SKIP_POSES: usize = 12;
@@ -121,12 +148,45 @@ const PASS1_LENGTH: f64 = 1e-3;
 const PASS1_TIME_LOG: f64 = 0.35;
 /// Floors of the pass-2 scatters: length (m) and time (s) beyond the sampling.
 const LENGTH_FLOOR: f64 = 20e-6;
-const TIME_FLOOR: f64 = 0.02;
+const TIME_FLOOR: f64 = 0.01;
 /// A verdict is taken when its posterior reaches this.
 pub const SURE: f64 = 0.99;
 /// Student-t degrees of freedom of every residual (heavy tails: one odd pose does not break a
 /// run).
 const NU: f64 = 3.0;
+
+/// ln Γ(x) for x > 0 (Lanczos, g = 7): for the Student-t's normalisation.
+fn ln_gamma(x: f64) -> f64 {
+    const G: [f64; 9] = [
+        0.999_999_999_999_809_9,
+        676.520_368_121_885_1,
+        -1_259.139_216_722_402_8,
+        771.323_428_777_653_1,
+        -176.615_029_162_140_6,
+        12.507_343_278_686_905,
+        -0.138_571_095_265_720_12,
+        9.984_369_578_019_572e-6,
+        1.505_632_735_149_311_6e-7,
+    ];
+    if x < 0.5 {
+        return (std::f64::consts::PI / (std::f64::consts::PI * x).sin()).ln() - ln_gamma(1.0 - x);
+    }
+    let x = x - 1.0;
+    let mut a = G[0];
+    let t = x + 7.5;
+    for (i, g) in G.iter().enumerate().skip(1) {
+        a += g / (x + i as f64);
+    }
+    0.5 * (std::f64::consts::TAU).ln() + (x + 0.5) * t.ln() - t + a.ln()
+}
+
+/// ln of the standard Student-t density with ν degrees of freedom at z.
+fn ln_t_nu(z: f64, nu: f64) -> f64 {
+    ln_gamma(0.5 * (nu + 1.0))
+        - ln_gamma(0.5 * nu)
+        - 0.5 * (nu * std::f64::consts::PI).ln()
+        - 0.5 * (nu + 1.0) * (1.0 + z * z / nu).ln()
+}
 
 /// ln of the Student-t density (ν = 3) of residual r at scale s.
 fn ln_t(r: f64, s: f64) -> f64 {
@@ -144,14 +204,24 @@ struct Scorer<'a> {
     ln_len_range: f64,
     ln_time_range: f64,
     pass2: Option<Pass2>,
+    /// Gaps in the log (bar clock): where a plateau may have been lost.
+    gaps: &'a [(f64, f64)],
+    /// The first and the last slot of each section.
+    first_slot: Vec<usize>,
+    last_slot: Vec<usize>,
 }
 
 #[derive(Clone)]
 struct Pass2 {
-    zero: f64,
+    /// Per slot: what its reading should exceed its nominal length by (the bar's zero and the
+    /// robot's error there, from its neighbours in the tour: the error is smooth in joint
+    /// space and the tour keeps neighbours close), and the scatter about that.
+    local_zero: Vec<f64>,
     length_scale: f64,
-    timeline: Timeline,
-    time_scale: f64,
+    /// The controller's move times over the program's (the dwells are exact), and the scatter
+    /// of the time between consecutive plateaus about that (s).
+    move_ratio: f64,
+    time_sigma: f64,
 }
 
 impl Scorer<'_> {
@@ -159,16 +229,20 @@ impl Scorer<'_> {
         &self.tpl.slots[k]
     }
 
-    /// A plateau's duration against the dwell (any pose), and in pass 2 its length and edges.
+    /// A plateau's duration against the dwell (any pose), and in pass 2 its length.
     fn unary(&self, k: usize, j: usize) -> f64 {
         let s = self.slot(k);
         let o = &self.obs[j];
         let dwell = self.tpl.dwell;
         let dur = o.to - o.from;
-        let lo = 0.9 * dwell - 2.0 * self.interval;
-        let slack = 0.05 * dwell + 2.0 * self.interval;
+        // A standstill lasts at least the dwell (the controller times it exactly); its
+        // detected edges are good to a few samples.
+        let lo = 0.99 * dwell - 3.0 * self.interval - 0.02;
+        let slack = 0.01 * dwell + self.interval + 0.02;
         let mut score = 0.0;
-        if dur < lo {
+        // A plateau a gap cuts may have been as long as any dwell.
+        let cut = o.cut_before || o.cut_after;
+        if dur < lo && !cut {
             let z = (lo - dur) / slack;
             score -= 0.5 * z * z;
         }
@@ -178,49 +252,106 @@ impl Scorer<'_> {
             if dur > hi {
                 score -= 2.0 + (dur - hi) / (0.5 * dwell);
             }
+        } else if dur < dwell + PAUSE_SHARE && !cut {
+            // Next to a pause the operator's time adds to the dwell (mounting or removing
+            // the bar takes a while).
+            let z = (dwell + PAUSE_SHARE - dur) / (0.5 * PAUSE_SHARE);
+            score -= 0.5 * z * z;
         }
         if let Some(p) = &self.pass2 {
-            score += ln_t(o.mean - p.zero - s.length, p.length_scale) + self.ln_len_range;
-            if let Some(off) = p.timeline.offsets[s.section] {
-                let a = 1.0 + p.timeline.drift;
-                if !s.after_pause {
-                    score += ln_t(o.from - off - a * s.start, p.time_scale) + self.ln_time_range;
-                }
-                if !s.before_pause {
-                    score += ln_t(o.to - off - a * s.end, p.time_scale) + self.ln_time_range;
-                }
-            }
+            // The robot's errors about the zero: the scatter pass 1 found (Student-t, ν = 5: a
+            // robot's errors are larger in some regions of its joint space), and a rare pose
+            // whose nominal length is off by anything.
+            let r = (o.mean - p.local_zero[k] - s.length) / p.length_scale;
+            let core = (ln_t_nu(r, LENGTH_NU) - p.length_scale.ln()).exp();
+            let range = self.ln_len_range.exp();
+            score += ((1.0 - ODD_LENGTH) * core + ODD_LENGTH / range).ln() + self.ln_len_range;
         }
         score
     }
 
-    /// The transition from match (k', j') to match (k, j): skips, and (pass 1, or a section
-    /// without a timeline) the differences between the two.
+    /// ln density of a gap's deviation from the program (s) in pass 2: the timing scatter
+    /// (Gaussian); a delay up to half a dwell (a stop too short to leave a plateau) at a small
+    /// rate; anything else only at a tiny one (a longer stop leaves a plateau, and a
+    /// controller is not early).
+    fn ln_timing(&self, delta: f64, sigma: f64) -> f64 {
+        let core = (-0.5 * (delta / sigma).powi(2)).exp() / (sigma * (std::f64::consts::TAU).sqrt());
+        let short = 0.5 * self.tpl.dwell + 3.0 * sigma;
+        let stop = if delta > 0.0 && delta <= short {
+            SHORT_STOP / short
+        } else {
+            0.0
+        };
+        ((1.0 - SHORT_STOP - ODD_TIME) * core + stop + ODD_TIME / 30.0).ln()
+    }
+
+    /// The time from plateau jp's end to plateau j's start with the plateaus between them
+    /// (stops) taken out, and what the program says it is: its moves and the dwells of the
+    /// poses skipped (s).
+    fn gap(&self, kp: usize, jp: usize, k: usize, j: usize) -> (f64, f64, f64) {
+        let standing: f64 = (jp + 1..j)
+            .map(|x| self.obs[x].to - self.obs[x].from)
+            .sum();
+        let got = (self.obs[j].from - self.obs[jp].to - standing).max(0.0);
+        let want = self.slot(k).start - self.slot(kp).end;
+        let dwells = (k - kp - 1) as f64 * self.tpl.dwell;
+        (got, (want - dwells).max(0.0), dwells)
+    }
+
+    /// The transition from match (k', j') to match (k, j): skips, the time between the two
+    /// plateaus, and (pass 1) the change of the reading.
     fn pair(&self, kp: usize, jp: usize, k: usize, j: usize) -> f64 {
         let (a, b) = (self.slot(kp), self.slot(k));
         let same = a.section == b.section;
-        let mut score = (k - kp - 1) as f64 * MISS;
-        let mut standing = 0.0;
+        let mut score: f64 = (kp + 1..k).map(|x| self.miss(x, Some((kp, jp)), Some((k, j)))).sum();
+        // Across a pause, the bar is handled between the removal and the mount: the window
+        // of junk; pass 2 knows the timing well enough to place it (after the last dwell of
+        // the section before, before the first dwell of the next one ends).
+        let junk = match (&self.pass2, same) {
+            (_, true) => (f64::INFINITY, f64::NEG_INFINITY),
+            (None, false) => (f64::NEG_INFINITY, f64::INFINITY),
+            (Some(p), false) => (self.section_end(p, kp, jp), self.section_start(p, k, j)),
+        };
+        let mut holds = 0.0;
         for x in jp + 1..j {
-            score += if same { EXTRA } else { JUNK };
-            standing += self.obs[x].to - self.obs[x].from;
+            holds += self.skipped(x, junk.0, junk.1);
         }
-        let (oa, ob) = (&self.obs[jp], &self.obs[j]);
-        let gap = ob.from - oa.to;
+        let (oa, ob) = (self.obs[jp], self.obs[j]);
         if same {
-            let timed = self
-                .pass2
-                .as_ref()
-                .is_some_and(|p| p.timeline.offsets[b.section].is_some());
-            if !timed {
-                // The moves between the two dwells (and the dwells of skipped poses): a stop
-                // the controller made in between stood still for its plateau's length.
-                let want = b.start - a.end;
-                let got = (gap - standing).max(0.0);
-                let tau = 0.2;
-                let r = ((got + tau) / (want + tau)).ln();
-                score += ln_t(r, PASS1_TIME_LOG) + (10.0f64).ln();
+            let (got, moves, dwells) = self.gap(kp, jp, k, j);
+            let timing = |got: f64| match &self.pass2 {
+                None => {
+                    // Controllers run moves faster or slower than programmed: a broad
+                    // log-normal on the whole gap.
+                    let tau = 0.2;
+                    let r = ((got + tau) / (moves + dwells + tau)).ln();
+                    ln_t(r, PASS1_TIME_LOG) + (10.0f64).ln()
+                }
+                Some(p) => {
+                    let want = p.move_ratio * moves + dwells;
+                    let sigma = p.time_sigma + TIME_RELATIVE * want;
+                    if oa.cut_after || ob.cut_before {
+                        // A gap hides where the standstill ended (began): the time between
+                        // is at most what the log shows.
+                        if got - want >= -3.0 * sigma {
+                            0.0
+                        } else {
+                            self.ln_timing(got - want, sigma) + self.ln_time_range
+                        }
+                    } else {
+                        self.ln_timing(got - want, sigma) + self.ln_time_range
+                    }
+                }
+            };
+            // The plateaus skipped are stops (their time taken out), or what a gap in the log
+            // left of the skipped poses' dwells (their time is the dwells').
+            let mut t = holds + timing(got);
+            let (np, nj) = (k - kp - 1, j - jp - 1);
+            if nj >= 1 && nj <= np {
+                let whole = ob.from - oa.to;
+                t = logsumexp(t, timing(whole));
             }
+            score += t;
             if self.pass2.is_none() {
                 let d = (ob.mean - oa.mean) - (b.length - a.length);
                 score += ln_t(d, PASS1_LENGTH * std::f64::consts::SQRT_2) + self.ln_len_range;
@@ -228,7 +359,7 @@ impl Scorer<'_> {
         } else {
             // Across a pause the bar time can only be longer than the moves.
             let moves = b.start - a.end;
-            if gap < 0.5 * moves - 1.0 {
+            if ob.from - oa.to < 0.5 * moves - 1.0 {
                 score -= 20.0;
             }
             if self.pass2.is_none() {
@@ -244,11 +375,105 @@ impl Scorer<'_> {
     /// after it (handled, lying on the bench), or a controller's stops in the first / last
     /// section when poses before / after are skipped.
     fn lead(&self, k: usize, j: usize) -> f64 {
-        k as f64 * MISS + j as f64 * JUNK
+        let mut score: f64 = (0..k).map(|x| self.miss(x, None, Some((k, j)))).sum();
+        // Before the first dwell of k's section only junk; after it (pass 2 places it), a
+        // plateau before match (k, j) is a stop of the controller.
+        let start = match &self.pass2 {
+            Some(p) => self.section_start(p, k, j),
+            None => f64::INFINITY,
+        };
+        for x in 0..j {
+            score += self.skipped(x, f64::NEG_INFINITY, start);
+        }
+        score
     }
 
     fn trail(&self, k: usize, j: usize) -> f64 {
-        (self.tpl.slots.len() - 1 - k) as f64 * MISS + (self.obs.len() - 1 - j) as f64 * JUNK
+        let mut score: f64 = (k + 1..self.tpl.slots.len())
+            .map(|x| self.miss(x, Some((k, j)), None))
+            .sum();
+        let end = match &self.pass2 {
+            Some(p) => self.section_end(p, k, j),
+            None => f64::NEG_INFINITY,
+        };
+        for x in j + 1..self.obs.len() {
+            score += self.skipped(x, end, f64::INFINITY);
+        }
+        score
+    }
+
+    /// Slot x without a plateau, between the matches `before` and `after` (either may be
+    /// absent): rare, unless the log has a gap where its standstill is due (pass 2 places it
+    /// from the nearer match of its own section).
+    fn miss(&self, x: usize, before: Option<(usize, usize)>, after: Option<(usize, usize)>) -> f64 {
+        let Some(p) = &self.pass2 else {
+            return MISS;
+        };
+        let dwell = self.tpl.dwell;
+        let s = self.slot(x);
+        let due = match (before, after) {
+            (_, Some((k, j))) if self.slot(k).section == s.section => {
+                let n = (k - x - 1) as f64;
+                let end = self.obs[j].from
+                    - p.move_ratio * (self.slot(k).start - s.end - n * dwell).max(0.0)
+                    - n * dwell;
+                Some((end - dwell, end))
+            }
+            (Some((k, j)), _) if self.slot(k).section == s.section => {
+                let n = (x - k - 1) as f64;
+                let start = self.obs[j].to
+                    + p.move_ratio * (s.start - self.slot(k).end - n * dwell).max(0.0)
+                    + n * dwell;
+                Some((start, start + dwell))
+            }
+            _ => None,
+        };
+        let tol = 3.0 * p.time_sigma + 0.1;
+        match due {
+            Some((a, b)) if self.gaps.iter().any(|g| g.0 < b + tol && g.1 > a - tol) => MISS_IN_GAP,
+            _ => MISS,
+        }
+    }
+
+    /// A plateau of no pose: junk when it lies in the window the bar is off, else a stop of
+    /// the controller (the longer, the rarer).
+    fn skipped(&self, x: usize, from: f64, to: f64) -> f64 {
+        let o = &self.obs[x];
+        if o.from >= from && o.to <= to {
+            JUNK
+        } else {
+            EXTRA - (o.to - o.from) / (2.0 * self.tpl.dwell)
+        }
+    }
+
+    /// Bar time by which slot k's section has ended its last dwell, from match (k, j) (less a
+    /// tolerance): the bar may come off after it.
+    fn section_end(&self, p: &Pass2, k: usize, j: usize) -> f64 {
+        let dwell = self.tpl.dwell;
+        let a = self.slot(k);
+        let last = self.last_slot[a.section];
+        let n = (last - k) as f64;
+        self.obs[j].to + p.move_ratio * (self.slot(last).end - a.end - n * dwell).max(0.0)
+            + n * dwell
+            - (3.0 * p.time_sigma + 0.3)
+    }
+
+    /// Bar time at which slot k's section begins its first dwell, from match (k, j) (plus a
+    /// tolerance): the bar may have gone on before it.
+    fn section_start(&self, p: &Pass2, k: usize, j: usize) -> f64 {
+        let dwell = self.tpl.dwell;
+        let b = self.slot(k);
+        let first = self.first_slot[b.section];
+        if k == first {
+            return self.obs[j].from + 3.0 * p.time_sigma + 0.3;
+        }
+        let n = (k - first - 1) as f64;
+        self.obs[j].from
+            - p.move_ratio * (b.start - self.slot(first).end - n * dwell).max(0.0)
+            - n * dwell
+            - dwell
+            + 3.0 * p.time_sigma
+            + 0.3
     }
 
     /// The predecessors a match (k, j) may follow.
@@ -398,15 +623,32 @@ fn fit_timeline(
     pairs: &[(usize, usize)],
     sections: usize,
 ) -> Timeline {
-    // (section, program time, bar time)
+    // (section, program time, bar time); a stop the controller made (a plateau of no pose
+    // inside a section) delays everything after it by its length: taken out.
+    let mut matched = vec![false; obs.len()];
+    for &(_, j) in pairs {
+        matched[j] = true;
+    }
+    let mut first_of = vec![usize::MAX; sections];
+    for &(k, j) in pairs {
+        let s = tpl.slots[k].section;
+        first_of[s] = first_of[s].min(j);
+    }
+    let held = |s: usize, j: usize| -> f64 {
+        (first_of[s].saturating_add(1)..j)
+            .filter(|&x| !matched[x])
+            .map(|x| obs[x].to - obs[x].from)
+            .sum()
+    };
     let mut edges: Vec<(usize, f64, f64)> = Vec::new();
     for &(k, j) in pairs {
         let s = &tpl.slots[k];
+        let h = held(s.section, j);
         if !s.after_pause {
-            edges.push((s.section, s.start, obs[j].from));
+            edges.push((s.section, s.start, obs[j].from - h));
         }
         if !s.before_pause {
-            edges.push((s.section, s.end, obs[j].to));
+            edges.push((s.section, s.end, obs[j].to - h));
         }
     }
     let mut keep = vec![true; edges.len()];
@@ -492,7 +734,12 @@ fn due(tl: &Timeline, s: &Slot) -> Option<f64> {
 
 /// Matches the plateaus `obs` (time order, bar clock) to the template's slots. `interval`:
 /// the log's sample interval (s).
-pub fn align(tpl: &Template, obs: &[Observed], interval: f64) -> Result<Alignment, AlignError> {
+pub fn align(
+    tpl: &Template,
+    obs: &[Observed],
+    gaps: &[(f64, f64)],
+    interval: f64,
+) -> Result<Alignment, AlignError> {
     let kn = tpl.slots.len();
     if kn == 0 {
         return Err(AlignError::NoMatch(
@@ -506,14 +753,20 @@ pub fn align(tpl: &Template, obs: &[Observed], interval: f64) -> Result<Alignmen
         .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), s| {
             (a.min(s.length), b.max(s.length))
         });
-    let span: f64 = tpl.slots.last().map_or(1.0, |s| s.end) + 60.0;
     let mut sc = Scorer {
         tpl,
         obs,
         interval,
         ln_len_range: (lmax - lmin + 0.02).ln(),
-        ln_time_range: span.ln(),
+        ln_time_range: (30.0f64).ln(),
         pass2: None,
+        gaps,
+        first_slot: (0..sections)
+            .map(|s| tpl.slots.iter().position(|x| x.section == s).unwrap_or(0))
+            .collect(),
+        last_slot: (0..sections)
+            .map(|s| tpl.slots.iter().rposition(|x| x.section == s).unwrap_or(0))
+            .collect(),
     };
     let first = viterbi(&sc);
     if first.len() < 2 {
@@ -523,21 +776,69 @@ pub fn align(tpl: &Template, obs: &[Observed], interval: f64) -> Result<Alignmen
             kn
         )));
     }
-    // Pass 2: the zero, the scatter of the lengths and the timeline from pass 1's matches.
+    // Pass 2: the zero and the scatter of the lengths, the controller's move-time ratio and
+    // the scatter of the times between plateaus, from pass 1's matches.
     let resid: Vec<f64> = first
         .iter()
         .map(|&(k, j)| obs[j].mean - tpl.slots[k].length)
         .collect();
     let zero = median(resid.clone());
-    let length_scale = mad(&resid).max(LENGTH_FLOOR);
-    let timeline = fit_timeline(tpl, obs, &first, sections);
-    let time_scale = timeline.rms.max(TIME_FLOOR + 2.0 * interval);
+    // The local zero of every slot: the median of its matched neighbours' (up to three on
+    // either side, in its section, itself left out), else the global one.
+    let mut of_slot: Vec<Option<f64>> = vec![None; kn];
+    for (&(k, _), r) in first.iter().zip(&resid) {
+        of_slot[k] = Some(*r);
+    }
+    let local_zero: Vec<f64> = (0..kn)
+        .map(|k| {
+            let sec = tpl.slots[k].section;
+            let near: Vec<f64> = (k.saturating_sub(LOCAL)..(k + LOCAL + 1).min(kn))
+                .filter(|&i| i != k && tpl.slots[i].section == sec)
+                .filter_map(|i| of_slot[i])
+                .collect();
+            if near.len() >= 2 {
+                median(near)
+            } else {
+                zero
+            }
+        })
+        .collect();
+    let loo: Vec<f64> = first
+        .iter()
+        .zip(&resid)
+        .map(|(&(k, _), r)| r - local_zero[k])
+        .collect();
+    let length_scale = mad(&loo).max(LENGTH_FLOOR);
+    let steps: Vec<(f64, f64, f64)> = first
+        .windows(2)
+        .filter(|w| tpl.slots[w[0].0].section == tpl.slots[w[1].0].section)
+        .map(|w| sc.gap(w[0].0, w[0].1, w[1].0, w[1].1))
+        .collect();
+    let ratios: Vec<f64> = steps
+        .iter()
+        .filter(|s| s.1 > 0.2)
+        .map(|s| (s.0 - s.2) / s.1)
+        .collect();
+    let move_ratio = if ratios.len() >= 3 {
+        median(ratios)
+    } else {
+        1.0
+    };
+    let errs: Vec<f64> = steps
+        .iter()
+        .map(|s| s.0 - move_ratio * s.1 - s.2)
+        .collect();
+    let time_sigma = mad(&errs).max(TIME_FLOOR + interval);
+    if std::env::var_os("EDBB_DEBUG").is_some() {
+        eprintln!("pass1 {:?}\nratio {move_ratio} sigma {time_sigma} lscale {length_scale} zero {zero} errs {:?}", first, errs);
+    }
     sc.pass2 = Some(Pass2 {
-        zero,
+        local_zero,
         length_scale,
-        timeline: timeline.clone(),
-        time_scale,
+        move_ratio,
+        time_sigma,
     });
+    let timeline = fit_timeline(tpl, obs, &first, sections);
     let post = posterior(&sc);
     let jn = obs.len();
     let mut matched = vec![None; kn];
@@ -673,6 +974,8 @@ mod tests {
                     from: t0,
                     to: t0 + 3.0,
                     mean: rng.random_range(0.3..0.5),
+                    cut_before: false,
+                    cut_after: false,
                 });
             }
             let from = shift + a * s.start - if s.after_pause { 5.0 } else { 0.0 };
@@ -681,6 +984,8 @@ mod tests {
                 from: from + rng.random_range(-0.02..0.02),
                 to: to + rng.random_range(-0.02..0.02),
                 mean: s.length + zero + rng.random_range(-3e-4..3e-4),
+                cut_before: false,
+                cut_after: false,
             });
         }
         out
@@ -690,7 +995,7 @@ mod tests {
     fn a_clean_run_matches_every_pose_and_recovers_zero_and_clock() {
         let tpl = template(30, 1);
         let obs = run(&tpl, -17.0, 150e-6, 0.012, 2);
-        let a = align(&tpl, &obs, 0.02).unwrap();
+        let a = align(&tpl, &obs, &[], 0.02).unwrap();
         // Every slot to its own plateau: the junk plateau (index 15) unmatched.
         let want: Vec<Option<usize>> = (0..30).map(|k| Some(k + usize::from(k >= 15))).collect();
         assert_eq!(a.matched, want);
@@ -711,6 +1016,8 @@ mod tests {
             from: a + 0.2,
             to: a + 1.9,
             mean: 0.5 * (obs[19].mean + obs[20].mean),
+            cut_before: false,
+            cut_after: false,
         };
         for o in obs.iter_mut().skip(20) {
             o.from += 1.7;
@@ -718,7 +1025,7 @@ mod tests {
         }
         assert!(b > a);
         obs.insert(20, hold);
-        let al = align(&tpl, &obs, 0.02).unwrap();
+        let al = align(&tpl, &obs, &[], 0.02).unwrap();
         assert_eq!(al.matched[7], None);
         assert!(al.confidence[7] >= SURE);
         for k in 0..30 {

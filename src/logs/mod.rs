@@ -104,6 +104,52 @@ pub struct StopAndMeasure {
     pub zero_std: f64,
 }
 
+/// The header's list of measurement poses of a stop-and-measure program (`measure a-b of N:
+/// L v, v, ... mm`, written by every dialect's template), in order (m); None when the program
+/// has none. Every dialect's reader hands the header comments over as `key: value` lines
+/// (FANUC's 32-character remarks joined back).
+pub fn measure_list(parsed: &crate::dialect::Parsed) -> Result<Option<Vec<f64>>, String> {
+    let mut out: Vec<f64> = Vec::new();
+    let mut total: Option<usize> = None;
+    for h in &parsed.header {
+        let Some(rest) = h.strip_prefix("measure ") else {
+            continue;
+        };
+        let bad = || format!("header line '{h}' is not 'measure A-B of N: L v, ... mm'");
+        let (range, values) = rest.split_once(':').ok_or_else(bad)?;
+        let (ab, n) = range.split_once(" of ").ok_or_else(bad)?;
+        let (a, b) = ab.split_once('-').ok_or_else(bad)?;
+        let (a, b, n): (usize, usize, usize) = (
+            a.trim().parse().map_err(|_| bad())?,
+            b.trim().parse().map_err(|_| bad())?,
+            n.trim().parse().map_err(|_| bad())?,
+        );
+        let v = values
+            .trim()
+            .strip_prefix('L')
+            .and_then(|r| r.trim().strip_suffix("mm"))
+            .ok_or_else(bad)?;
+        let v: Vec<f64> = v
+            .split(',')
+            .map(|x| x.trim().parse::<f64>().map(|x| x * crate::units::MM))
+            .collect::<Result<_, _>>()
+            .map_err(|_| bad())?;
+        if a != out.len() + 1 || b + 1 != a + v.len() || total.is_some_and(|t| t != n) {
+            return Err(format!("header line '{h}': poses out of order"));
+        }
+        total = Some(n);
+        out.extend(v);
+    }
+    match total {
+        None => Ok(None),
+        Some(n) if n == out.len() => Ok(Some(out)),
+        Some(n) => Err(format!(
+            "the header lists {} of its {n} measurement poses",
+            out.len()
+        )),
+    }
+}
+
 /// The shortest time (s) a run of the template can take: its dwells and its moves, pauses
 /// of no length. A log that covers less cannot hold the run.
 pub fn program_time(tpl: &Template) -> f64 {
@@ -159,9 +205,18 @@ pub fn stop_and_measure(tpl: &Template, bar: &BarLog) -> Result<StopAndMeasure, 
             from: p.from,
             to: p.to,
             mean: p.mean,
+            cut_before: p.cut_before,
+            cut_after: p.cut_after,
         })
         .collect();
-    let alignment = match align::align(tpl, &obs, stats.interval) {
+    let gap = (3.0 * stats.interval).max(0.05);
+    let gaps: Vec<(f64, f64)> = bar
+        .t
+        .windows(2)
+        .filter(|w| w[1] - w[0] > gap)
+        .map(|w| (w[0], w[1]))
+        .collect();
+    let alignment = match align::align(tpl, &obs, &gaps, stats.interval) {
         Ok(a) => a,
         Err(e) => return Err(bad(explain(tpl, bar, &plateaus, span, e))),
     };

@@ -41,6 +41,10 @@ pub struct Plateau {
     pub std: f64,
     /// Middle of the core (bar clock): the reading's time.
     pub t: f64,
+    /// The plateau begins (ends) at a gap in the log or at the log's start (end): the
+    /// standstill may have begun earlier (lasted longer) than the log shows.
+    pub cut_before: bool,
+    pub cut_after: bool,
 }
 
 impl Plateau {
@@ -251,7 +255,9 @@ pub fn detect(
         if t[b] - t[a] < min_duration {
             continue;
         }
-        if let Some(p) = summarise(t, l, a, b, st.rate) {
+        if let Some(mut p) = summarise(t, l, a, b, st.rate) {
+            p.cut_before = a == 0 || t[a] - t[a - 1] > gap;
+            p.cut_after = b + 1 == n || t[b + 1] - t[b] > gap;
             out.push(p);
         }
     }
@@ -293,6 +299,8 @@ fn summarise(t: &[f64], l: &[f64], a: usize, b: usize, rate: f64) -> Option<Plat
         samples: n,
         std,
         t: 0.5 * (t[idx[0]] + t[idx[n - 1]]),
+        cut_before: false,
+        cut_after: false,
     })
 }
 

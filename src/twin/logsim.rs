@@ -50,6 +50,9 @@ pub struct LogOptions {
     pub dropout: f64,
     /// Poses (1-based, in dwell order) whose plateau the bar log loses.
     pub missing: Vec<usize>,
+    /// The controller's moves take this many times their program time (its acceleration ramps,
+    /// a speed override); dwells and pauses are exact.
+    pub move_scale: f64,
     /// Controller stops in moves made with the bar, and their lengths (s).
     pub holds: usize,
     pub hold_len: (f64, f64),
@@ -78,6 +81,7 @@ impl Default for LogOptions {
             gap_len: (0.5, 3.0),
             dropout: 0.0,
             missing: Vec::new(),
+            move_scale: 1.0,
             holds: 0,
             hold_len: (0.5, 3.0),
             vibration: Vec::new(),
@@ -105,8 +109,10 @@ pub struct Logs {
 #[derive(Clone, Debug, PartialEq)]
 pub struct LogTruth {
     /// Per measurement dwell of the program (the bar mounted), in order: the standstill with
-    /// the bar mounted on the bar clock, or None when the log lost it (`missing`).
-    pub plateaus: Vec<Option<(f64, f64)>>,
+    /// the bar mounted, on the bar clock.
+    pub standstills: Vec<(f64, f64)>,
+    /// Whether the log holds that standstill whole (no `missing`, no gap over any of it).
+    pub intact: Vec<bool>,
     /// The controller's stops (bar clock).
     pub holds: Vec<(f64, f64)>,
     /// The bar's mount intervals (bar clock).
@@ -120,36 +126,88 @@ struct Stop {
     len: f64,
 }
 
-/// Program time ↔ controller time with the stops inserted.
+/// Program time ↔ controller time: the stops inserted, the moves taking `scale` times their
+/// program time (a controller's acceleration ramps or speed override), the dwells exact.
+/// Knots (program, real), both non-decreasing; a stop is two knots at one program time.
 struct Clock {
-    stops: Vec<Stop>,
+    knots: Vec<(f64, f64)>,
 }
 
 impl Clock {
+    fn new(stops: &[Stop], dwells: &[(f64, f64)], end: f64, scale: f64) -> Clock {
+        let mut cuts: Vec<f64> = vec![0.0, end];
+        cuts.extend(stops.iter().map(|s| s.at));
+        for d in dwells {
+            cuts.push(d.0);
+            cuts.push(d.1);
+        }
+        cuts.sort_by(f64::total_cmp);
+        cuts.dedup();
+        let in_dwell = |a: f64, b: f64| {
+            let m = 0.5 * (a + b);
+            dwells.iter().any(|d| m > d.0 && m < d.1)
+        };
+        let mut knots = vec![(cuts[0], cuts[0])];
+        for w in cuts.windows(2) {
+            let (a, b) = (w[0], w[1]);
+            for s in stops.iter().filter(|s| s.at == a) {
+                let r = knots.last().map_or(0.0, |k| k.1);
+                knots.push((a, r + s.len));
+            }
+            let r = knots.last().map_or(0.0, |k| k.1);
+            let slope = if in_dwell(a, b) { 1.0 } else { scale };
+            knots.push((b, r + slope * (b - a)));
+        }
+        let last = *cuts.last().unwrap_or(&0.0);
+        for s in stops.iter().filter(|s| s.at == last) {
+            let r = knots.last().map_or(0.0, |k| k.1);
+            knots.push((last, r + s.len));
+        }
+        Clock { knots }
+    }
+
     /// Controller time at which program time `tp` is reached (before a stop at `tp`).
     fn real(&self, tp: f64) -> f64 {
-        tp + self
-            .stops
-            .iter()
-            .filter(|s| s.at < tp)
-            .map(|s| s.len)
-            .sum::<f64>()
+        let k = &self.knots;
+        if tp <= k[0].0 {
+            return k[0].1 - (k[0].0 - tp);
+        }
+        for w in k.windows(2) {
+            if tp <= w[1].0 && w[1].0 > w[0].0 {
+                return w[0].1 + (tp - w[0].0) / (w[1].0 - w[0].0) * (w[1].1 - w[0].1);
+            }
+        }
+        let l = k[k.len() - 1];
+        l.1 + (tp - l.0)
+    }
+
+    /// Controller time at which program time `tp` is left (after a stop at `tp`).
+    fn real_after(&self, tp: f64) -> f64 {
+        let stand: f64 = self
+            .knots
+            .windows(2)
+            .filter(|w| w[0].0 == tp && w[1].0 == tp)
+            .map(|w| w[1].1 - w[0].1)
+            .sum();
+        self.real(tp) + stand
     }
 
     /// Program time at controller time `tc` (standing during a stop).
     fn program(&self, tc: f64) -> f64 {
-        let mut shift = 0.0;
-        for s in &self.stops {
-            let start = s.at + shift;
-            if tc < start {
-                return tc - shift;
-            }
-            if tc <= start + s.len {
-                return s.at;
-            }
-            shift += s.len;
+        let k = &self.knots;
+        if tc <= k[0].1 {
+            return k[0].0 - (k[0].1 - tc);
         }
-        tc - shift
+        for w in k.windows(2) {
+            if tc <= w[1].1 {
+                if w[1].0 == w[0].0 || w[1].1 == w[0].1 {
+                    return w[0].0;
+                }
+                return w[0].0 + (tc - w[0].1) / (w[1].1 - w[0].1) * (w[1].0 - w[0].0);
+            }
+        }
+        let l = k[k.len() - 1];
+        l.0 + (tc - l.1)
     }
 }
 
@@ -214,10 +272,8 @@ pub fn simulate_logs(
             }
         }
     }
-    let mut order: Vec<usize> = (0..stops.len()).collect();
-    order.sort_by(|&a, &b| stops[a].at.total_cmp(&stops[b].at));
-    let sorted: Vec<Stop> = order.iter().map(|&k| stops[k]).collect();
-    let clock = Clock { stops: sorted };
+    let dwell_spans: Vec<(f64, f64)> = traj.dwells.iter().map(|d| (d.from, d.to)).collect();
+    let clock = Clock::new(&stops, &dwell_spans, end, opts.move_scale);
     // Real-time start of each original stop.
     let stop_start = |k: usize| clock.real(stops[k].at);
     // Mount intervals (controller clock).
@@ -234,13 +290,7 @@ pub fn simulate_logs(
             mounted_real.push((on, off));
         }
     }
-    let real_end = clock.real(end)
-        + clock
-            .stops
-            .iter()
-            .filter(|s| s.at >= end)
-            .map(|s| s.len)
-            .sum::<f64>();
+    let real_end = clock.real_after(end);
     let is_mounted = |tc: f64| mounted_real.iter().any(|&(a, b)| tc >= a && tc < b);
     let a = 1.0 + opts.drift;
     let to_bar = |tc: f64| opts.offset + a * tc;
@@ -255,16 +305,8 @@ pub fn simulate_logs(
         .map(|d| {
             // From the arrival (before a pause that precedes the dwell) to the departure
             // (after a pause that follows it), cut to the time the bar is mounted.
-            let after: f64 = clock
-                .stops
-                .iter()
-                .filter(|s| (s.at - d.to).abs() < 1e-9)
-                .map(|s| s.len)
-                .sum();
             let arrive = clock.real(d.from);
-            // real(d.to) already holds the stop at d.from.
-            let leave = clock.real(d.to) + after;
-
+            let leave = clock.real_after(d.to);
             let w = mounted_real
                 .iter()
                 .find(|&&(m0, m1)| m1 > arrive && m0 < leave)
@@ -282,16 +324,15 @@ pub fn simulate_logs(
         let at = rng.random_range(t_first..t_last);
         gaps.push((at, at + len));
     }
-    let mut truth_plateaus: Vec<Option<(f64, f64)>> = standstill
-        .iter()
-        .map(|&(x, y)| Some((to_bar(x), to_bar(y))))
-        .collect();
     for &k in &opts.missing {
         if let Some(&(x, y)) = standstill.get(k.wrapping_sub(1)) {
             gaps.push((x - 0.1, y + 0.1));
-            truth_plateaus[k - 1] = None;
         }
     }
+    let intact: Vec<bool> = standstill
+        .iter()
+        .map(|&(x, y)| !gaps.iter().any(|&(a, b)| a < y && b > x))
+        .collect();
     // Handling while unmounted: segments (kind, from, to, length at from, length at to).
     let junk = if opts.handling {
         handling(&mut rng, t_first, t_last, opts.bar_range)
@@ -378,7 +419,8 @@ pub fn simulate_logs(
         joints,
         synchronous: sync,
         truth: LogTruth {
-            plateaus: truth_plateaus,
+            standstills: standstill.iter().map(|&(x, y)| (to_bar(x), to_bar(y))).collect(),
+            intact,
             holds: holds_at
                 .iter()
                 .map(|&k| {
@@ -470,18 +512,24 @@ mod tests {
     use super::*;
 
     #[test]
-    fn the_clock_inserts_stops_and_inverts() {
-        let c = Clock {
-            stops: vec![Stop { at: 1.0, len: 10.0 }, Stop { at: 3.0, len: 2.0 }],
-        };
-        assert_eq!(c.real(0.5), 0.5);
-        assert_eq!(c.real(2.0), 12.0);
-        assert_eq!(c.real(4.0), 16.0);
-        for tp in [0.2, 0.9, 1.5, 2.9, 3.5, 10.0] {
+    fn the_clock_inserts_stops_scales_moves_and_inverts() {
+        let stops = [Stop { at: 1.0, len: 10.0 }, Stop { at: 3.0, len: 2.0 }];
+        // A dwell from 2 to 2.5 s of program time; moves take 1.5 times as long.
+        let c = Clock::new(&stops, &[(2.0, 2.5)], 4.0, 1.5);
+        assert!((c.real(0.5) - 0.75).abs() < 1e-12);
+        assert!((c.real(1.0) - 1.5).abs() < 1e-12);
+        assert!((c.real_after(1.0) - 11.5).abs() < 1e-12);
+        // 1 → 2: a move (1.5 s); 2 → 2.5: the dwell (0.5 s); 2.5 → 3: a move (0.75 s).
+        assert!((c.real(2.0) - 13.0).abs() < 1e-12);
+        assert!((c.real(2.5) - 13.5).abs() < 1e-12);
+        assert!((c.real(3.0) - 14.25).abs() < 1e-12);
+        assert!((c.real_after(3.0) - 16.25).abs() < 1e-12);
+        assert!((c.real(4.0) - 17.75).abs() < 1e-12);
+        for tp in [0.2, 0.9, 1.5, 2.2, 2.9, 3.5, 10.0] {
             assert!((c.program(c.real(tp)) - tp).abs() < 1e-12, "{tp}");
         }
         // Standing during a stop.
         assert_eq!(c.program(5.0), 1.0);
-        assert_eq!(c.program(13.5), 3.0);
+        assert_eq!(c.program(15.0), 3.0);
     }
 }
