@@ -43,7 +43,7 @@ fn calibrated(model: &MeasurementModel, robot: &edbbgen::robot::Robot, m: &Measu
         robot,
         &[Run {
             measured: m,
-            fixture: model.nominal.fixture,
+            fixture: model.nominal.fix,
         }],
         &["run".to_string()],
         &CalibrateOptions::default(),

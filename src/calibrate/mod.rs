@@ -751,7 +751,9 @@ fn fixture_check(
     })
 }
 
-fn summary(r: &Report) -> String {
+/// The printed summary of a report (also rebuilt when a report is restated, see
+/// `compensate::drift`).
+pub fn summary(r: &Report) -> String {
     let mut s = format!(
         "{} run{}, {} rows; bar noise {} um (lag-1 autocorrelation {})\n",
         r.runs.len(),

@@ -4,6 +4,7 @@
 use super::args::CalibrateArgs;
 use super::{usage, write_all_atomic, xyz_mm, Error};
 use crate::calibrate::{self, CalibrateOptions, Calibration, Effects};
+use crate::compensate::drift;
 use crate::diagnose::Run;
 use crate::model::MeasurementModel;
 use crate::robot::{self, LoadOptions, Robot};
@@ -187,6 +188,21 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
         opts.prior_angle = v[1] * DEG;
     }
 
+    // --baseline: the previous report is read before any work.
+    let baseline = match &a.baseline {
+        Some(path) => {
+            let text = super::read_input(path, "calibration report", crate::files::Kind::Config)?;
+            let value: serde_json::Value = serde_json::from_str(&text)
+                .map_err(|e| file_err(path, format!("not JSON: {e}")))?;
+            Some((
+                drift::read_report(&value).map_err(|e| file_err(path, e))?,
+                name(path),
+                robot::sha256_hex(text.as_bytes()),
+            ))
+        }
+        None => None,
+    };
+
     let load_opts = LoadOptions {
         flange_link: a.flange.clone(),
         package_paths: a.package_path.clone(),
@@ -268,8 +284,18 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
             fixture: fixture_of(k),
         })
         .collect();
-    let mut cal = calibrate::run(&model, &robot, &runs, &labels, &opts)
-        .map_err(|e| file_err(sources[0], e))?;
+    // --baseline: the fit starts from the previous calibration and states what moved since.
+    let fit = |runs: &[Run]| match &baseline {
+        Some((baseline, label, _)) => {
+            drift::calibrate_against(&model, &robot, runs, &labels, &opts, baseline, label)
+                .map(|(cal, d)| (cal, Some(d)))
+                .map_err(|e| file_err(sources[0], e))
+        }
+        None => calibrate::run(&model, &robot, runs, &labels, &opts)
+            .map(|cal| (cal, None))
+            .map_err(|e| file_err(sources[0], e)),
+    };
+    let (mut cal, mut drift) = fit(&runs)?;
     drop(runs);
     // Continuous runs from logs were synchronised against the nominal model, whose errors
     // bias the clock (a 20 µs offset costs micrometres where the bar moves fast): once more
@@ -293,13 +319,15 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
                 fixture: fixture_of(k),
             })
             .collect();
-        cal = calibrate::run(&model, &robot, &runs, &labels, &opts)
-            .map_err(|e| file_err(sources[0], e))?;
+        (cal, drift) = fit(&runs)?;
     }
     let fixtures = run_fixtures;
 
     // Everything is rendered before the first file is written: a failure leaves no file.
-    let header = header_lines(&robot, &cal, &data, &labels);
+    let mut header = header_lines(&robot, &cal, &data, &labels);
+    if let (Some(d), Some(p)) = (&drift, &a.baseline) {
+        header.push(format!("since {}: {}", name(p), d.verdict));
+    }
     let p = cal.params();
     let calibrated = if urdf {
         robot::urdf::calibrated(
@@ -314,27 +342,54 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
     } else {
         robot::dh::calibrated(&robot_text, &a.robot, &p.dh, &p.map, &header)?
     };
-    // Runs read from logs keep how they were read: their plateaus, missing poses and clock.
-    let mut report = serde_json::to_value(&cal.report).unwrap_or_default();
-    if let Some(runs) = report.get_mut("runs").and_then(|r| r.as_array_mut()) {
-        for (run, extra) in runs.iter_mut().zip(&extras) {
-            if let (Some(obj), Some(extra)) = (run.as_object_mut(), extra) {
-                if let Ok(serde_json::Value::Object(add)) = serde_json::to_value(extra) {
-                    obj.extend(add);
+    #[derive(serde::Serialize)]
+    struct WithDrift<'a> {
+        #[serde(flatten)]
+        report: &'a calibrate::Report,
+        #[serde(skip_serializing_if = "Option::is_none")]
+        drift: Option<&'a drift::Drift>,
+    }
+    let with_drift = WithDrift {
+        report: &cal.report,
+        drift: drift.as_ref(),
+    };
+    let json = if extras.iter().any(Option::is_some) {
+        // Runs read from logs keep how they were read: their plateaus, missing poses and
+        // clock, added to their run's keys.
+        let mut report = serde_json::to_value(&with_drift).unwrap_or_default();
+        if let Some(runs) = report.get_mut("runs").and_then(|r| r.as_array_mut()) {
+            for (run, extra) in runs.iter_mut().zip(&extras) {
+                if let (Some(obj), Some(extra)) = (run.as_object_mut(), extra) {
+                    if let Ok(serde_json::Value::Object(add)) = serde_json::to_value(extra) {
+                        obj.extend(add);
+                    }
                 }
             }
         }
+        serde_json::to_string_pretty(&report)
+    } else {
+        serde_json::to_string_pretty(&with_drift)
     }
-    let json = serde_json::to_string_pretty(&report).unwrap_or_default() + "\n";
+    .unwrap_or_default()
+        + "\n";
     let svg = match &a.plot {
         Some(_) => Some(crate::calibrate::plot::svg(&cal)?),
         None => None,
     };
     let html = match &a.html {
         Some(_) => {
-            let hash = inputs_hash(&robot, &data, &fixtures, &map, &a.effects);
+            // The baseline is an input too.
+            let effects = match &baseline {
+                Some((_, _, sha)) => format!("{}\nbaseline {sha}", a.effects),
+                None => a.effects.clone(),
+            };
+            let hash = inputs_hash(&robot, &data, &fixtures, &map, &effects);
             let name = format!("{} [{}]", robot.name, robot.source);
-            let page = crate::report::calibrate::page(&cal, &name, &hash)?;
+            let mut page = crate::report::calibrate::page(&cal, &name, &hash)?;
+            if let Some(d) = &drift {
+                page.sections
+                    .push(crate::report::compensate::drift_section(d)?);
+            }
             Some(crate::report::render(&page)?)
         }
         None => None,
