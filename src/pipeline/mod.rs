@@ -523,11 +523,6 @@ pub fn compile(
     let mut planned = select_order_plan(&ck, &sections, &identifiability, opts, progress)?;
     progress.stage("blend");
     blend(&ck, &mut planned.plan, opts, template.dialect, &axes);
-    // After the blends: a stop-and-measure program stops exactly at every measurement pose,
-    // whatever the dialect's corner model would allow there.
-    if opts.dwell.is_some() {
-        stop_at_poses(&mut planned.plan);
-    }
     warnings.extend(planned.warnings());
     sections.report.measured_per_section = sections::measured_per_section(&planned.plan);
     let path = timed_path(
@@ -839,6 +834,11 @@ fn blend(
             map,
         },
     );
+    // After the blends: a stop-and-measure program stops exactly at every measurement pose,
+    // whatever the dialect's corner model would allow there.
+    if opts.dwell.is_some() {
+        stop_at_poses(plan);
+    }
 }
 
 /// The path on exactly the joint values the program carries (the 0.001° grid every dialect
