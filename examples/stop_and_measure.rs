@@ -37,7 +37,11 @@ fn median(mut v: Vec<f64>) -> f64 {
     }
 }
 
-fn calibrated(model: &MeasurementModel, robot: &edbbgen::robot::Robot, m: &Measured) -> (Params, f64) {
+fn calibrated(
+    model: &MeasurementModel,
+    robot: &edbbgen::robot::Robot,
+    m: &Measured,
+) -> (Params, f64) {
     let cal = calibrate::run(
         model,
         robot,
@@ -49,7 +53,10 @@ fn calibrated(model: &MeasurementModel, robot: &edbbgen::robot::Robot, m: &Measu
         &CalibrateOptions::default(),
     )
     .expect("calibrate");
-    (cal.params(), cal.report.predicted_position_std_um.workspace_rms)
+    (
+        cal.params(),
+        cal.report.predicted_position_std_um.workspace_rms,
+    )
 }
 
 fn main() {
@@ -171,15 +178,21 @@ fn main() {
             }
         };
         let nominal = |q: &[f64; 6]| model.length(&model.nominal, q);
-        let s1 = logs::sync::sync(&logs2.bar.t, &logs2.bar.length, &spline, &nominal).expect("sync");
+        let s1 =
+            logs::sync::sync(&logs2.bar.t, &logs2.bar.length, &spline, &nominal).expect("sync");
         let (p1, _) = calibrated(&model, &robot, &to_measured(&s1));
         let refined = |q: &[f64; 6]| model.length(&p1, q);
-        let s2 = logs::sync::sync(&logs2.bar.t, &logs2.bar.length, &spline, &refined).expect("sync");
+        let s2 =
+            logs::sync::sync(&logs2.bar.t, &logs2.bar.length, &spline, &refined).expect("sync");
         let (pc, _) = calibrated(&model, &robot, &to_measured(&s2));
         let (pd, _) = calibrated(&model, &robot, &logs2.synchronous);
         let c: Vec<_> = space.iter().map(|q| model.map_position(&pc, q)).collect();
         let dd: Vec<_> = space.iter().map(|q| model.map_position(&pd, q)).collect();
-        let diff = (c.iter().zip(&dd).map(|(a, b)| (a - b).norm_squared()).sum::<f64>()
+        let diff = (c
+            .iter()
+            .zip(&dd)
+            .map(|(a, b)| (a - b).norm_squared())
+            .sum::<f64>()
             / c.len() as f64)
             .sqrt()
             * 1e6;
@@ -214,10 +227,7 @@ fn main() {
     let col = |k: usize| median(rows.iter().map(|r| r[k]).collect());
     let ratio = |a: usize, b: usize| median(rows.iter().map(|r| r[a] / r[b]).collect());
     println!("\nmedians over {ROBOTS} robots (RMS over 2,000 random joint poses after rigid registration):");
-    println!(
-        "  before calibration {} um",
-        fmt_fixed(col(0), 1)
-    );
+    println!("  before calibration {} um", fmt_fixed(col(0), 1));
     println!(
         "  stop-and-measure from the bar log: {} um (predicted {} um); the same run synchronous: {} um (predicted {} um); ratio realised {}, predicted {}",
         fmt_fixed(col(1), 3),

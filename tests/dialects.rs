@@ -234,7 +234,11 @@ fn every_dialect_of_a_stop_and_measure_program_is_golden_and_reads_back_its_dwel
         assert_eq!(dwells, program.header.poses, "{label}");
         for w in events.windows(2) {
             if w[1].starts_with('D') {
-                assert!(w[0] == "M" || w[0] == "P", "{label}: {} before a dwell", w[0]);
+                assert!(
+                    w[0] == "M" || w[0] == "P",
+                    "{label}: {} before a dwell",
+                    w[0]
+                );
             }
         }
         // The key that turns a bar log into readings, read back from the text.
@@ -259,7 +263,8 @@ fn every_dialect_of_a_stop_and_measure_program_is_golden_and_reads_back_its_dwel
         ]);
         assert_eq!(r.code, 0, "{label}: {}", r.stderr);
         assert!(
-            r.stdout.contains(&format!("{} dwells", program.header.poses)),
+            r.stdout
+                .contains(&format!("{} dwells", program.header.poses)),
             "{label}: {}",
             r.stdout
         );

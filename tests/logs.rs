@@ -77,7 +77,11 @@ fn the_program_lists_its_measurement_poses_and_every_dwell_follows_an_exact_stop
     let tpl = logsim::template(&traj, &d.model);
     assert_eq!(tpl.slots.len(), h.poses);
     for (s, l) in tpl.slots.iter().zip(&h.measure_mm) {
-        assert!((s.length * 1e3 - l).abs() < 1e-9, "{} vs {l}", s.length * 1e3);
+        assert!(
+            (s.length * 1e3 - l).abs() < 1e-9,
+            "{} vs {l}",
+            s.length * 1e3
+        );
     }
     // Every dwell comes right after a move without a blend, or after the mount pause.
     let lines = &d.parsed.lines;
@@ -86,7 +90,11 @@ fn the_program_lists_its_measurement_poses_and_every_dwell_follows_an_exact_stop
             assert_eq!(s, 2.0);
             match &lines[k - 1].step {
                 edbbgen::dialect::Step::Move { blend, .. } => {
-                    assert_eq!(*blend, None, "line {}: a dwell after a blended move", l.line)
+                    assert_eq!(
+                        *blend, None,
+                        "line {}: a dwell after a blended move",
+                        l.line
+                    )
                 }
                 edbbgen::dialect::Step::Pause => {}
                 other => panic!("line {}: a dwell after {other:?}", l.line),
@@ -182,7 +190,10 @@ fn randomised_runs_are_matched_right_or_refused_naming_the_pose() {
         // The bar's zero is found within the robot's own errors.
         assert!((got.zero - opts.zero).abs() < 1e-3, "run {run}");
     }
-    assert!(holds_seen >= 190, "{holds_seen} controller stops in 200 runs");
+    assert!(
+        holds_seen >= 190,
+        "{holds_seen} controller stops in 200 runs"
+    );
     assert!(
         refused <= 4,
         "{refused} of 200 runs refused: the matcher gives up too easily"
@@ -196,7 +207,12 @@ fn simulated_run(
     dir: &std::path::Path,
     truth: &str,
     extra: &[&str],
-) -> (std::path::PathBuf, std::path::PathBuf, std::path::PathBuf, std::path::PathBuf) {
+) -> (
+    std::path::PathBuf,
+    std::path::PathBuf,
+    std::path::PathBuf,
+    std::path::PathBuf,
+) {
     let d = dwell_program();
     let prog = dir.join("prog.nc");
     std::fs::write(&prog, &d.compiled.text).unwrap();
@@ -227,7 +243,8 @@ fn simulated_run(
     (prog, bar, joints, sync)
 }
 
-const TRUTH: &str = "noise_um = 1.0\n[geometric]\na2 = 0.15\ntheta3 = 0.01\nd4 = -0.08\nalpha2 = 0.005\n";
+const TRUTH: &str =
+    "noise_um = 1.0\n[geometric]\na2 = 0.15\ntheta3 = 0.01\nd4 = -0.08\nalpha2 = 0.005\n";
 
 /// Bad logs exit 2 with one line naming the file and what is wrong, and nothing is written:
 /// unsorted time, no plateau, lengths in metres, times in milliseconds, a log shorter than
@@ -307,7 +324,10 @@ fn bad_logs_exit_2_with_one_line_and_write_nothing() {
             line.contains(&format!("{name}.csv")) && line.contains(needle),
             "{name}: {line}"
         );
-        assert!(!out.exists() && !json.exists(), "{name}: a file was written");
+        assert!(
+            !out.exists() && !json.exists(),
+            "{name}: a file was written"
+        );
         // diagnose refuses the same log the same way.
         let d = edbbgen([
             "diagnose",
@@ -339,7 +359,12 @@ fn map_positions(cal: &std::path::Path, space: &[[f64; 6]]) -> Vec<Vector3<f64>>
 }
 
 fn rms_um(a: &[Vector3<f64>], b: &[Vector3<f64>]) -> f64 {
-    (a.iter().zip(b).map(|(x, y)| (x - y).norm_squared()).sum::<f64>() / a.len() as f64).sqrt()
+    (a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).norm_squared())
+        .sum::<f64>()
+        / a.len() as f64)
+        .sqrt()
         * 1e6
 }
 
@@ -391,7 +416,10 @@ fn a_joint_log_synchronises_to_a_fraction_of_a_millisecond() {
         "-q",
     ]);
     assert_eq!(r.code, 0, "{}", r.stderr);
-    let (a, b) = (dir.path().join("logs.dh.toml"), dir.path().join("sync.dh.toml"));
+    let (a, b) = (
+        dir.path().join("logs.dh.toml"),
+        dir.path().join("sync.dh.toml"),
+    );
     let (ja, jb) = (dir.path().join("logs.json"), dir.path().join("sync.json"));
     let r = edbbgen([
         "calibrate",
@@ -426,7 +454,10 @@ fn a_joint_log_synchronises_to_a_fraction_of_a_millisecond() {
     let clock = &report["runs"][0]["clock"];
     let got = clock["offset_s"].as_f64().unwrap();
     let std = clock["offset_std_s"].as_f64().unwrap();
-    assert!((got - offset).abs() < 0.5e-3, "offset {got} s, truth {offset} s");
+    assert!(
+        (got - offset).abs() < 0.5e-3,
+        "offset {got} s, truth {offset} s"
+    );
     assert!(std < 0.5e-3 && std > 0.0, "{std}");
     let drift = clock["drift_ppm"].as_f64().unwrap();
     assert!((drift - 150.0).abs() < 1.0, "drift {drift} ppm");
@@ -465,8 +496,14 @@ fn stop_and_measure_calibrates_within_twice_the_synchronous_accuracy() {
         h.predicted_std_um,
         h.predicted_continuous_std_um
     );
-    let (a, b) = (dir.path().join("plateaus.dh.toml"), dir.path().join("sync.dh.toml"));
-    let (ja, jb) = (dir.path().join("plateaus.json"), dir.path().join("sync.json"));
+    let (a, b) = (
+        dir.path().join("plateaus.dh.toml"),
+        dir.path().join("sync.dh.toml"),
+    );
+    let (ja, jb) = (
+        dir.path().join("plateaus.json"),
+        dir.path().join("sync.json"),
+    );
     let r = edbbgen([
         "calibrate",
         nj130_dh().to_str().unwrap(),
@@ -505,17 +542,35 @@ fn stop_and_measure_calibrates_within_twice_the_synchronous_accuracy() {
     let plateaus = run["plateaus"].as_array().unwrap();
     let matched = plateaus.iter().filter(|p| !p["pose"].is_null()).count();
     assert_eq!(matched, h.poses - 1);
-    assert!(plateaus.len() > matched, "the controller's stop is listed, unmatched");
+    assert!(
+        plateaus.len() > matched,
+        "the controller's stop is listed, unmatched"
+    );
     for p in plateaus {
-        for key in ["t_from_s", "t_to_s", "rows", "samples", "mean_mm", "spread_um", "std_um"] {
+        for key in [
+            "t_from_s",
+            "t_to_s",
+            "rows",
+            "samples",
+            "mean_mm",
+            "spread_um",
+            "std_um",
+        ] {
             assert!(!p[key].is_null(), "{key}");
         }
     }
     assert_eq!(run["clock"]["reference"], "program");
     // Predicted by calibrate.
-    let pa = ra["predicted_position_std_um"]["workspace_rms"].as_f64().unwrap();
-    let pb = rb["predicted_position_std_um"]["workspace_rms"].as_f64().unwrap();
-    assert!(pa <= 2.0 * pb, "predicted {pa} um from the plateaus, {pb} um synchronous");
+    let pa = ra["predicted_position_std_um"]["workspace_rms"]
+        .as_f64()
+        .unwrap();
+    let pb = rb["predicted_position_std_um"]["workspace_rms"]
+        .as_f64()
+        .unwrap();
+    assert!(
+        pa <= 2.0 * pb,
+        "predicted {pa} um from the plateaus, {pb} um synchronous"
+    );
     // Realised: against the true robot, after a best rigid registration (as any external
     // validation would).
     let robot = load(&nj130_dh());

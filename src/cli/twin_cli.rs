@@ -190,7 +190,9 @@ fn log_options(
     }
     let move_scale = scalar("--move-scale", &a.move_scale)?;
     if !(0.2..=5.0).contains(&move_scale) {
-        return Err(usage(format!("--move-scale: {move_scale} is outside 0.2..5")));
+        return Err(usage(format!(
+            "--move-scale: {move_scale} is outside 0.2..5"
+        )));
     }
     let dropout = scalar("--dropout", &a.dropout)?;
     if !(0.0..1.0).contains(&dropout) {
@@ -305,9 +307,14 @@ pub fn diagnose(a: &DiagnoseArgs) -> Result<i32, Error> {
                     measured: &read.0,
                     fixture: run.fixture,
                 }];
-                let cal =
-                    crate::calibrate::run(&model, &robot, &one, &[run.label.clone()], &geometry)
-                        .map_err(|e| file_err(bar, e))?;
+                let cal = crate::calibrate::run(
+                    &model,
+                    &robot,
+                    &one,
+                    std::slice::from_ref(&run.label),
+                    &geometry,
+                )
+                .map_err(|e| file_err(bar, e))?;
                 let p = cal.estimate.params(0);
                 let length = |q: &[f64; 6]| model.length(&p, q);
                 read = super::logs_cli::resync(logs, &length, program.as_ref())?;

@@ -275,7 +275,8 @@ impl Scorer<'_> {
     /// rate; anything else only at a tiny one (a longer stop leaves a plateau, and a
     /// controller is not early).
     fn ln_timing(&self, delta: f64, sigma: f64) -> f64 {
-        let core = (-0.5 * (delta / sigma).powi(2)).exp() / (sigma * (std::f64::consts::TAU).sqrt());
+        let core =
+            (-0.5 * (delta / sigma).powi(2)).exp() / (sigma * (std::f64::consts::TAU).sqrt());
         let short = 0.5 * self.tpl.dwell + 3.0 * sigma;
         let stop = if delta > 0.0 && delta <= short {
             SHORT_STOP / short
@@ -289,9 +290,7 @@ impl Scorer<'_> {
     /// (stops) taken out, and what the program says it is: its moves and the dwells of the
     /// poses skipped (s).
     fn gap(&self, kp: usize, jp: usize, k: usize, j: usize) -> (f64, f64, f64) {
-        let standing: f64 = (jp + 1..j)
-            .map(|x| self.obs[x].to - self.obs[x].from)
-            .sum();
+        let standing: f64 = (jp + 1..j).map(|x| self.obs[x].to - self.obs[x].from).sum();
         let got = (self.obs[j].from - self.obs[jp].to - standing).max(0.0);
         let want = self.slot(k).start - self.slot(kp).end;
         let dwells = (k - kp - 1) as f64 * self.tpl.dwell;
@@ -303,7 +302,9 @@ impl Scorer<'_> {
     fn pair(&self, kp: usize, jp: usize, k: usize, j: usize) -> f64 {
         let (a, b) = (self.slot(kp), self.slot(k));
         let same = a.section == b.section;
-        let mut score: f64 = (kp + 1..k).map(|x| self.miss(x, Some((kp, jp)), Some((k, j)))).sum();
+        let mut score: f64 = (kp + 1..k)
+            .map(|x| self.miss(x, Some((kp, jp)), Some((k, j))))
+            .sum();
         // Across a pause, the bar is handled between the removal and the mount: the window
         // of junk; pass 2 knows the timing well enough to place it (after the last dwell of
         // the section before, before the first dwell of the next one ends).
@@ -453,7 +454,8 @@ impl Scorer<'_> {
         let a = self.slot(k);
         let last = self.last_slot[a.section];
         let n = (last - k) as f64;
-        self.obs[j].to + p.move_ratio * (self.slot(last).end - a.end - n * dwell).max(0.0)
+        self.obs[j].to
+            + p.move_ratio * (self.slot(last).end - a.end - n * dwell).max(0.0)
             + n * dwell
             - (3.0 * p.time_sigma + 0.3)
     }
@@ -824,10 +826,7 @@ pub fn align(
     } else {
         1.0
     };
-    let errs: Vec<f64> = steps
-        .iter()
-        .map(|s| s.0 - move_ratio * s.1 - s.2)
-        .collect();
+    let errs: Vec<f64> = steps.iter().map(|s| s.0 - move_ratio * s.1 - s.2).collect();
     let time_sigma = mad(&errs).max(TIME_FLOOR + interval);
     if std::env::var_os("EDBB_DEBUG").is_some() {
         eprintln!("pass1 {:?}\nratio {move_ratio} sigma {time_sigma} lscale {length_scale} zero {zero} errs {:?}", first, errs);

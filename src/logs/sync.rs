@@ -241,7 +241,7 @@ pub fn sync(
         return Err(LogsError::Bad("too short a log to synchronise".into()));
     }
     let knots_t = spline.t.clone();
-    let knots_p: Vec<f64> = spline.q.par_iter().map(|q| length(q)).collect();
+    let knots_p: Vec<f64> = spline.q.par_iter().map(length).collect();
     let pb = Problem {
         u,
         l,

@@ -419,7 +419,10 @@ pub fn simulate_logs(
         joints,
         synchronous: sync,
         truth: LogTruth {
-            standstills: standstill.iter().map(|&(x, y)| (to_bar(x), to_bar(y))).collect(),
+            standstills: standstill
+                .iter()
+                .map(|&(x, y)| (to_bar(x), to_bar(y)))
+                .collect(),
             intact,
             holds: holds_at
                 .iter()
