@@ -22,6 +22,7 @@ mod fuzz;
 mod header_limits;
 mod ldbb;
 mod linuxcnc;
+mod logs;
 mod model_cmd;
 mod passive;
 mod place;

@@ -5,6 +5,7 @@ pub mod args;
 mod calibrate_cli;
 mod compensate_cli;
 mod ldbb_cli;
+mod logs_cli;
 mod place_cli;
 mod twin_cli;
 
@@ -461,6 +462,24 @@ fn run_compile(a: &CompileArgs) -> Result<i32, Error> {
             "--bar-rate: {bar_rate} Hz is outside 1..100000 Hz"
         )));
     }
+    let dwell = match &a.dwell {
+        Some(d) => {
+            // On the 0.01 s grid every dialect prints exactly (FANUC's WAIT resolves 0.01 s).
+            let d = (scalar("--dwell", d)? * 100.0).round() / 100.0;
+            if !(0.1..=60.0).contains(&d) {
+                return Err(usage(format!("--dwell: {d} s is outside 0.1..60 s")));
+            }
+            let n = crate::logs::plateau_core_samples(d, bar_rate);
+            if n < crate::logs::MIN_PLATEAU_SAMPLES {
+                return Err(usage(format!(
+                    "--dwell: {d} s at --bar-rate {bar_rate} Hz leaves {n} bar samples per pose, fewer than the {} a plateau needs: dwell longer",
+                    crate::logs::MIN_PLATEAU_SAMPLES
+                )));
+            }
+            Some(d)
+        }
+        None => None,
+    };
     let focus = a.focus.as_deref().map(parse_focus).transpose()?;
     let opts = CompileOptions {
         focus,
@@ -475,6 +494,7 @@ fn run_compile(a: &CompileArgs) -> Result<i32, Error> {
         program_name,
         bar_noise: bar_noise * 1e-6,
         bar_rate,
+        dwell,
         tour_cost: if a.tour_cost == "eq7" {
             pipeline::TourCost::Eq7
         } else {
@@ -571,6 +591,16 @@ fn run_compile(a: &CompileArgs) -> Result<i32, Error> {
             fmt_fixed(h.bar_noise_um, 2),
             fmt_fixed(h.bar_rate_hz, 0),
         );
+        if h.dwell_s > 0.0 {
+            println!(
+                "stop-and-measure: exact stop and {} s dwell at each of the {} measurement poses; predicted {} um RMS over the joint space from the plateau means ({} samples each), {} um from the same run recorded with a synchronous joint log",
+                fmt_fixed(h.dwell_s, 2),
+                h.measure_mm.len(),
+                fmt_fixed(h.predicted_std_um, 2),
+                h.plateau_samples,
+                fmt_fixed(h.predicted_continuous_std_um, 2)
+            );
+        }
     }
     Ok(0)
 }
@@ -1047,12 +1077,17 @@ fn run_verify(a: &VerifyArgs) -> Result<i32, Error> {
                     eprintln!("edbbgen: warning: {n}");
                 }
                 println!(
-                    "{}: ok: {} poses, {} support poses, {} moves, {} blends, {} s; min clearance {} mm ({} / {}); bar {}..{} mm; max cone angles {} deg (socket), {} deg (cup); {} bodies, {} pairs checked, {} excluded (--json lists them)",
+                    "{}: ok: {} poses, {} support poses, {} moves, {} blends, {}{} s; min clearance {} mm ({} / {}); bar {}..{} mm; max cone angles {} deg (socket), {} deg (cup); {} bodies, {} pairs checked, {} excluded (--json lists them)",
                     a.program.display(),
                     s.poses,
                     s.supports,
                     s.moves,
                     s.blends,
+                    if s.dwells > 0 {
+                        format!("{} dwells ({} s), ", s.dwells, fmt_fixed(s.dwell_s, 1))
+                    } else {
+                        String::new()
+                    },
                     fmt_fixed(s.duration, 1),
                     fmt_fixed(to_mm(s.min_clearance.distance), 1),
                     s.min_clearance.a,

@@ -55,6 +55,11 @@ pub struct CompileOptions {
     /// calibration uncertainty assumes.
     pub bar_noise: f64,
     pub bar_rate: f64,
+    /// Stop-and-measure (`--dwell S`): an exact stop and a dwell of S seconds at every
+    /// measurement pose. None: a continuous program (absent from the input hash, so continuous
+    /// programs keep theirs).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub dwell: Option<f64>,
     /// A short check program: the poses are chosen for these parameters only (Eq. 6 indices;
     /// those the pool cannot identify are left out), e.g. the ones that drifted last time and
     /// the joint zeros (`--focus`). None: every identifiable parameter.
@@ -94,6 +99,7 @@ impl CompileOptions {
             start: [0.0; 6],
             bar_noise: DEFAULT_BAR_NOISE_UM * 1e-6,
             bar_rate: DEFAULT_BAR_RATE_HZ,
+            dwell: None,
             focus: None,
             program_name: DEFAULT_PROGRAM_NAME.to_string(),
             tour_cost: TourCost::default(),
@@ -412,6 +418,13 @@ pub struct Predicted {
     pub workspace_p95: f64,
     pub bar_noise_um: f64,
     pub bar_rate_hz: f64,
+    /// Stop-and-measure programs: `workspace_*` are from one reading per measurement pose (the
+    /// plateau means of `plateau_samples` bar samples each); `continuous_workspace_rms` is the
+    /// same program recorded continuously with a synchronous joint log (moves and dwells).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub plateau_samples: Option<usize>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub continuous_workspace_rms: Option<f64>,
 }
 
 /// Every stage's result, for reports and `--emit STAGE`.
@@ -573,8 +586,8 @@ pub fn compile(
         ],
         max_socket_angle_deg: to_deg(verified.extremes.max_socket_angle),
         max_cup_angle_deg: to_deg(verified.extremes.max_cup_angle),
-        estimated_time_s: path.time_sorted,
-        time_unsorted_s: path.time_unsorted,
+        estimated_time_s: path.time_sorted + dwell_time(opts, &planned.plan),
+        time_unsorted_s: path.time_unsorted + dwell_time(opts, &planned.plan),
         collision_pairs_checked: scene_report.pairs_checked,
         excluded_pairs: scene_report.excluded,
         warnings: warnings.clone(),
@@ -832,6 +845,11 @@ fn blend(
             map,
         },
     );
+    // After the blends: a stop-and-measure program stops exactly at every measurement pose,
+    // whatever the dialect's corner model would allow there.
+    if opts.dwell.is_some() {
+        stop_at_poses(plan);
+    }
 }
 
 /// The path on exactly the joint values the program carries (the 0.001° grid every dialect
@@ -865,8 +883,27 @@ pub fn timed_path(plan: &Plan, time_unsorted: f64, lim: &Limits, dialect: &Diale
     }
 }
 
+/// Stop-and-measure: every measurement pose ends in an exact stop (its dwell follows); the
+/// support poses keep their blends. An exact stop only removes a corner's blend, so every
+/// checked move stays as checked (`verify` re-checks the text anyway).
+fn stop_at_poses(plan: &mut Plan) {
+    for w in plan.waypoints.iter_mut().filter(|w| !w.support) {
+        w.blend = 0.0;
+    }
+}
+
+/// The dwells' share of the program's time (s): one dwell per measurement pose.
+fn dwell_time(opts: &CompileOptions, plan: &Plan) -> f64 {
+    let poses = plan.waypoints.iter().filter(|w| !w.support).count();
+    opts.dwell.unwrap_or(0.0) * poses as f64
+}
+
 /// What the program buys: the MAP position uncertainty after calibrating from its recording
-/// (every move made with the bar, at the bar's rate), over the whole joint space.
+/// (every move made with the bar, at the bar's rate), over the whole joint space. A
+/// stop-and-measure program (`--dwell`) is calibrated from one reading per measurement pose,
+/// the mean of a plateau's core ([`crate::logs::plateau_core_samples`] samples, so the noise
+/// falls by its square root); the same program recorded continuously (moves and dwells, with
+/// a synchronous joint log) is predicted alongside.
 fn predict(
     ck: &Checker,
     id: &Identifiability,
@@ -875,14 +912,53 @@ fn predict(
     opts: &CompileOptions,
 ) -> Predicted {
     use crate::calibrate::predict as p;
-    let segments = recorded_segments(path, plan);
+    let mut segments = recorded_segments(path, plan);
     let space = p::workspace(ck.robot, PREDICTION_POSES, opts.seed);
-    let spread = p::spread(&p::after_recording(
+    let continuous = |segments: &[([f64; 6], [f64; 6], f64)]| {
+        p::spread(&p::after_recording(
+            ck.model,
+            segments,
+            &id.identifiable,
+            opts.bar_noise,
+            opts.bar_rate,
+            &space,
+        ))
+    };
+    let Some(dwell) = opts.dwell else {
+        let spread = continuous(&segments);
+        return Predicted {
+            workspace_rms: spread.rms * 1e6,
+            workspace_p95: spread.p95 * 1e6,
+            bar_noise_um: opts.bar_noise * 1e6,
+            bar_rate_hz: opts.bar_rate,
+            plateau_samples: None,
+            continuous_workspace_rms: None,
+        };
+    };
+    let poses: Vec<[f64; 6]> = path
+        .poses
+        .iter()
+        .zip(&plan.waypoints)
+        .filter(|(_, w)| !w.support)
+        .map(|(q, _)| *q)
+        .collect();
+    // The continuous recording of the same run also holds every dwell: S seconds at the pose.
+    segments.extend(poses.iter().map(|q| (*q, *q, dwell)));
+    let recorded = continuous(&segments);
+    let n = crate::logs::plateau_core_samples(dwell, opts.bar_rate).max(1);
+    let rows: Vec<[f64; N_PARAMS]> = poses
+        .iter()
+        .map(|q| {
+            let mut row = [0.0; N_PARAMS];
+            ck.model.jacobian_row(&ck.model.nominal, q, &mut row);
+            row
+        })
+        .collect();
+    let spread = p::spread(&p::after_readings(
         ck.model,
-        &segments,
+        &rows,
         &id.identifiable,
-        opts.bar_noise,
-        opts.bar_rate,
+        opts.bar_noise / (n as f64).sqrt(),
         &space,
     ));
     Predicted {
@@ -890,6 +966,8 @@ fn predict(
         workspace_p95: spread.p95 * 1e6,
         bar_noise_um: opts.bar_noise * 1e6,
         bar_rate_hz: opts.bar_rate,
+        plateau_samples: Some(n),
+        continuous_workspace_rms: Some(recorded.rms * 1e6),
     }
 }
 

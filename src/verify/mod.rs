@@ -168,7 +168,12 @@ pub struct Summary {
     /// Bar-mounted sections.
     pub sections: usize,
     pub blends: usize,
-    /// Program duration from the first move on (s), pauses excluded.
+    /// Dwells (G4 and its kin) and their total (s): a stop-and-measure program's standstills.
+    #[serde(default)]
+    pub dwells: usize,
+    #[serde(default)]
+    pub dwell_s: f64,
+    /// Program duration from the first move on (s), dwells included, pauses excluded.
     pub duration: f64,
     pub extremes: Extremes,
     /// Smallest clearance measured at the program's poses and blend midpoints.
@@ -220,6 +225,8 @@ struct Motion {
     flows_on: bool,
     /// Followed by a pause.
     pause_after: bool,
+    /// The dwells (s) that follow it before the next motion: the robot stands at its target.
+    dwell_after: f64,
     /// The bar is in place during this move.
     mounted: bool,
 }
@@ -342,6 +349,7 @@ pub fn rebuild(
             end: time,
             pause_after: m.pause_after,
         });
+        time += m.dwell_after;
         // Where the bar goes in, the pose must hold it.
         if mount_at.contains(&(j + 1)) {
             ck.pose(&m.target).map_err(|v| Failure {
@@ -422,6 +430,8 @@ pub fn rebuild(
             supports: motions.iter().filter(|m| m.support).count(),
             sections: mount_at.len(),
             blends,
+            dwells: motions.iter().filter(|m| m.dwell_after > 0.0).count(),
+            dwell_s: motions.iter().map(|m| m.dwell_after).sum(),
             duration: total,
             extremes: ext,
             min_clearance: min_clear,
@@ -574,6 +584,7 @@ fn timed_motions(
                         Some(Step::Pause)
                     ),
                     mounted,
+                    dwell_after: 0.0,
                 });
                 prev = Some((q, *axes));
             }
@@ -583,7 +594,14 @@ fn timed_motions(
                     mount_at.push(motions.len());
                 }
             }
-            Step::Dwell(_) | Step::End => {}
+            Step::Dwell(s) => {
+                // The robot stands at the last motion's target; a dwell before the first motion
+                // is before the program's time starts (from the first move).
+                if let Some(m) = motions.last_mut() {
+                    m.dwell_after += s;
+                }
+            }
+            Step::End => {}
         }
     }
     if motions.is_empty() {
@@ -626,6 +644,8 @@ fn timed_motions(
     for (m, d) in motions.iter_mut().zip(&durations) {
         m.duration = *d;
     }
+    // The dwells: standstills at the moves' targets, on top of the moves.
+    let total = total + motions.iter().map(|m| m.dwell_after).sum::<f64>();
     Ok((motions, mount_at, blended, total))
 }
 
