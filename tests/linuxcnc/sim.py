@@ -140,7 +140,7 @@ def drive(program):
     """LinuxCNC's DISPLAY: run the program, resume every M0, exit when it ends."""
     import linuxcnc
     s, c = linuxcnc.stat(), linuxcnc.command()
-    deadline = time.time() + 30
+    deadline = time.time() + 180  # generous: several machines start at once on a loaded 2-core host
     while True:
         try:
             s.poll()
@@ -150,7 +150,7 @@ def drive(program):
                 sys.exit("sim.py: task did not come up")
             time.sleep(0.1)
 
-    def wait(cond, what, secs=30):
+    def wait(cond, what, secs=180):
         end = time.time() + secs
         while True:
             s.poll()
