@@ -187,6 +187,41 @@ def drive(program):
         f.write(f"{pauses}\n")
 
 
+def run(program, vel, acc, period_us, opts):
+    """One machine runs the program: (its directory, None) when it ran to its end, else the
+    reason (LinuxCNC's own print and debug files, whose tails say why)."""
+    # Outside /tmp, which the run replaces with a private one.
+    dir = tempfile.mkdtemp(prefix="edbb-lcnc-", dir=opts.get("--dir", "/var/tmp"))
+    os.chmod(dir, 0o777)
+    shutil.copy(program, f"{dir}/program.ngc")
+    setup(dir, f"{dir}/program.ngc", vel, acc, period_us * 1000, os.path.abspath(__file__))
+    env = dict(os.environ)
+    env.pop("DISPLAY", None)
+    if os.geteuid() == 0:
+        env["RTAPI_UID"] = str(int(opts.get("--uid", "65534")))
+        env["RTAPI_FIFO_PATH"] = f"{dir}/rtapi_fifo"
+    env["HOME"] = dir
+    cmd = ["linuxcnc", f"{dir}/sim.ini"]
+    if os.geteuid() == 0 and shutil.which("unshare"):
+        # A machine of its own: LinuxCNC's shared memory (IPC namespace), its lock file in
+        # /tmp and the processes its scripts find and kill by name (PID namespace), so
+        # several runs may go at once.
+        cmd = ["unshare", "--ipc", "--pid", "--fork", "--mount-proc", "--mount", "sh", "-c",
+               'mount -t tmpfs tmpfs /tmp && exec "$@"', "sh"] + cmd
+    r = subprocess.run(cmd, env=env, cwd=dir, stdin=subprocess.DEVNULL,
+                       stdout=subprocess.PIPE, stderr=subprocess.STDOUT, timeout=900)
+    if os.path.exists(f"{dir}/done"):
+        return dir, None
+    why = f"exit status {r.returncode}\n" + r.stdout.decode(errors="replace")[-2000:]
+    for name in ("linuxcnc_print.txt", "linuxcnc_debug.txt"):
+        try:
+            with open(f"{dir}/{name}", errors="replace") as f:
+                why += f"\n--- {name}:\n" + f.read()[-2000:]
+        except OSError:
+            pass
+    return dir, why
+
+
 def main():
     args = sys.argv[1:]
     if "--drive" in args:
@@ -200,30 +235,19 @@ def main():
     out = opts["-o"]
     with open(program) as f:
         acc = header_accelerations(f.read())
-    # Outside /tmp, which the run replaces with a private one.
-    dir = tempfile.mkdtemp(prefix="edbb-lcnc-", dir=opts.get("--dir", "/var/tmp"))
+    # LinuxCNC's start-up can fail on a loaded host (five machines start at once beside other
+    # tests): a run that does not reach the program's end is tried again on a fresh machine,
+    # up to three times, each failure's reason on stderr. A program that cannot run fails all.
+    for attempt in range(1, 4):
+        dir, why = run(program, vel, acc, period_us, opts)
+        if why is None:
+            break
+        print(f"sim.py: attempt {attempt}: the program did not run to its end:\n{why}",
+              file=sys.stderr)
+        shutil.rmtree(dir, ignore_errors=True)
+    else:
+        sys.exit("sim.py: the program did not run to its end in three attempts")
     try:
-        os.chmod(dir, 0o777)
-        shutil.copy(program, f"{dir}/program.ngc")
-        program = f"{dir}/program.ngc"
-        setup(dir, program, vel, acc, period_us * 1000, os.path.abspath(__file__))
-        env = dict(os.environ)
-        env.pop("DISPLAY", None)
-        if os.geteuid() == 0:
-            env["RTAPI_UID"] = str(int(opts.get("--uid", "65534")))
-            env["RTAPI_FIFO_PATH"] = f"{dir}/rtapi_fifo"
-        env["HOME"] = dir
-        cmd = ["linuxcnc", f"{dir}/sim.ini"]
-        if os.geteuid() == 0 and shutil.which("unshare"):
-            # A machine of its own: LinuxCNC's shared memory (IPC namespace), its lock file in
-            # /tmp and the processes its scripts find and kill by name (PID namespace), so
-            # several runs may go at once.
-            cmd = ["unshare", "--ipc", "--pid", "--fork", "--mount-proc", "--mount", "sh", "-c",
-                   'mount -t tmpfs tmpfs /tmp && exec "$@"', "sh"] + cmd
-        r = subprocess.run(cmd, env=env, cwd=dir, stdin=subprocess.DEVNULL,
-                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT, timeout=900)
-        if not os.path.exists(f"{dir}/done"):
-            sys.exit("sim.py: the program did not run to its end:\n" + r.stdout.decode(errors="replace")[-3000:])
         period = period_us * 1e-6
         rows = []
         with open(f"{dir}/samples.txt") as f:
