@@ -181,7 +181,18 @@ def drive(program):
             c.auto(linuxcnc.AUTO_RESUME)
             time.sleep(0.05)
         time.sleep(0.005)
-    # Let the sampler FIFO drain.
+    # halsampler may lag far behind on a loaded host (the servo threads run at realtime
+    # priority): LinuxCNC's shutdown would kill it with the trace's end still in the FIFO. The
+    # machine stands now; wait until halsampler has caught up (a few samples left at most).
+    end = time.time() + 600
+    while True:
+        r = subprocess.run(["halcmd", "getp", "sampler.0.curr-depth"],
+                           capture_output=True, text=True)
+        if r.returncode == 0 and int(r.stdout.strip() or "0") < 50:
+            break
+        if time.time() > end:
+            sys.exit(f"sim.py: halsampler did not empty the sampler FIFO: {r.stdout}{r.stderr}")
+        time.sleep(0.1)
     time.sleep(0.5)
     with open(os.path.join(os.path.dirname(s.ini_filename), "done"), "w") as f:
         f.write(f"{pauses}\n")
