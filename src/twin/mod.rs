@@ -82,12 +82,9 @@ pub fn simulate(
         truep[k] += truth.geometric[k];
     }
     let masses = truth.compliance_masses(robot);
-    // Backlash: the load side rests against the flank of its joint's first motion.
-    let mut dir = [0.0f64; 6];
-    if let Some(b) = &truth.backlash {
-        dir[b.joint] = traj.first_direction(b.joint, t0);
-    }
-    let mut prev_motor: Option<[f64; 6]> = None;
+    // Backlash: the load side rests against the flank of its joint's first motion, then
+    // follows the motor through a play operator.
+    let mut load_b: Option<f64> = None;
     let mut out = Measured {
         t: Vec::with_capacity(n),
         q: Vec::with_capacity(n),
@@ -109,15 +106,14 @@ pub fn simulate(
         };
         let mut load = motor;
         if let Some(b) = &truth.backlash {
-            if let Some(prev) = prev_motor {
-                let step: f64 = motor[b.joint] - prev[b.joint];
-                if step.abs() > effects::MOTION_DEADBAND {
-                    dir[b.joint] = step.signum();
-                }
-            }
-            load[b.joint] -= 0.5 * b.play * dir[b.joint];
+            let x = motor[b.joint];
+            let y = match load_b {
+                Some(y) => effects::play(y, x, b.play),
+                None => x - 0.5 * b.play * traj.first_direction(b.joint, t0),
+            };
+            load_b = Some(y);
+            load[b.joint] = y;
         }
-        prev_motor = Some(motor);
         if let Some(c) = &truth.cyclic {
             load[c.joint] += effects::cyclic(c, motor[c.joint]);
         }
