@@ -129,7 +129,7 @@ impl Default for CalibrateOptions {
             prior_angle: DEFAULT_PRIOR_DEG * DEG,
             prior_setup: DEFAULT_PRIOR_SETUP_MM * MM,
             kappa: DEFAULT_KAPPA,
-            max_steps: 8,
+            max_steps: 12,
             workspace_poses: WORKSPACE_POSES,
             seed: 1,
         }
@@ -623,14 +623,12 @@ pub fn run(
     let mut warnings = Vec::new();
 
     // Step 1: the set-up from a start that needs none, the robot held nominal.
-    let (_, structural_free) = structural(&problem, &known);
     let mut est = nominal.clone();
-    let setup: Vec<Param> = structural_free
-        .iter()
-        .copied()
-        .filter(Param::is_setup)
-        .collect();
+    let (_, at_given) = structural(&problem, &known, &est);
+    let setup: Vec<Param> = at_given.iter().copied().filter(Param::is_setup).collect();
     start::setup(&problem, &mut est, &setup);
+    // Which parameters the poses separate, judged where the set-up really is.
+    let (_, structural_free) = structural(&problem, &known, &est);
 
     // Steps 2-3: the robust geometric fit, then effects and steps on held-out data.
     let mut free = structural_free.clone();
@@ -755,7 +753,7 @@ pub fn run(
     // Type B: every parameter held at nominal (not by assumption) keeps its prior; through
     // the fit the determined ones absorb K = N_aa⁻¹ N_ah of it, so the MAP moves by
     // (e_h − Σ_d e_d K_dh) per unit of held deviation.
-    let (status, _) = structural(&problem, &known);
+    let (status, _) = structural(&problem, &known, &est);
     let held_params: Vec<Param> = status
         .iter()
         .filter(|(q, st)| !free.contains(q) && *st != Status::Known)
@@ -836,10 +834,17 @@ pub fn run(
         }
     }
     // A parameter that moved by several prior sigmas: the prior (or the given value) was off.
+    // A segment's own fixture or zero is a step (reported as one); a free length zero has no
+    // given value.
     for q in &free {
+        let flagged = match *q {
+            Param::Fixture { group, .. } => problem.fix_groups[group].given,
+            Param::Offset { group } => problem.off_groups[group].given && known.offset,
+            Param::Shared(_) => true,
+        };
         let dev = est.get(*q) - nominal.get(*q);
         let p = prior(opts, *q);
-        if dev.abs() > FLAG_SIGMAS * p {
+        if flagged && dev.abs() > FLAG_SIGMAS * p {
             let (u, unit) = if q.is_angle() { (DEG, "deg") } else { (MM, "mm") };
             let check = match q {
                 Param::Shared(i) if crate::model::is_map(*i) => "check --tool",
@@ -1297,7 +1302,7 @@ fn confounding(
 /// and a tenth of the residual)? Then the given position is probably off, and the geometry
 /// absorbs it.
 fn fixture_check(problem: &Problem, est: &Estimate, free: &[Param]) -> Option<String> {
-    let (_, with_fixture) = structural(problem, &Known::default());
+    let (_, with_fixture) = structural(problem, &Known::default(), est);
     let extra: Vec<Param> = with_fixture
         .iter()
         .filter(|q| matches!(q, Param::Fixture { .. }) && !free.contains(q))

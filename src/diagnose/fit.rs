@@ -1400,9 +1400,14 @@ pub struct Known {
 /// machined flange), each group's fixture (a fixture is never known to a micrometre in the
 /// robot's frame) and length zero, then the robot's DH in Eq. 6 order. So the MAP takes the
 /// place of link 6's parameters, and the first fixture's height and azimuth take d1's and θ1's
-/// (the base frame's: a rigid registration removes them). Returns every parameter's status and
-/// the identifiable ones.
-pub fn structural(problem: &Problem, known: &Known) -> (Vec<(Param, model::Status)>, Vec<Param>) {
+/// (the base frame's: a rigid registration removes them). Judged at the estimate `at` (a set-up
+/// given far off changes which parameters the poses separate). Returns every parameter's
+/// status and the identifiable ones.
+pub fn structural(
+    problem: &Problem,
+    known: &Known,
+    at: &Estimate,
+) -> (Vec<(Param, model::Status)>, Vec<Param>) {
     let mut params: Vec<Param> = (MAP..N_PARAMS).map(Param::Shared).collect();
     for group in 0..problem.fix_groups.len() {
         params.extend((0..3).map(|axis| Param::Fixture { group, axis }));
@@ -1423,7 +1428,10 @@ pub fn structural(problem: &Problem, known: &Known) -> (Vec<(Param, model::Statu
     let rows: Vec<usize> = (0..n)
         .filter(|&k| problem.weight[k] > 0.0 && (k % stride == 0 || short(k)))
         .collect();
-    let est = Estimate::nominal(problem);
+    let est = Estimate {
+        effects: Vec::new(),
+        ..at.clone()
+    };
     let prep = prepare(problem, &est);
     let mut cols = DMatrix::zeros(rows.len(), params.len());
     let geo: Vec<Col> = params.iter().map(|&q| Col::Geo(q)).collect();

@@ -529,10 +529,11 @@ pub fn run(
         }],
     )
     .with_masses(&opts.masses);
-    let (_, free) = fit::structural(&problem, &Known::default());
     let mut est = Estimate::nominal(&problem);
+    let (_, free) = fit::structural(&problem, &Known::default(), &est);
     let setup: Vec<Param> = free.iter().copied().filter(Param::is_setup).collect();
     start::setup(&problem, &mut est, &setup);
+    let (_, free) = fit::structural(&problem, &Known::default(), &est);
     Ok(select(&mut problem, &free, est, opts).diagnosis)
 }
 
@@ -720,16 +721,21 @@ pub fn select(
                 }),
             }
         }
+        // An effect must lower the held-out error; a step (a fault, not a model of the robot)
+        // must pass the change-point test: the BIC with its place as a parameter. Held-out
+        // blocks cannot judge a short segment, whose own zero no other block sees.
         let best = scored
             .iter()
-            .filter(|(m, _, rss, bic, cv)| {
-                let explains = match m {
-                    Move::Step(_) => true,
-                    _ => rss0 - rss >= opts.min_explained * excess,
-                };
-                *bic < bic0 - 10.0 && *cv < (1.0 - HELDOUT_GAIN) * cv0 && explains
+            .filter(|(m, _, rss, bic, cv)| match m {
+                Move::Step(_) => *bic < bic0 - 10.0,
+                _ => {
+                    *bic < bic0 - 10.0
+                        && *cv < (1.0 - HELDOUT_GAIN) * cv0
+                        && rss0 - rss >= opts.min_explained * excess
+                }
             })
-            .min_by(|a, b| a.4.total_cmp(&b.4));
+            // Of those that qualify, the one the BIC prefers (on the same rows for every kind).
+            .min_by(|a, b| a.3.total_cmp(&b.3));
         let Some((m, basis, _, _, cv)) = best.cloned() else {
             break;
         };

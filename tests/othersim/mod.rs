@@ -534,3 +534,116 @@ pub fn record(truth: &Truth, path: &Path, rate: f64, seed: u64) -> Recording {
     }
     out
 }
+
+// ---- static readings ----------------------------------------------------------------------
+
+/// A static campaign: one reading per pose, in the order taken, of a draw-wire (or a bar)
+/// whose zero is unknown, jumps and drifts; joints logged to a resolution.
+#[derive(Clone, Debug)]
+pub struct Static {
+    pub poses: usize,
+    /// Joint readings quantised to this (rad; 0: exact).
+    pub joint_step: f64,
+    /// Length readings quantised to this (m).
+    pub length_step: f64,
+    /// Reading noise (m).
+    pub noise: f64,
+    /// The instrument's zero: reading − distance (m).
+    pub zero: f64,
+    /// Zero jumps: (first row affected, 0-based; jump in m).
+    pub jumps: Vec<(usize, f64)>,
+    /// A drifting zero: (first row, rows, total change in m), linear over the rows.
+    pub drift: Option<(usize, usize, f64)>,
+    /// Outliers: (row, error in m).
+    pub outliers: Vec<(usize, f64)>,
+    /// Poses keep the tool point above this height and within this distance of the anchor.
+    pub min_z: f64,
+    pub max_len: f64,
+    pub seed: u64,
+}
+
+/// What a static campaign recorded.
+#[derive(Clone, Debug, Default)]
+pub struct StaticRecording {
+    /// The joint angles as logged (quantised) and as they were.
+    pub q_logged: Vec<[f64; 6]>,
+    pub q_true: Vec<[f64; 6]>,
+    pub length: Vec<f64>,
+}
+
+impl StaticRecording {
+    /// The measured-data CSV in the static form (no `t_s`), written by this module.
+    pub fn csv(&self) -> String {
+        let mut s = String::from("q1_deg,q2_deg,q3_deg,q4_deg,q5_deg,q6_deg,length_mm\n");
+        for k in 0..self.length.len() {
+            for j in 0..6 {
+                s += &format!("{:.4},", self.q_logged[k][j] / DEG);
+            }
+            s += &format!("{:.5}\n", self.length[k] * 1e3);
+        }
+        s
+    }
+}
+
+/// The zero of the instrument at row k.
+fn zero_at(c: &Static, k: usize) -> f64 {
+    let mut z = c.zero;
+    for (r, j) in &c.jumps {
+        if k >= *r {
+            z += j;
+        }
+    }
+    if let Some((from, rows, total)) = c.drift {
+        z += total * ((k as f64 - from as f64) / rows as f64).clamp(0.0, 1.0);
+    }
+    z
+}
+
+/// Random poses within the limits (the tool point above `min_z`, within `max_len` of the
+/// anchor) and the readings of the instrument at each.
+pub fn static_readings(truth: &Truth, c: &Static) -> StaticRecording {
+    let mut rng = ChaCha8Rng::seed_from_u64(c.seed ^ 0x57a7);
+    let mut out = StaticRecording::default();
+    while out.length.len() < c.poses {
+        let q: [f64; 6] = std::array::from_fn(|j| rng.random_range(truth.arm.lo[j]..truth.arm.hi[j]));
+        let p = truth.point(&q);
+        let d = (p - truth.fixture).norm();
+        if p.z < c.min_z || d > c.max_len {
+            continue;
+        }
+        let k = out.length.len();
+        let mut l = d + zero_at(c, k) + c.noise * normal(&mut rng);
+        if let Some((_, e)) = c.outliers.iter().find(|(r, _)| *r == k) {
+            l += e;
+        }
+        let quant = |v: f64, step: f64| if step > 0.0 { (v / step).round() * step } else { v };
+        out.q_true.push(q);
+        out.q_logged.push(q.map(|v| quant(v, c.joint_step)));
+        out.length.push(quant(l, c.length_step));
+    }
+    out
+}
+
+/// The floor the readings' resolution puts under any model's residual (m): the RMS over the
+/// poses of the length error that uniform joint rounding of `joint_step` causes (∂L/∂q by
+/// central differences of this module's kinematics), with the length's own rounding and noise.
+pub fn resolution_floor(truth: &Truth, poses: &[[f64; 6]], c: &Static) -> f64 {
+    let h = 1e-6;
+    let len = |q: &[f64; 6]| (truth.point(q) - truth.fixture).norm();
+    let ms: f64 = poses
+        .iter()
+        .map(|q| {
+            (0..6)
+                .map(|j| {
+                    let (mut a, mut b) = (*q, *q);
+                    a[j] += h;
+                    b[j] -= h;
+                    ((len(&a) - len(&b)) / (2.0 * h)).powi(2)
+                })
+                .sum::<f64>()
+        })
+        .sum::<f64>()
+        / poses.len().max(1) as f64;
+    let q = c.joint_step * c.joint_step / 12.0;
+    (ms * q + c.length_step * c.length_step / 12.0 + c.noise * c.noise).sqrt()
+}
