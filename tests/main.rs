@@ -7,6 +7,7 @@ mod common;
 
 mod architecture;
 mod calibrate;
+mod calibrate_real;
 mod catalogue;
 mod cli;
 mod cli_errors;
@@ -18,6 +19,7 @@ mod fuzz;
 mod ldbb;
 mod linuxcnc;
 mod model_cmd;
+mod othersim;
 mod passive;
 mod place;
 mod report;

@@ -22,8 +22,8 @@
 //!    that moved, a length zero that changed — which splits the run into segments with their
 //!    own fixture or zero ([`crate::diagnose::steps`]). Every candidate is listed with its
 //!    held-out score.
-//! 4. **Determined or not.** Columns scaled by their prior (1 mm, 0.05° for the robot; 10 mm
-//!    for the set-up) are taken by pivoted Cholesky on the normal matrix (the effects' columns
+//! 4. **Determined or not.** Columns scaled by their prior (1 mm, 0.05°; the set-up's 1 mm
+//!    unless given) are taken by pivoted Cholesky on the normal matrix (the effects' columns
 //!    eliminated first) while the next one's conditional standard uncertainty stays below
 //!    prior/κ; then any parameter whose marginal uncertainty exceeds prior/κ is dropped, worst
 //!    first. Only determined parameters move; the rest are held and the fit repeated.
@@ -81,6 +81,8 @@ pub struct CalibrateOptions {
     /// Hold each run's fixture at its given position (else it is estimated where the data
     /// determine it, the given position a prior).
     pub fixture_known: bool,
+    /// Hold the tool point (MAP) at its given position (else estimated likewise).
+    pub tool_known: bool,
     pub length_offset: LengthOffset,
     /// The standard uncertainty of a length (m) and an angle (rad) of the robot before
     /// calibration: the scale that makes parameters comparable, the yardstick of
@@ -102,8 +104,10 @@ pub struct CalibrateOptions {
 
 pub const DEFAULT_PRIOR_MM: f64 = 1.0;
 pub const DEFAULT_PRIOR_DEG: f64 = 0.05;
-/// The given fixture, tool point and length zero: to a drawing or a tape, 10 mm.
-pub const DEFAULT_PRIOR_SETUP_MM: f64 = 10.0;
+/// The given fixture, tool point and length zero: like the robot's lengths unless told (a
+/// draw-wire's anchor and attachment point may be tens of millimetres off: `--prior 1,0.05,100`).
+/// It is also the yardstick of "determined": a tool point known to a millimetre only is not.
+pub const DEFAULT_PRIOR_SETUP_MM: f64 = 1.0;
 pub const DEFAULT_KAPPA: f64 = 3.0;
 pub const WORKSPACE_POSES: usize = 2000;
 /// Poses of the measured region the prediction is evaluated on (evenly spaced rows).
@@ -115,7 +119,7 @@ pub const MIN_ROWS: usize = N_PARAMS + 2;
 const FOLDS: usize = 8;
 /// A row is an outlier when it leaves the median of its neighbours by more than this many
 /// robust standard deviations.
-const OUTLIER_SIGMAS: f64 = 6.0;
+const OUTLIER_SIGMAS: f64 = 8.0;
 /// A determined parameter that moved by more than this many prior sigmas is flagged.
 const FLAG_SIGMAS: f64 = 3.0;
 
@@ -124,6 +128,7 @@ impl Default for CalibrateOptions {
         CalibrateOptions {
             effects: Effects::Auto,
             fixture_known: false,
+            tool_known: false,
             length_offset: LengthOffset::Known(0.0),
             prior_length: DEFAULT_PRIOR_MM * MM,
             prior_angle: DEFAULT_PRIOR_DEG * DEG,
@@ -193,6 +198,10 @@ pub struct Predicted {
     /// cyclic error fitted with harmonic orders 1..H to take one or two orders more (which
     /// the data do not reject): a bound on the error of the fitted form.
     pub from_effect_model: Component,
+    /// What the priors say of the nominal robot: every parameter of the robot (and the tool
+    /// point) off by its prior, after registration, RMS over the joint space. The calibrated
+    /// robot must predict better than this to be written.
+    pub nominal_workspace_rms: f64,
     /// The variance factor Type A carries beyond the white-noise one: the larger of the
     /// residual's integrated autocorrelation time and the held-out residual's mean square
     /// over the in-sample one (what the held-out data say about model error).
@@ -615,7 +624,7 @@ pub fn run(
     }
     let known = Known {
         fixture: opts.fixture_known,
-        map: false,
+        map: opts.tool_known,
         offset: matches!(opts.length_offset, LengthOffset::Known(_)),
     };
     let nominal = Estimate::nominal(&problem);
@@ -777,6 +786,25 @@ pub fn run(
     let region_std = predict::spread(&combine(&a_region, &b_region, &m_region));
     let space_std = combine(&a_space, &b_space, &m_space);
     let space_spread = predict::spread(&space_std);
+    // The nominal robot as the priors see it: every robot parameter off by its prior.
+    let nominal_prior_rms = {
+        let all: Vec<usize> = (crate::model::ALPHA..N_PARAMS).collect();
+        let cov = DMatrix::from_fn(all.len(), all.len(), |a, b| {
+            if a == b {
+                prior(opts, Param::Shared(all[a])).powi(2)
+            } else {
+                0.0
+            }
+        });
+        predict::spread(&predict::position_std(
+            model,
+            &model.nominal,
+            &space,
+            &predict::selection(&all),
+            &cov,
+        ))
+        .rms
+    };
     let predicted = Predicted {
         measured_region_rms: round(region_std.rms, 3),
         workspace_rms: round(space_spread.rms, 3),
@@ -793,6 +821,7 @@ pub fn run(
             measured_region_rms: round(predict::spread(&um(&m_region)).rms, 3),
             workspace_rms: round(predict::spread(&um(&m_space)).rms, 3),
         },
+        nominal_workspace_rms: round(nominal_prior_rms * 1e6, 3),
         model_error_factor: round(factor, 3),
     };
 
@@ -1055,12 +1084,25 @@ pub fn run(
             ),
         )
     } else if heldout_cal >= heldout_nom {
+        let effects_hint = match (&opts.effects, residual_structure) {
+            (Effects::Auto, _) | (_, false) => "",
+            _ => ", fit the effects (--effects auto)",
+        };
         (
             false,
             format!(
-                "not calibrated: held out, the calibrated robot predicts the readings no better than the nominal one ({} um against {} um RMS); the data show no deviation the geometry explains: check the set-up (--tool, --fixture, --length-offset) or measure over a wider range",
+                "not calibrated: held out, the calibrated robot predicts the readings no better than the nominal one ({} um against {} um RMS); the data show no deviation the geometry explains: check the set-up (--tool, --fixture, --length-offset){effects_hint} or measure over a wider range",
                 fmt_fixed(heldout_cal * 1e6, 3),
                 fmt_fixed(heldout_nom * 1e6, 3)
+            ),
+        )
+    } else if space_spread.rms >= nominal_prior_rms * 1e6 {
+        (
+            false,
+            format!(
+                "not calibrated: its predicted position uncertainty over the joint space ({} um RMS, mostly from the parameters these data cannot determine) is no better than what the priors say of the nominal robot ({} um); measure over a wider range of every joint",
+                fmt_fixed(space_spread.rms, 2),
+                fmt_fixed(nominal_prior_rms * 1e6, 2)
             ),
         )
     } else {

@@ -488,6 +488,10 @@ pub struct CalibrateArgs {
     /// micrometre).
     #[arg(long)]
     pub fixture_known: bool,
+    /// Hold the tool point (MAP) at the given position (--tool or the robot file's) instead of
+    /// estimating it.
+    #[arg(long)]
+    pub tool_known: bool,
     /// The bar's zero: the reading minus the ball-centre distance, mm, or `free` (unknown:
     /// estimated per run, e.g. a draw-wire or a bar zeroed anywhere) [default: 0].
     #[arg(long, value_name = "MM|free", allow_hyphen_values = true)]

@@ -153,6 +153,7 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
     let mut opts = CalibrateOptions {
         effects,
         fixture_known: a.fixture_known,
+        tool_known: a.tool_known,
         length_offset: parse_length_offset(a.length_offset.as_deref())?,
         ..CalibrateOptions::default()
     };

@@ -304,6 +304,12 @@ pub struct Problem {
     qdot: Vec<[f64; 6]>,
     qddot: Vec<[f64; 6]>,
     dir: Vec<[f64; 6]>,
+    /// True for a row after a gap in a continuous recording (more than three sample periods,
+    /// e.g. between the sections of a program): the robot moved unrecorded.
+    gap: Vec<bool>,
+    /// At a run's first row (and after a gap): the direction of each joint's next motion (the
+    /// flank a backlash's load is taken to rest on at the start).
+    next_dir: Vec<[f64; 6]>,
     /// Temperature above the run's first reading, when every run logs it.
     temp_rise: Option<Vec<f64>>,
     /// The robot's link masses (its file's inertials), when it has them.
@@ -424,6 +430,33 @@ fn directions(q: &[[f64; 6]]) -> Vec<[f64; 6]> {
     dir
 }
 
+/// A run's restarts: true after a gap (a continuous recording's time step more than three
+/// times its median: the robot moved unrecorded), and at the first row and each gap the
+/// direction of every joint's next motion.
+fn restarts(t: &[f64], q: &[[f64; 6]], form: Form) -> (Vec<bool>, Vec<[f64; 6]>) {
+    let n = t.len();
+    let mut gap = vec![false; n];
+    if form == Form::Continuous && n > 2 {
+        let mut dt: Vec<f64> = t.windows(2).map(|w| w[1] - w[0]).collect();
+        dt.sort_by(f64::total_cmp);
+        let median = dt[dt.len() / 2];
+        for k in 1..n {
+            gap[k] = t[k] - t[k - 1] > 3.0 * median;
+        }
+    }
+    let mut next = vec![[0.0; 6]; n];
+    for k in (0..n).filter(|&k| k == 0 || gap[k]) {
+        for j in 0..6 {
+            next[k][j] = (k + 1..n)
+                .take_while(|&i| !gap[i])
+                .map(|i| q[i][j] - q[i - 1][j])
+                .find(|d| d.abs() > MOTION_DEADBAND)
+                .map_or(1.0, f64::signum);
+        }
+    }
+    (gap, next)
+}
+
 impl Problem {
     /// The rows of every run, in order. Temperatures are used for thermal drift only when
     /// every run has them; stated uncertainties weight the rows of their run.
@@ -446,6 +479,7 @@ impl Problem {
             Vec::with_capacity(n),
         );
         let mut temp_rise = with_temp.then(|| Vec::with_capacity(n));
+        let (mut gap, mut next_dir) = (Vec::with_capacity(n), Vec::with_capacity(n));
         let mut base_weight = Vec::with_capacity(n);
         // One yardstick for the stated uncertainties of the whole campaign: their RMS.
         let stated: Vec<f64> = runs
@@ -479,6 +513,9 @@ impl Problem {
                 }
             }
             dir.extend(directions(&rm.q));
+            let (g, nd) = restarts(&rm.t, &rm.q, rm.form);
+            gap.extend(g);
+            next_dir.extend(nd);
             if let (Some(all), Some(t), Some(rise)) = (&mut m.temp, &rm.temp, &mut temp_rise) {
                 all.extend_from_slice(t);
                 rise.extend(t.iter().map(|c| c - t[0]));
@@ -514,6 +551,8 @@ impl Problem {
             qdot,
             qddot,
             dir,
+            gap,
+            next_dir,
             temp_rise,
             masses: Vec::new(),
             harmonic_means: means,
@@ -647,6 +686,8 @@ impl Problem {
             qdot: pick(&self.qdot),
             qddot: pick(&self.qddot),
             dir: pick(&self.dir),
+            gap: keep.iter().map(|&k| self.gap[k]).collect(),
+            next_dir: pick(&self.next_dir),
             temp_rise: self
                 .temp_rise
                 .as_ref()
@@ -823,11 +864,16 @@ impl Problem {
         let q0 = prep.motor.as_ref().map_or(self.m.q[k], |m| m[k]);
         let mut j = [0.0; N_PARAMS];
         let len = self.model.jacobian_row(&p, &q, &mut j);
+        // The compliance regressors exactly as `apply` deflects: at the motor-side angles and
+        // the estimate's own geometry (a consistent derivative: Levenberg-Marquardt stalls on
+        // an inconsistent one once the cost is small).
         let needs_frames = cols.iter().any(|c| matches!(c, Col::Comp(..)));
-        let fr =
-            needs_frames.then(|| chain_frames(&self.model.base, &p.dh, &self.model.flange, &q));
+        let geometry = || Params::from_array(&est.p);
+        let fr = needs_frames
+            .then(|| chain_frames(&self.model.base, &geometry().dh, &self.model.flange, &q0));
         let needs_torques = cols.iter().any(|c| matches!(c, Col::CompKnown(..)));
-        let torques = needs_torques.then(|| gravity_torques(&self.model, &p, &q, &self.masses));
+        let torques =
+            needs_torques.then(|| gravity_torques(&self.model, &geometry(), &q0, &self.masses));
         let (qd, qdd) = match &prep.rates {
             Some((v, a)) => (v[k], a[k]),
             None => (self.qdot[k], self.qddot[k]),
@@ -969,20 +1015,39 @@ pub(crate) fn prepare(problem: &Problem, est: &Estimate) -> Prep {
             let x = |k: usize| motor.as_ref().map_or(problem.m.q[k][j], |m| m[k][j]);
             let mut offset = vec![0.0; n];
             let mut side = vec![0.0; n];
-            for range in &problem.ranges {
+            for (r, range) in problem.ranges.iter().enumerate() {
                 if range.is_empty() {
                     continue;
                 }
+                let moving = problem.forms[r] == Form::Continuous;
                 // The load rests against the flank of the run's first motion, then follows the
-                // motor only where the motor pushes it (a play operator of width b).
-                let mut s = problem.dir[range.start][j];
+                // motor only where the motor pushes it (a play operator of width b). Across a
+                // gap (the robot moved unrecorded, e.g. between a program's sections) it is
+                // pushed by the net motion: exact for one monotonic move.
+                let mut s = problem.next_dir[range.start][j];
                 let mut y = x(range.start) - 0.5 * b * s;
                 for k in range.clone() {
                     let xk = x(k);
-                    let pushed = play(y, xk, b);
-                    if pushed != y {
-                        s = (pushed - y).signum();
-                        y = pushed;
+                    let mut steps = Vec::new();
+                    // Where the motor turns between samples (the differences change sign at
+                    // the previous sample), its extreme lies past the samples: take it from
+                    // the parabola through the three samples around the turn, before this one.
+                    if moving && k >= range.start + 2 && !problem.gap[k] && !problem.gap[k - 1] {
+                        let (x0, x1) = (x(k - 2), x(k - 1));
+                        let (d1, d2) = (x1 - x0, xk - x1);
+                        if d1 * d2 < 0.0 && d1.abs() > MOTION_DEADBAND && d2.abs() > MOTION_DEADBAND
+                        {
+                            let curv = x0 - 2.0 * x1 + xk;
+                            steps.push(x1 - (xk - x0).powi(2) / (8.0 * curv));
+                        }
+                    }
+                    steps.push(xk);
+                    for xi in steps {
+                        let pushed = play(y, xi, b);
+                        if pushed != y {
+                            s = (pushed - y).signum();
+                            y = pushed;
+                        }
                     }
                     offset[k] = y - xk;
                     side[k] = s;
@@ -1327,9 +1392,9 @@ pub(crate) fn refit_stats(problem: &Problem, est: &mut Estimate, free: &[Param])
     for _ in 0..40 {
         let before = st.rr[0];
         let mut accepted = None;
-        // Near the optimum (the last step gained little), a step that does not descend means
-        // the rounding floor is reached: no damping search.
-        let attempts = if gain < 1e-3 { 1 } else { 10 };
+        // Near the optimum (the last, undamped step gained little), a step that does not
+        // descend means the rounding floor is reached: no damping search.
+        let attempts = if gain < 1e-3 && lambda == 0.0 { 1 } else { 10 };
         for _ in 0..attempts {
             let (x, _, _) = solve_damped(&st.n[0], &st.b[0], &sel, lambda);
             let mut trial = est.clone();

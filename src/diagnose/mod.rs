@@ -22,6 +22,7 @@ pub use fit::{Basis, Estimate, Fitted, Known, Param, Problem, Run, Term};
 
 use crate::model::{MeasurementModel, N_PARAMS};
 use crate::twin::effects::Effect;
+use crate::twin::measured::Form;
 use crate::twin::Measured;
 use crate::units::{fmt_fixed, to_deg, DEG, MM};
 use fit::{
@@ -609,7 +610,10 @@ pub fn select(
         let live = kept_of(&residual, &problem.weight);
         noise = noise.min(noise_estimate(&live));
         let r_now = rms(&live);
-        if r_now <= 1.5 * noise && lag1(&live) < 0.2 {
+        // At the noise level and white: nothing left to explain. The candidates are still
+        // scored once, so that the report lists each with its held-out error.
+        let settled = r_now <= 1.5 * noise && lag1(&live) < 0.2;
+        if settled && records.len() > 1 {
             break;
         }
         // One pass: the current model's columns plus every candidate's.
@@ -722,12 +726,19 @@ pub fn select(
             }
         }
         // An effect must lower the held-out error; a step (a fault, not a model of the robot)
-        // must pass the change-point test: the BIC with its place as a parameter. Held-out
-        // blocks cannot judge a short segment, whose own zero no other block sees.
+        // must pass the change-point test, the BIC with its place as a parameter, and in a
+        // continuous recording (whose real faults leave long segments) lower the held-out
+        // error too. Held-out blocks cannot judge a static run's short segments (a drifting
+        // zero cut into steps), whose own zero no other block sees.
         let best = scored
             .iter()
             .filter(|(m, _, rss, bic, cv)| match m {
-                Move::Step(_) => *bic < bic0 - 10.0,
+                Move::Step(split) => {
+                    let run = problem.run_of(split.at);
+                    *bic < bic0 - 10.0
+                        && (problem.forms[run] != Form::Continuous
+                            || *cv < (1.0 - HELDOUT_GAIN) * cv0)
+                }
                 _ => {
                     *bic < bic0 - 10.0
                         && *cv < (1.0 - HELDOUT_GAIN) * cv0
@@ -739,6 +750,9 @@ pub fn select(
         let Some((m, basis, _, _, cv)) = best.cloned() else {
             break;
         };
+        if settled {
+            break;
+        }
         let heldout = (cv / n).sqrt();
         let (e, tau0) = match m {
             Move::Effect(e, _, tau) => (e, tau),

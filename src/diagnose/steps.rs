@@ -10,6 +10,7 @@
 //! split cost one small solve; long groups are scanned on a grid and refined around the best.
 
 use super::fit::{inverse, model_cols, rows_of, Col, Estimate, Param, Problem};
+use crate::twin::measured::Form;
 use nalgebra::{DMatrix, DVector};
 
 /// The best split of one kind.
@@ -85,6 +86,13 @@ pub fn scan(problem: &Problem, est: &Estimate, free: &[Param]) -> Vec<Split> {
         for g in groups {
             let (a, b) = (g.rows.start, g.rows.end);
             let kept: Vec<usize> = (a..b).filter(|&k| problem.weight[k] > 0.0).collect();
+            // A continuous recording's segment lasts at least 5 % of the run: a fault is a
+            // change that stays, not a transient a few samples long.
+            let min = if problem.forms[g.run] == Form::Continuous {
+                min.max(problem.ranges[g.run].len() / 20)
+            } else {
+                min
+            };
             if kept.len() < 2 * min {
                 continue;
             }

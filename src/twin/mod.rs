@@ -85,6 +85,7 @@ pub fn simulate(
     // Backlash: the load side rests against the flank of its joint's first motion, then
     // follows the motor through a play operator.
     let mut load_b: Option<f64> = None;
+    let mut prev_ts: Option<f64> = None;
     let mut out = Measured {
         t: Vec::with_capacity(n),
         q: Vec::with_capacity(n),
@@ -107,13 +108,24 @@ pub fn simulate(
         let mut load = motor;
         if let Some(b) = &truth.backlash {
             let x = motor[b.joint];
-            let y = match load_b {
-                Some(y) => effects::play(y, x, b.play),
-                None => x - 0.5 * b.play * traj.first_direction(b.joint, t0),
+            let y = match (load_b, prev_ts) {
+                // The play follows the motor through the motion since the last sample (it
+                // may have turned between samples): 8 steps along the trajectory.
+                (Some(mut y), Some(tp)) => {
+                    for i in 1..=8 {
+                        let ti = tp + (ts - tp) * i as f64 / 8.0;
+                        let xi = traj.position(ti - truth.servo_lag.unwrap_or(0.0))[b.joint];
+                        y = effects::play(y, xi, b.play);
+                    }
+                    y
+                }
+                (Some(y), None) => effects::play(y, x, b.play),
+                (None, _) => x - 0.5 * b.play * traj.first_direction(b.joint, t0),
             };
             load_b = Some(y);
             load[b.joint] = y;
         }
+        prev_ts = Some(ts);
         if let Some(c) = &truth.cyclic {
             load[c.joint] += effects::cyclic(c, motor[c.joint]);
         }

@@ -350,6 +350,8 @@ pub struct Physics {
     pub servo: Option<f64>,
     /// At time t (s) the fixture slides by this (m) over 0.2 s.
     pub slip: Option<(f64, Vector3<f64>)>,
+    /// Gross reading errors: (sample index, error in m), e.g. a bar that caught.
+    pub spikes: Vec<(usize, f64)>,
 }
 
 /// The truth of a simulation: the real geometry, tool and fixture, and the physics.
@@ -526,7 +528,10 @@ pub fn record(truth: &Truth, path: &Path, rate: f64, seed: u64) -> Recording {
         let grow = truth.grow(t);
         let f = truth.arm.frames(&load, grow);
         let p = apply(&f[6], &truth.tool);
-        let l = (p - truth.fixture_at(t)).norm() + truth.noise * normal(&mut rng);
+        let mut l = (p - truth.fixture_at(t)).norm() + truth.noise * normal(&mut rng);
+        if let Some((_, e)) = truth.physics.spikes.iter().find(|(i, _)| *i == k) {
+            l += e;
+        }
         let l = (l / truth.resolution).round() * truth.resolution;
         out.t.push(t);
         out.q.push(set);
