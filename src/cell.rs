@@ -46,6 +46,7 @@
 //! [robot]
 //! link_radius = 90.0                  # DH robots without geometry: capsule radius per link
 //! speeds = [110, 100, 110, 180, 180, 260]   # deg/s, for URDFs without joint velocities
+//! accelerations = [220, 200, 220, 360, 360, 520]   # deg/s², the controller's joint accelerations
 //! [safety]
 //! margin = 10.0                       # minimum clearance between any two bodies (mm)
 //! joint_margin = 1.0                  # distance kept from every joint limit (deg)
@@ -55,6 +56,8 @@
 //! offset = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0]   # controller value at model zero (deg)
 //! j3_coupling = 0                     # J3 = sign3*q3 + k*q2 + offset3: -1, 0, 1 or "auto"
 //! units = "deg"                       # "deg" | "rad", where the language leaves it open
+//! # pulses_per_deg = [1e4, 1e4, 1e4, 1e4, 1e4, 1e4]   # encoder pulses per axis degree, for
+//!                                     # compensate's FANUC master-count changes (optional)
 //! ```
 
 use crate::controller::ControllerSpec;
@@ -132,6 +135,10 @@ pub struct CellSpec {
     pub hoses: Vec<AttachedShape>,
     pub link_radius: Option<f64>,
     pub speeds: Option<[f64; 6]>,
+    /// Joint accelerations (rad/s²) replacing the robot file's (`[robot] accelerations`).
+    /// Skipped when absent so that cells without it keep their input hash.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub accelerations: Option<[f64; 6]>,
     pub margin: f64,
     /// Distance kept from every joint limit (rad): controllers enforce soft limits and
     /// overshoot slightly when blending, so no pose or motion may come closer.
@@ -175,6 +182,7 @@ impl Default for CellSpec {
             hoses: Vec::new(),
             link_radius: None,
             speeds: None,
+            accelerations: None,
             margin: DEFAULT_MARGIN_MM * MM,
             joint_margin: DEFAULT_JOINT_MARGIN_DEG * DEG,
             controller: None,
@@ -268,6 +276,7 @@ struct CablesT {
 struct RobotT {
     link_radius: Option<f64>,
     speeds: Option<[f64; 6]>,
+    accelerations: Option<[f64; 6]>,
 }
 
 #[derive(Deserialize)]
@@ -437,6 +446,14 @@ pub fn from_str(text: &str, path: &Path) -> Result<CellSpec, CellError> {
                 return Err(bad("robot.speeds: six positive joint speeds (deg/s)".into()));
             }
             c.speeds = Some(s.map(|v| v * DEG));
+        }
+        if let Some(a) = r.accelerations {
+            if a.iter().any(|v| !(v.is_finite() && *v > 0.0)) {
+                return Err(bad(
+                    "robot.accelerations: six positive joint accelerations (deg/s^2)".into(),
+                ));
+            }
+            c.accelerations = Some(a.map(|v| v * DEG));
         }
     }
     if let Some(s) = f.safety {

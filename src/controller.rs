@@ -99,6 +99,11 @@ pub struct ControllerSpec {
     /// Axis names (only where the language takes them from the machine's configuration).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub axis_names: Option<[String; 6]>,
+    /// Encoder pulses per degree of each controller axis (signed: the counts grow with the
+    /// axis value when positive). Only for mastering offsets as master-count changes
+    /// (`edbbgen compensate`, FANUC); the mapping does not use it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pulses_per_deg: Option<[f64; 6]>,
 }
 
 /// What a dialect assumes when the cell says nothing (its template's front matter).

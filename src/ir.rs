@@ -202,9 +202,16 @@ pub struct Selection {
 pub struct Path {
     /// Joint vectors (rad) in visiting order.
     pub poses: Vec<[f64; 6]>,
-    /// Duration of each move into pose k from pose k−1 (Eq. 7), s; 0 for the first pose.
+    /// Duration of each move into pose k from pose k−1, its acceleration ramps included
+    /// ([`crate::timing`]), s; 0 for the first pose.
     pub move_times: Vec<f64>,
-    /// Estimated time of the selected poses in their pool order and in tour order (Eq. 7), s.
+    /// The same moves at their cruise speed alone (Eq. 7: the slowest joint at its maximum
+    /// speed), s: what a feed or speed percentage states.
+    #[serde(default)]
+    pub cruise_times: Vec<f64>,
+    /// Estimated time of the selected poses in their pool order and in tour order, s: the tour
+    /// order's with every ramp and blend ([`crate::timing::program`]), the pool order's with
+    /// the tour cost.
     pub time_unsorted: f64,
     pub time_sorted: f64,
 }
@@ -248,6 +255,10 @@ pub struct Header {
     pub cond: f64,
     pub time_unsorted_s: f64,
     pub time_s: f64,
+    /// The joint accelerations the times assume: deg/s² per model joint in the dialect-neutral
+    /// program, per controller axis in its units (per s²) once `emit::target` has filled it.
+    #[serde(default)]
+    pub accelerations: [f64; 6],
     pub inputs_sha256: String,
     pub joint_names: Vec<String>,
     /// What the program buys: the predicted 1σ MAP position uncertainty after calibrating
@@ -287,8 +298,16 @@ pub struct Move {
     pub pose: usize,
     /// Blend distance at the corner this move ends in (mm); 0 = exact stop.
     pub blend_mm: f64,
-    /// Planned duration (s): the slowest axis at its maximum speed (Eq. 7).
+    /// Planned duration (s), the ramps at the joints' accelerations included.
     pub time_s: f64,
+    /// The move at its cruise speed alone (s): the slowest axis at its maximum speed (Eq. 7).
+    /// What a feed (G93 F) or a speed percentage states; the controller adds the ramps.
+    #[serde(default)]
+    pub cruise_s: f64,
+    /// The blend instruction's value at this corner in the dialect's unit (SINUMERIK's ADIS in
+    /// degrees of axis path); 0 where the instruction takes none.
+    #[serde(default)]
+    pub blend_value: f64,
     /// Predicted bar length at the target (mm).
     pub length_mm: f64,
     /// The annotation of the move's line when not empty (else pose, length and time).

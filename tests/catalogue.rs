@@ -87,6 +87,8 @@ fn cases(f: &Fixtures) -> Vec<Case> {
     let nc = f.out("out.nc");
     let nc = nc.as_str();
     let fix = "258,1468,708";
+    let cal = root().join("tests/cases/compensate/nj130.cal.dh.toml");
+    let cal = cal.to_str().unwrap();
     let measured = f.path("measured.csv");
     let measured = measured.as_str();
     let setup = f.path("setup.toml");
@@ -699,6 +701,115 @@ fn cases(f: &Fixtures) -> Vec<Case> {
                 &o("c.dh.toml"),
             ],
             "text.csv",
+        ),
+        case(
+            "calibrate baseline",
+            &[
+                "calibrate",
+                nj,
+                "--measured",
+                measured,
+                "--fixture",
+                fix,
+                "--baseline",
+                &w("baseline.json", "{\"schema\": \"edbbgen.diagnose/1\"}"),
+                "-o",
+                &o("c.dh.toml"),
+            ],
+            "baseline.json",
+        ),
+        // ---- compensate
+        case(
+            "compensate targets",
+            &[
+                "compensate",
+                cal,
+                "--nominal",
+                nj,
+                "--targets",
+                &w("targets.csv", "q1_deg,q2_deg,q3_deg,q4_deg,q5_deg,q6_deg\n1,2,3,4,x,6\n"),
+                "-o",
+                &o("t.csv"),
+            ],
+            "targets.csv: line 2: column q5_deg",
+        ),
+        case(
+            "compensate no output",
+            &["compensate", cal, "--nominal", nj, "--targets", &f.path("targets.csv")],
+            "-o",
+        ),
+        case(
+            "compensate two inputs",
+            &[
+                "compensate",
+                cal,
+                "--nominal",
+                nj,
+                "--targets",
+                &f.path("targets.csv"),
+                "--program",
+                prog,
+                "-o",
+                &o("t.csv"),
+            ],
+            "--program",
+        ),
+        case(
+            "compensate tcp",
+            &[
+                "compensate",
+                cal,
+                "--nominal",
+                nj,
+                "--tcp",
+                "1,2",
+                "--json",
+                &o("r.json"),
+            ],
+            "--tcp",
+        ),
+        case(
+            "compensate dialect",
+            &["compensate", cal, "--nominal", nj, "--dialect", "cobol"],
+            "cobol",
+        ),
+        case(
+            "compensate calibration",
+            &[
+                "compensate",
+                cal,
+                "--nominal",
+                nj,
+                "--calibration",
+                &w("cal_report.json", "{not json"),
+                "--json",
+                &o("r.json"),
+            ],
+            "cal_report.json",
+        ),
+        case(
+            "compensate not a calibration of it",
+            &["compensate", abb, "--nominal", nj, "--json", &o("r.json")],
+            "robot.urdf",
+        ),
+        case(
+            "compensate incremental program",
+            &[
+                "compensate",
+                cal,
+                "--nominal",
+                nj,
+                "--program",
+                &w("inc.nc", "G21 G90\nG0 X0 Y0 Z0 A0 B30 C0\nG91\nG0 X1\nM2\n"),
+                "-o",
+                &o("inc.nc"),
+            ],
+            "line 3: G91",
+        ),
+        case(
+            "compile focus",
+            &[nj, "--fixture", fix, "--focus", "theta7", "-o", nc],
+            "--focus: 'theta7'",
         ),
         // ---- ldbb
         case(

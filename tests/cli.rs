@@ -12,6 +12,7 @@ const SUBCOMMANDS: &[&str] = &[
     "ldbb",
     "ldbb-circle",
     "simulate-ldbb",
+    "compensate",
     "completions",
     "man",
 ];
@@ -60,6 +61,7 @@ fn manual_pages_for_the_compiler_and_each_subcommand() {
         "ldbb",
         "ldbb-circle",
         "simulate-ldbb",
+        "compensate",
     ] {
         let r = edbbgen(["man", sub]);
         assert_eq!(r.code, 0, "{sub}: {}", r.stderr);

@@ -35,6 +35,7 @@ fn compile_cell(case: &'static str, robot_path: PathBuf, cell_path: PathBuf) -> 
         &robot_path,
         &edbbgen::robot::LoadOptions {
             speeds: spec.speeds,
+            accelerations: spec.accelerations,
             ..Default::default()
         },
     )
@@ -162,16 +163,19 @@ fn every_dialect_of_every_cell_is_golden_and_reads_back_as_planned() {
         for (d, program, text) in &c.programs {
             let label = format!("{d}@{}", c.case);
             assert_golden(&label, text);
-            // The same plan in every dialect: poses, order, blends, times.
+            // The same poses in the same order in every dialect; the corners by each
+            // controller's corner model (and the times with them).
             assert_eq!(program.moves.len(), base.moves.len(), "{label}");
             for (a, b) in program.moves.iter().zip(&base.moves) {
-                assert_eq!(
-                    (a.q_deg, a.blend_mm, a.time_s),
-                    (b.q_deg, b.blend_mm, b.time_s),
-                    "{label}"
-                );
+                assert_eq!((a.q_deg, a.support), (b.q_deg, b.support), "{label}");
             }
             let dl = dialect::by_name(d).unwrap();
+            if dl.corner.kind == dialect::CornerKind::Unbounded {
+                assert!(
+                    program.moves.iter().all(|m| m.blend_mm == 0.0),
+                    "{label}: a blend with no bounded corner region"
+                );
+            }
             let map = edbbgen::controller::ControllerMap::resolve(
                 c.opts.cell.controller.as_ref(),
                 &dl.defaults(),
@@ -205,6 +209,8 @@ fn every_dialect_of_every_cell_is_golden_and_reads_back_as_planned() {
             }
             // Blends, exact stops, pauses and support marks in the same order.
             assert_eq!(read_events(&parsed), planned_events(program), "{label}");
+            // Each blend's value as planned: the TCP distance, SINUMERIK's per-corner ADIS,
+            // nothing for LinuxCNC's G64.
             let blends: Vec<f64> = parsed
                 .lines
                 .iter()
@@ -213,11 +219,20 @@ fn every_dialect_of_every_cell_is_golden_and_reads_back_as_planned() {
                     _ => None,
                 })
                 .collect();
+            let want: Vec<f64> = program
+                .moves
+                .iter()
+                .filter(|m| m.blend_mm > 0.0)
+                .map(|m| match dl.corner.kind {
+                    dialect::CornerKind::AxisPath => (m.blend_value * 1e3).round() / 1e3,
+                    dialect::CornerKind::Moves => 0.0,
+                    _ => m.blend_mm,
+                })
+                .collect();
+            assert_eq!(blends.len(), want.len(), "{label}");
             assert!(
-                blends
-                    .iter()
-                    .all(|b| (b - program.header.blend_mm).abs() < 1e-9),
-                "{label}: blend distances {blends:?}"
+                blends.iter().zip(&want).all(|(b, w)| (b - w).abs() < 1e-9),
+                "{label}: blend values {blends:?}, planned {want:?}"
             );
             // Each move takes at least its planned time, and no more than the language's
             // rounding adds (integer percentages: less than 1 % of the speed).
@@ -229,7 +244,12 @@ fn every_dialect_of_every_cell_is_golden_and_reads_back_as_planned() {
                     if let (Some(p), true) = (prev, k > 0) {
                         let t = parsed.duration(&p, &l.step, &speeds).expect("a timed move");
                         let m = &program.moves[k];
-                        let planned = m.time_s;
+                        // A feed or percentage states the cruise (the ramps come on top); RAPID's
+                        // \T and URScript's t the whole move.
+                        let planned = match dl.move_time {
+                            dialect::MoveTime::Cruise => m.cruise_s,
+                            dialect::MoveTime::Total => m.time_s,
+                        };
                         assert!(
                             t >= planned * (1.0 - 1e-9),
                             "{label}: move {} takes {t} s, less than the planned {planned} s",
@@ -414,7 +434,7 @@ fn the_structural_checks_fail_on_hand_broken_programs() {
         ("fanuc", "   2:  ", "   3:  ", "line number"),
         ("fanuc", "P[1]{", "P[9999]{", "P[1]"),
         ("sinumerik", "\nM30", "\n", "M30"),
-        ("sinumerik", "ADIS=10.000", "ADIS=-10.000", "ADIS >= 0"),
+        ("sinumerik", "ADIS=", "ADIS=-", "ADIS >= 0"),
         ("sinumerik", "FGROUP(X1, ", "FGROUP(", "FGROUP"),
         ("rapid", "ENDMODULE", "", "ENDMODULE"),
         (
@@ -511,7 +531,8 @@ fn fanuc_j3_follows_j2_round_trips_and_a_wrong_coupling_is_caught_by_verify() {
     let model = edbbgen::model::MeasurementModel::new(&c.robot, fixture, tool);
     let (scene, _) = edbbgen::pipeline::build_scene(&c.robot, spec, &fixture, &tool).unwrap();
     let ck = edbbgen::safety::Checker::new(&c.robot, &model, &cellv, &scene, spec.margin);
-    let f = edbbgen::verify::check(&ck, &c.robot, &parsed).expect_err("a wrong coupling passes");
+    let f = edbbgen::verify::check(&ck, &c.robot, &parsed, dialect::by_name("fanuc").unwrap())
+        .expect_err("a wrong coupling passes");
     assert!(
         !f.violation.detail.contains("cannot read")
             && !f.violation.detail.contains("controller axes"),
@@ -526,7 +547,7 @@ fn fanuc_j3_follows_j2_round_trips_and_a_wrong_coupling_is_caught_by_verify() {
     )
     .unwrap();
     let parsed = dl.read(&wrong, &wrong_map).unwrap();
-    edbbgen::verify::check(&ck, &c.robot, &parsed).unwrap();
+    edbbgen::verify::check(&ck, &c.robot, &parsed, dialect::by_name("fanuc").unwrap()).unwrap();
 }
 
 #[test]
@@ -675,15 +696,15 @@ fn simulate_runs_every_dialect() {
         assert_eq!(r.code, 0, "{d}: {}", r.stderr);
         rows.push((*d, std::fs::read_to_string(&csv).unwrap().lines().count()));
     }
-    // The same motions: as many bar samples within the languages' timing (integer speed
-    // percentages make KRL and FANUC moves up to a few per cent slower).
+    // The same poses; the corners differ by each controller's corner model (blends overlap
+    // moves in the twin) and the time words by what they state (RAPID's \T and URScript's t
+    // include the ramps, which the twin's velocity-limited model spreads over the move; integer
+    // speed percentages make KRL and FANUC moves up to a few per cent slower). The twin's
+    // trajectory model itself is unchanged (issue 21).
     let ngc = rows[0].1 as f64;
     for (d, n) in &rows {
         let ratio = *n as f64 / ngc;
-        assert!(
-            (0.999..1.05).contains(&ratio),
-            "{d}: {n} rows vs {ngc} in ngc"
-        );
+        assert!((0.9..1.5).contains(&ratio), "{d}: {n} rows vs {ngc} in ngc");
     }
 }
 

@@ -7,6 +7,14 @@ use crate::common::*;
 /// of tests/dialects.rs: orphans fail (like `--unreferenced reject`).
 const CASES: &[&str] = &[
     "calibrated@nj130",
+    "compensated@targets",
+    "compensated@user_ngc",
+    "compensated@user_sinumerik",
+    "compensated@user_krl",
+    "compensated@user_rapid",
+    "compensated@user_urscript",
+    "compensated@user_fanuc",
+    "drift@synthetic",
     "gcode@ldbb_circle",
     "gcode@nj130_default",
     "html@nj130_default",

@@ -1371,7 +1371,9 @@ fn fixture_check(problem: &Problem, est: &Estimate, free: &[Param]) -> Option<St
     })
 }
 
-fn summary(r: &Report) -> String {
+/// The printed summary of a report (also rebuilt when a report is restated, see
+/// `compensate::drift`).
+pub fn summary(r: &Report) -> String {
     let forms: Vec<&str> = r.runs.iter().map(|x| x.form).collect();
     let static_only = forms.iter().all(|f| *f != "continuous");
     let mut s = format!(

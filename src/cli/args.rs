@@ -59,6 +59,11 @@ pub enum Command {
     /// calibration from a program compiled there would reach; the best campaign of K positions.
     #[command(allow_negative_numbers = true)]
     Place(Box<PlaceArgs>),
+    /// Apply a calibration: compensated joint and Cartesian targets (CSV) or a compensated
+    /// joint-move program for any controller, the mastering offsets, and the accuracy each
+    /// route gives over the joint space.
+    #[command(allow_negative_numbers = true)]
+    Compensate(CompensateArgs),
     /// Print a shell completion script (bash, zsh, fish, elvish, powershell) on stdout.
     Completions(CompletionsArgs),
     /// Print the manual page (roff, `man -l -` reads it) on stdout.
@@ -159,12 +164,21 @@ pub struct CompileArgs {
     /// Corner blend distance at the MAP, mm.
     #[arg(long, value_name = "MM", default_value = "10")]
     pub blend: String,
+    /// What the tour minimises: each move with its acceleration ramps (trapezoid), or Eq. 7 (the
+    /// slowest joint at its maximum speed, the paper's).
+    #[arg(long, value_name = "COST", default_value = "trapezoid", value_parser = ["trapezoid", "eq7"])]
+    pub tour_cost: String,
     /// The bar's noise per reading, um: what the predicted calibration uncertainty assumes.
     #[arg(long, value_name = "UM", default_value = "1.0")]
     pub bar_noise: String,
     /// The bar's sample rate, Hz: readings along every move made with the bar.
     #[arg(long, value_name = "HZ", default_value = "50")]
     pub bar_rate: String,
+    /// A short check program: the poses are chosen for these parameters only (names such as
+    /// theta2,a3), or for a calibration report's (calibrate --json, e.g. of a --baseline
+    /// run): the parameters its drift section found moved, then the six joint zeros.
+    #[arg(long, value_name = "PARAMS|REPORT.json")]
+    pub focus: Option<String>,
     /// Start configuration, degrees: the tour starts at the selected pose nearest to it.
     #[arg(long, value_name = "Q1,..,Q6", allow_hyphen_values = true)]
     pub start: Option<String>,
@@ -214,6 +228,10 @@ pub struct VerifyArgs {
     /// Print the summary as JSON.
     #[arg(long)]
     pub json: bool,
+    /// A recorded run of the program (t_s,q1_deg,...,q6_deg in the controller's axis values):
+    /// check the executed path, how close it passed each measurement pose, and its time.
+    #[arg(long, value_name = "TRACE.csv")]
+    pub trace: Option<PathBuf>,
 }
 
 #[derive(Args, Debug)]
@@ -501,6 +519,11 @@ pub struct CalibrateArgs {
     /// parameter's calibrated uncertainty is judged against [default: 1,0.05,10].
     #[arg(long, value_name = "MM,DEG[,SETUP_MM]", allow_hyphen_values = true)]
     pub prior: Option<String>,
+    /// A previous calibration report (calibrate --json) of the same nominal robot: the fit
+    /// starts from it (what these data do not determine keeps its values), and the report
+    /// says what moved since, beyond the combined uncertainty, with a verdict.
+    #[arg(long, value_name = "PREVIOUS.json")]
+    pub baseline: Option<PathBuf>,
     /// URDF: the link that ends the chain [default: flange, tool0, or the chain's last link].
     #[arg(long, value_name = "LINK")]
     pub flange: Option<String>,
@@ -508,6 +531,57 @@ pub struct CalibrateArgs {
     #[arg(long = "package-path", value_name = "DIR")]
     pub package_path: Vec<PathBuf>,
     /// No progress output (calibrate draws none; accepted like on every subcommand).
+    #[arg(short, long)]
+    pub quiet: bool,
+}
+
+#[derive(Args, Debug)]
+pub struct CompensateArgs {
+    /// The calibrated robot (calibrate -o): a .dh.toml or a .urdf file.
+    #[arg(value_name = "CALIBRATED")]
+    pub calibrated: PathBuf,
+    /// The nominal robot the controller computes with (the file calibrate was given).
+    #[arg(long, value_name = "ROBOT")]
+    pub nominal: PathBuf,
+    /// Targets to compensate (CSV: name, then q1_deg..q6_deg, or x_mm,y_mm,z_mm with optional
+    /// rx_deg,ry_deg,rz_deg and an optional seed q1_deg..q6_deg).
+    #[arg(long, value_name = "T.csv")]
+    pub targets: Option<PathBuf>,
+    /// A joint-move program to write again with compensated joints (any bundled dialect).
+    #[arg(long, value_name = "PROGRAM")]
+    pub program: Option<PathBuf>,
+    /// The compensated targets (CSV) or program.
+    #[arg(short, long, value_name = "OUT")]
+    pub output: Option<PathBuf>,
+    /// The tool point to compensate, in the flange frame, mm, optionally with its orientation
+    /// (fixed-axis X-Y-Z, deg) [default: each robot file's MAP].
+    #[arg(long, value_name = "X,Y,Z[,RX,RY,RZ]", allow_hyphen_values = true)]
+    pub tcp: Option<String>,
+    /// Cell file: its `[controller]` section maps the joint values (targets, program, mastering)
+    /// to the controller's axes.
+    #[arg(long, value_name = "CELL.toml")]
+    pub cell: Option<PathBuf>,
+    /// The controller family (a dialect name): the mapping's defaults and how the mastering
+    /// offsets are written [default: the program's dialect; model joints for targets].
+    #[arg(long, value_name = "NAME")]
+    pub dialect: Option<String>,
+    /// The calibration report (calibrate --json): the joint zero offsets with their
+    /// uncertainties and the predicted accuracy [default: the robot files' joint zeros].
+    #[arg(long, value_name = "REPORT.json")]
+    pub calibration: Option<PathBuf>,
+    /// Write the report here (schema edbbgen.compensate/1).
+    #[arg(long, value_name = "REPORT.json")]
+    pub json: Option<PathBuf>,
+    /// Write a self-contained HTML report here.
+    #[arg(long, value_name = "REPORT.html")]
+    pub html: Option<PathBuf>,
+    /// URDF: the link that ends the chain [default: flange, tool0, or the chain's last link].
+    #[arg(long, value_name = "LINK")]
+    pub flange: Option<String>,
+    /// URDF: directory searched for package:// paths (repeatable).
+    #[arg(long = "package-path", value_name = "DIR")]
+    pub package_path: Vec<PathBuf>,
+    /// No progress output (compensate draws none; accepted like on every subcommand).
     #[arg(short, long)]
     pub quiet: bool,
 }

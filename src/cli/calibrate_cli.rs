@@ -4,6 +4,7 @@
 use super::args::CalibrateArgs;
 use super::{usage, write_all_atomic, xyz_mm, Error};
 use crate::calibrate::{self, CalibrateOptions, Calibration, Effects, LengthOffset};
+use crate::compensate::drift;
 use crate::diagnose::Run;
 use crate::model::MeasurementModel;
 use crate::robot::{self, LoadOptions, Robot};
@@ -171,6 +172,21 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
         }
     }
 
+    // --baseline: the previous report is read before any work.
+    let baseline = match &a.baseline {
+        Some(path) => {
+            let text = super::read_input(path, "calibration report", crate::files::Kind::Config)?;
+            let value: serde_json::Value = serde_json::from_str(&text)
+                .map_err(|e| file_err(path, format!("not JSON: {e}")))?;
+            Some((
+                drift::read_report(&value).map_err(|e| file_err(path, e))?,
+                name(path),
+                robot::sha256_hex(text.as_bytes()),
+            ))
+        }
+        None => None,
+    };
+
     let load_opts = LoadOptions {
         flange_link: a.flange.clone(),
         package_paths: a.package_path.clone(),
@@ -201,13 +217,42 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
         })
         .collect();
     let labels: Vec<String> = a.measured.iter().map(|p| name(p)).collect();
-    let cal = calibrate::run(&model, &robot, &runs, &labels, &opts)
-        .map_err(|e| file_err(&a.measured[0], e))?;
+    // --baseline: the fit starts from the previous calibration and states what moved since.
+    let (cal, drift) = match &baseline {
+        Some((baseline, label, _)) => {
+            let (cal, d) =
+                drift::calibrate_against(&model, &robot, &runs, &labels, &opts, baseline, label)
+                    .map_err(|e| file_err(&a.measured[0], e))?;
+            (cal, Some(d))
+        }
+        None => (
+            calibrate::run(&model, &robot, &runs, &labels, &opts)
+                .map_err(|e| file_err(&a.measured[0], e))?,
+            None,
+        ),
+    };
 
+    // The report's keys, then `drift` (also when nothing is written as calibrated).
+    let json = match &drift {
+        Some(d) => {
+            #[derive(serde::Serialize)]
+            struct WithDrift<'a> {
+                #[serde(flatten)]
+                report: &'a calibrate::Report,
+                drift: &'a drift::Drift,
+            }
+            serde_json::to_string_pretty(&WithDrift {
+                report: &cal.report,
+                drift: d,
+            })
+        }
+        None => serde_json::to_string_pretty(&cal.report),
+    }
+    .unwrap_or_default()
+        + "\n";
     // Not calibrated (nothing of the robot determined, or no better than nominal held out):
     // no robot file is written; the report says why, and so does one line on stderr.
     if !cal.report.calibrated {
-        let json = serde_json::to_string_pretty(&cal.report).unwrap_or_default() + "\n";
         if let Some(p) = &a.json {
             write_all_atomic(&[(p.as_path(), json.as_str())])?;
         }
@@ -217,7 +262,10 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
     }
 
     // Everything is rendered before the first file is written: a failure leaves no file.
-    let header = header_lines(&robot, &cal, &data, &labels);
+    let mut header = header_lines(&robot, &cal, &data, &labels);
+    if let (Some(d), Some(p)) = (&drift, &a.baseline) {
+        header.push(format!("since {}: {}", name(p), d.verdict));
+    }
     let p = cal.params();
     let calibrated = if urdf {
         robot::urdf::calibrated(
@@ -232,16 +280,24 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
     } else {
         robot::dh::calibrated(&robot_text, &a.robot, &p.dh, &p.map, &header)?
     };
-    let json = serde_json::to_string_pretty(&cal.report).unwrap_or_default() + "\n";
     let svg = match &a.plot {
         Some(_) => Some(crate::calibrate::plot::svg(&cal)?),
         None => None,
     };
     let html = match &a.html {
         Some(_) => {
-            let hash = inputs_hash(&robot, &data, &fixtures, &map, &a.effects);
+            // The baseline is an input too.
+            let effects = match &baseline {
+                Some((_, _, sha)) => format!("{}\nbaseline {sha}", a.effects),
+                None => a.effects.clone(),
+            };
+            let hash = inputs_hash(&robot, &data, &fixtures, &map, &effects);
             let name = format!("{} [{}]", robot.name, robot.source);
-            let page = crate::report::calibrate::page(&cal, &name, &hash)?;
+            let mut page = crate::report::calibrate::page(&cal, &name, &hash)?;
+            if let Some(d) = &drift {
+                page.sections
+                    .push(crate::report::compensate::drift_section(d)?);
+            }
             Some(crate::report::render(&page)?)
         }
         None => None,

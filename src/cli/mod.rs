@@ -3,6 +3,7 @@
 
 pub mod args;
 mod calibrate_cli;
+mod compensate_cli;
 mod ldbb_cli;
 mod place_cli;
 mod twin_cli;
@@ -76,6 +77,7 @@ pub fn run(argv: Vec<std::ffi::OsString>) -> Result<i32, Error> {
         Some(Command::Dialects(a)) => run_dialects(&a),
         Some(Command::Calibrate(a)) => calibrate_cli::calibrate(&a),
         Some(Command::Place(a)) => place_cli::place(&a),
+        Some(Command::Compensate(a)) => compensate_cli::compensate(&a),
         Some(Command::Completions(a)) => {
             let mut cmd = <Cli as clap::CommandFactory>::command();
             clap_complete::generate(a.shell, &mut cmd, "edbbgen", &mut std::io::stdout());
@@ -181,6 +183,7 @@ fn load_robot(path: &Path, cell: &CellArgs, spec: &CellSpec) -> Result<Robot, Er
         flange_link: cell.flange.clone(),
         package_paths: cell.package_path.clone(),
         speeds: spec.speeds,
+        accelerations: spec.accelerations,
         ..LoadOptions::default()
     };
     Ok(robot::load(path, &opts)?)
@@ -454,7 +457,9 @@ fn run_compile(a: &CompileArgs) -> Result<i32, Error> {
             "--bar-rate: {bar_rate} Hz is outside 1..100000 Hz"
         )));
     }
+    let focus = a.focus.as_deref().map(parse_focus).transpose()?;
     let opts = CompileOptions {
+        focus,
         fixture,
         cell: spec,
         step,
@@ -466,6 +471,11 @@ fn run_compile(a: &CompileArgs) -> Result<i32, Error> {
         program_name,
         bar_noise: bar_noise * 1e-6,
         bar_rate,
+        tour_cost: if a.tour_cost == "eq7" {
+            pipeline::TourCost::Eq7
+        } else {
+            pipeline::TourCost::Trapezoid
+        },
     };
     let bar = Bar::new(a.cell.quiet, "sampling");
     let timed = Timed::new(&bar, a.timings, "load", started);
@@ -559,6 +569,42 @@ fn run_compile(a: &CompileArgs) -> Result<i32, Error> {
         );
     }
     Ok(0)
+}
+
+/// `--focus`: a calibration report (its drift's moved parameters, then the joint zeros) or a
+/// comma-separated list of parameter names (not the fixture's).
+fn parse_focus(s: &str) -> Result<Vec<usize>, Error> {
+    if s.to_ascii_lowercase().ends_with(".json") {
+        let path = Path::new(s);
+        let text = read_input(path, "calibration report", crate::files::Kind::Config)?;
+        let v: serde_json::Value = serde_json::from_str(&text).map_err(|e| Error::File {
+            path: s.to_string(),
+            msg: format!("not JSON: {e}"),
+        })?;
+        if v.get("schema").and_then(|x| x.as_str()) != Some("edbbgen.calibrate/1") {
+            return Err(Error::File {
+                path: s.to_string(),
+                msg: "not a calibration report (schema edbbgen.calibrate/1)".into(),
+            });
+        }
+        return Ok(crate::compensate::drift::check_parameters(Some(&v)));
+    }
+    let mut out = Vec::new();
+    for name in s.split(',').map(str::trim) {
+        match model::PARAM_NAMES.iter().position(|n| *n == name) {
+            Some(i) if i >= model::ALPHA => {
+                if !out.contains(&i) {
+                    out.push(i);
+                }
+            }
+            _ => {
+                return Err(usage(format!(
+                    "--focus: '{name}' is not a robot parameter (alpha1..6, a1..6, d1..6, theta1..6, x_map, y_map, z_map) or a calibration report (.json)"
+                )))
+            }
+        }
+    }
+    Ok(out)
 }
 
 /// The program name from the output file's stem; languages whose program name must equal the
@@ -830,7 +876,10 @@ fn run_verify(a: &VerifyArgs) -> Result<i32, Error> {
     let model = MeasurementModel::new(&robot, fixture, map);
     let (scene, scene_report) = pipeline::build_scene(&robot, &spec, &fixture, &map)?;
     let ck = crate::safety::Checker::new(&robot, &model, &cell, &scene, spec.margin);
-    match crate::verify::check(&ck, &robot, &parsed) {
+    if let Some(path) = &a.trace {
+        return verify_trace(a, path, &ck, &robot, &parsed, dialect, &axes);
+    }
+    match crate::verify::check(&ck, &robot, &parsed, dialect) {
         Ok(s) => {
             if a.json {
                 let report = VerifyReport {
@@ -873,6 +922,76 @@ fn run_verify(a: &VerifyArgs) -> Result<i32, Error> {
         }
         Err(f) => {
             eprintln!("edbbgen: {}: {f}", a.program.display());
+            Ok(1)
+        }
+    }
+}
+
+/// `verify --trace`: the program checked as usual, then the recorded run against it.
+fn verify_trace(
+    a: &VerifyArgs,
+    path: &Path,
+    ck: &crate::safety::Checker,
+    robot: &Robot,
+    parsed: &crate::dialect::Parsed,
+    dialect: &crate::dialect::Dialect,
+    axes: &crate::controller::ControllerMap,
+) -> Result<i32, Error> {
+    let text = read_input(path, "trace", crate::files::Kind::Measured)?;
+    let trace = crate::verify::trace::read(&text, axes).map_err(|msg| Error::File {
+        path: path.display().to_string(),
+        msg,
+    })?;
+    let (summary, executed) = match crate::verify::rebuild(ck, robot, parsed, dialect) {
+        Ok(x) => x,
+        Err(f) => {
+            eprintln!("edbbgen: {}: {f}", a.program.display());
+            return Ok(1);
+        }
+    };
+    match crate::verify::trace::check(ck, &executed, &trace, summary.duration) {
+        Ok(r) => {
+            if a.json {
+                #[derive(serde::Serialize)]
+                struct Out<'a> {
+                    schema: &'static str,
+                    program: &'a crate::verify::Summary,
+                    trace: &'a crate::verify::trace::TraceReport,
+                }
+                let out = Out {
+                    schema: "edbbgen.verify-trace/1",
+                    program: &summary,
+                    trace: &r,
+                };
+                println!("{}", serde_json::to_string_pretty(&out).unwrap_or_default());
+            } else {
+                let worst = r
+                    .poses
+                    .iter()
+                    .max_by(|x, y| x.miss_mm.total_cmp(&y.miss_mm));
+                println!(
+                    "{}: ok: {} samples; {} measurement poses passed within {} mm at the MAP{}; executed {} s, estimated {} s; bar {}..{} mm; max cone angles {} deg (socket), {} deg (cup)",
+                    path.display(),
+                    r.samples,
+                    r.poses.len(),
+                    fmt_fixed(r.worst_miss_mm, 3),
+                    worst.map_or(String::new(), |w| format!(" (worst: pose {}, line {})", w.pose, w.line)),
+                    fmt_fixed(r.executed_s, 2),
+                    fmt_fixed(r.estimated_s, 2),
+                    fmt_fixed(to_mm(r.extremes.min_length), 2),
+                    fmt_fixed(to_mm(r.extremes.max_length), 2),
+                    fmt_fixed(r.extremes.max_socket_angle / DEG, 1),
+                    fmt_fixed(r.extremes.max_cup_angle / DEG, 1),
+                );
+            }
+            Ok(0)
+        }
+        Err(f) if f.violation.reason == crate::ir::Reason::Program => Err(Error::File {
+            path: path.display().to_string(),
+            msg: format!("line {}: {}", f.line, f.violation.detail),
+        }),
+        Err(f) => {
+            eprintln!("edbbgen: {}: {f}", path.display());
             Ok(1)
         }
     }

@@ -26,6 +26,8 @@ struct Motion {
     p: usize,
     timing: Timing,
     blend: Option<f64>,
+    /// CR (a TCP distance) rather than CNT (a continuity value).
+    corner: Option<super::CornerKind>,
     comment: Option<String>,
 }
 
@@ -290,6 +292,7 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                         axes,
                         timing: m.timing,
                         blend: m.blend,
+                        corner: m.corner,
                     },
                     comment: m.comment,
                 });
@@ -365,11 +368,15 @@ fn motion(line: usize, s: &str, comment: Option<String>) -> Result<Motion, Parse
             format!("'{term}' is not a termination (FINE, CNTn, CRn)"),
         ));
     };
+    let corner = term
+        .starts_with("CR")
+        .then_some(super::CornerKind::TcpDistance);
     Ok(Motion {
         line,
         p,
         timing,
         blend,
+        corner,
         comment,
     })
 }

@@ -191,6 +191,7 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                     axes: target,
                     timing: Timing::AxisPercent(pct),
                     blend,
+                    corner: None,
                 },
                 comment: comment.map(str::to_string),
             });

@@ -62,6 +62,63 @@ pub struct Dialect {
     pub name_must_match_file: bool,
     /// What the language cannot express exactly, for the docs and `edbbgen dialects`.
     pub approximations: Vec<String>,
+    /// What a move's time word states on the controller.
+    pub move_time: MoveTime,
+    /// What the blend instruction bounds on the controller (front matter `[corner]`).
+    pub corner: Corner,
+}
+
+/// What a move's time word (G93 F, `\T`, `t`, a speed percentage) states.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum MoveTime {
+    /// The time at the programmed speed: the controller's acceleration ramps come on top
+    /// (inverse-time feed, `$VEL_AXIS`, FANUC `J n%`).
+    Cruise,
+    /// The whole move, ramps included (RAPID `\T`, URScript `t`).
+    Total,
+}
+
+/// How a controller treats a blended corner, from its manual: what the blend instruction's value
+/// bounds and what it leaves free. `verify` checks the corner region such a controller may execute
+/// (the joint-space parallelogram spanned by the corner and the points where the blend may begin
+/// and end, which holds every superposition of the two moves and every curve inside the triangle
+/// of those three points), never edbbgen's intended blend.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Corner {
+    pub kind: CornerKind,
+    /// The blend instruction as the program writes it.
+    pub instruction: String,
+    /// The unit of its value as the program writes it ("mm", "m", "deg", "%", "" for none).
+    pub unit: String,
+    /// At most this fraction of each adjacent move is blended (the controllers shorten a blend
+    /// to half of a move so that neighbouring blends never overlap).
+    pub cap: f64,
+    /// The controller's acceleration on moves that blend, as a fraction of the joints' limits.
+    pub blend_acceleration: f64,
+    /// What the value bounds, and what it leaves free, in the vendor's words (for people).
+    pub bounds: String,
+    pub leaves_free: String,
+}
+
+/// What a blend instruction's value bounds on its controller.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CornerKind {
+    /// A TCP distance: the blend begins where the TCP (set to the MAP) comes within the value of
+    /// the corner and ends where it leaves it again (KRL `C_DIS`, RAPID zones, URScript `r`,
+    /// FANUC `CR`).
+    TcpDistance,
+    /// A path distance over the controller axes in their units: the blend begins at most the
+    /// value before the corner and ends at most the value after it (SINUMERIK `G641 ADIS` on
+    /// the FGROUP axes, degrees of joint path).
+    AxisPath,
+    /// The value bounds only some axes (LinuxCNC `G64 P`: X Y Z): the blend may take up to
+    /// `cap` of each adjacent move.
+    Moves,
+    /// Not a distance (FANUC `CNT`): nothing bounds the corner region.
+    Unbounded,
 }
 
 impl Dialect {
@@ -318,8 +375,14 @@ pub enum Step {
         /// Target as the program states it: controller axes, program units.
         axes: [f64; 6],
         timing: Timing,
-        /// Blend distance at the corner this move ends in (mm, at the MAP); None = exact stop.
+        /// The blend instruction's value at the corner this move ends in, in the dialect's
+        /// unit (its front matter's `corner.unit`: mm at the MAP for a TCP distance, degrees of
+        /// axis path for SINUMERIK's ADIS, LinuxCNC's G64 P); None = exact stop.
         blend: Option<f64>,
+        /// What the blend bounds when it is not the dialect's usual instruction (FANUC `CR`
+        /// in a `CNT` dialect); None = the dialect's `corner.kind`.
+        #[serde(default)]
+        corner: Option<CornerKind>,
     },
     /// Stand still for this many seconds.
     Dwell(f64),

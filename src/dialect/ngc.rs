@@ -9,7 +9,8 @@
 //!   absolute (G90) or incremental (G91);
 //! - G0 (rapid, at the joints' maximum speeds) and G1 with feed in G94 (units/min along the
 //!   joint-space path) or G93 (inverse time: the move takes 1/F minutes);
-//! - G64 P (blend distance, mm) and G61 (exact stop); G4 P (dwell, s);
+//! - G64, with or without P (LinuxCNC's path blending, P its tolerance on X Y Z), and G61
+//!   (exact stop); G4 P (dwell, s);
 //! - M0/M1 (pause), M2/M30 (end); comments in parentheses or after ';'; optional N words;
 //! - G21 only (millimetre mode; G20 is refused: degrees do not scale with inches).
 
@@ -116,9 +117,11 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
         let comment_text = comment;
         if let Some(b) = blend_cmd {
             blend = if b {
-                let p = p_word.ok_or_else(|| err("G64 needs P (blend distance, mm)".into()))?;
+                // P is LinuxCNC's path tolerance on X Y Z; without it the planner keeps the best
+                // speed. Either way a corner may take up to half of each move (the corner model).
+                let p = p_word.unwrap_or(0.0);
                 if !(p.is_finite() && p >= 0.0) {
-                    return Err(err("G64 P must be a distance >= 0".into()));
+                    return Err(err("G64 P must be a tolerance >= 0".into()));
                 }
                 Some(p)
             } else {
@@ -176,6 +179,7 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                     axes: target,
                     timing,
                     blend,
+                    corner: None,
                 },
                 comment: comment_text.clone(),
             });
@@ -337,7 +341,7 @@ mod tests {
             ("G0 X1 (open\n", 1, "unclosed comment"),
             ("G0 Xabc\n", 1, "X needs a number"),
             ("M2\nG0 X1\n", 2, "after the program end"),
-            ("G64\n", 1, "G64 needs P"),
+            ("G64 P-1\n", 1, "G64 P must be a tolerance"),
         ];
         for (text, line, msg) in bad {
             let e = parse(text).unwrap_err();

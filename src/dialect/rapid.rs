@@ -15,22 +15,24 @@
 use super::{number, perr, push_header, Line, ParseError, Parsed, Step, Timing};
 use crate::controller::ControllerMap;
 
-/// Built-in zonedata: name → pzone_tcp (mm).
+/// Built-in zonedata: name → the largest of its pzone_tcp, pzone_ori and pzone_eax (mm): the
+/// corner path may begin (tool reorientation, external axes) anywhere within it (ABB's
+/// predefined zones: pzone_ori = pzone_eax = 1.5 × pzone_tcp from z5 on).
 const ZONES: &[(&str, f64)] = &[
     ("z0", 0.3),
     ("z1", 1.0),
-    ("z5", 5.0),
-    ("z10", 10.0),
-    ("z15", 15.0),
-    ("z20", 20.0),
-    ("z30", 30.0),
-    ("z40", 40.0),
-    ("z50", 50.0),
-    ("z60", 60.0),
-    ("z80", 80.0),
-    ("z100", 100.0),
-    ("z150", 150.0),
-    ("z200", 200.0),
+    ("z5", 8.0),
+    ("z10", 15.0),
+    ("z15", 23.0),
+    ("z20", 30.0),
+    ("z30", 45.0),
+    ("z40", 60.0),
+    ("z50", 75.0),
+    ("z60", 90.0),
+    ("z80", 120.0),
+    ("z100", 150.0),
+    ("z150", 225.0),
+    ("z200", 300.0),
 ];
 
 /// RAPID identifiers: a letter, then letters, digits and `_`, at most 32 characters.
@@ -307,7 +309,11 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                     if f[0].eq_ignore_ascii_case("TRUE") {
                         None
                     } else if f[0].eq_ignore_ascii_case("FALSE") {
-                        Some(number(line, "pzone_tcp", f[1])?)
+                        // The zone any part of the corner path may begin in.
+                        let tcp = number(line, "pzone_tcp", f[1])?;
+                        let ori = number(line, "pzone_ori", f[2])?;
+                        let eax = number(line, "pzone_eax", f[3])?;
+                        Some(tcp.max(ori).max(eax))
                     } else {
                         return Err(perr(
                             line,
@@ -333,6 +339,7 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                         axes,
                         timing,
                         blend,
+                        corner: None,
                     },
                     comment,
                 });
@@ -424,7 +431,7 @@ mod tests {
         ));
         assert!(matches!(steps[1], Step::Pause));
         assert!(
-            matches!(steps[2], Step::Move { timing: Timing::Duration(t), blend: Some(b), target, .. } if *t == 0.7 && *b == 10.0 && target[0] == 2.0)
+            matches!(steps[2], Step::Move { timing: Timing::Duration(t), blend: Some(b), target, .. } if *t == 0.7 && *b == 15.0 && target[0] == 2.0)
         );
         assert_eq!(p.lines[2].comment.as_deref(), Some("support"));
         assert!(matches!(steps[3], Step::End));

@@ -229,6 +229,7 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                     axes: target,
                     timing,
                     blend,
+                    corner: None,
                 },
                 comment: comment.map(str::to_string),
             });

@@ -179,6 +179,7 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                         axes,
                         timing,
                         blend,
+                        corner: None,
                     },
                     comment,
                 });

@@ -85,6 +85,8 @@ pub fn target(
     h.axis_names = map.axis_names.to_vec();
     h.axis_units = map.units.name().to_string();
     h.axis_decimals = decimals;
+    // The accelerations the times assume, per controller axis in its units.
+    h.accelerations = map.axis_speeds(&h.accelerations.map(|a| a * crate::units::DEG));
     // Degrees: the plan's grid, printed exactly. Radians: cut toward zero at the printed
     // decimals, so a pose on a limit that contains zero (joint ranges, harness ranges) stays
     // inside it when read back.
@@ -103,13 +105,13 @@ pub fn target(
         let axes = map.apply(&m.q_deg).map(printed);
         m.axes = axes;
         // Synchronous joint moves: the slowest axis leads; this percentage of every axis's
-        // maximum makes it take the planned Eq. 7 time.
+        // maximum makes it cruise at the planned speed (the ramps come on top).
         m.speed_pct = match prev {
-            Some(a) if m.time_s > 0.0 => {
+            Some(a) if m.cruise_s > 0.0 => {
                 let lead = (0..6)
                     .map(|i| (axes[i] - a[i]).abs() / vmax[i])
                     .fold(0.0, f64::max);
-                100.0 * lead / m.time_s
+                100.0 * lead / m.cruise_s
             }
             _ => 100.0,
         };

@@ -197,6 +197,8 @@ pub fn compile(
             pose: moves.len() + 1,
             blend_mm: 0.0,
             time_s: 0.0,
+            cruise_s: 0.0,
+            blend_value: 0.0,
             length_mm: to_mm(length(&q0)),
             note: format!(
                 "{f} N: start of the lead-in, angle {} deg{}",
@@ -259,6 +261,13 @@ pub fn compile(
                     to_mm(opts.blend)
                 },
                 time_s: t,
+                // The circle's constant speed is the cruise; its chords blend into each other.
+                cruise_s: t,
+                blend_value: if s == per_load {
+                    0.0
+                } else {
+                    to_mm(opts.blend)
+                },
                 length_mm: to_mm(length(&q)),
                 note,
                 pause: String::new(),
@@ -343,6 +352,7 @@ pub fn compile(
         fixture_mm: table.map(to_mm).into(),
         map_mm: map.map(to_mm).into(),
         bar_mm: [to_mm(spec.bar_min), to_mm(spec.bar_max)],
+        accelerations: robot.max_accelerations().map(to_deg),
         blend_mm: to_mm(opts.blend),
         margin_mm: to_mm(spec.margin),
         joint_margin_deg: to_deg(spec.joint_margin),

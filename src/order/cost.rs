@@ -28,6 +28,8 @@ pub(crate) struct Costs {
     n: usize,
     /// Poses in joint-time units (rad / (rad/s) = s).
     poses: Vec<[f64; 6]>,
+    /// With accelerations (the trapezoid cost): poses divided by them (rad / (rad/s²) = s²).
+    accel: Option<Vec<[f64; 6]>>,
 }
 
 impl Costs {
@@ -38,46 +40,55 @@ impl Costs {
                 .iter()
                 .map(|p| std::array::from_fn(|k| p[k] / max_speed[k]))
                 .collect(),
+            accel: None,
+        }
+    }
+
+    /// The trapezoid cost ([`crate::timing::move_time`] between exact stops): Eq. 7's T₇ and
+    /// the acceleration's T_a² = max |Δ|/a from poses pre-divided by speeds and accelerations.
+    pub(crate) fn with_accel(poses: &[[f64; 6]], max_speed: &[f64; 6], accel: &[f64; 6]) -> Self {
+        Costs {
+            accel: Some(
+                poses
+                    .iter()
+                    .map(|p| std::array::from_fn(|k| p[k] / accel[k]))
+                    .collect(),
+            ),
+            ..Costs::new(poses, max_speed)
         }
     }
 
     #[inline]
     pub(crate) fn get(&self, i: usize, j: usize) -> f64 {
-        let (a, b) = (&self.poses[i], &self.poses[j]);
-        // Poses are finite (checked by `solve`), so a plain comparison is `f64::max` without
-        // its NaN handling, which costs more than the rest of this function.
-        let mut t = 0.0_f64;
-        for k in 0..6 {
-            let d = (a[k] - b[k]).abs();
-            if d > t {
-                t = d;
+        let t = linf(&self.poses[i], &self.poses[j]);
+        match &self.accel {
+            None => t,
+            Some(acc) => {
+                let ta2 = linf(&acc[i], &acc[j]);
+                if t * t >= ta2 {
+                    if t > 0.0 {
+                        t + ta2 / t
+                    } else {
+                        0.0
+                    }
+                } else {
+                    2.0 * ta2.sqrt()
+                }
             }
         }
-        t
+    }
+
+    /// The largest entry (a bound with accelerations: the trapezoid of the widest spreads).
+    pub(crate) fn max(&self) -> f64 {
+        let t = spread(&self.poses);
+        match &self.accel {
+            None => t,
+            Some(acc) => crate::timing::trapezoid(t, spread(acc).sqrt()),
+        }
     }
 
     pub(crate) fn len(&self) -> usize {
         self.n
-    }
-
-    /// The largest entry: per joint the widest spread of the poses. Exact: the pair (argmax,
-    /// argmin) of that joint gives the same subtraction.
-    pub(crate) fn max(&self) -> f64 {
-        (0..6)
-            .map(|k| {
-                let (lo, hi) = self
-                    .poses
-                    .iter()
-                    .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), p| {
-                        (lo.min(p[k]), hi.max(p[k]))
-                    });
-                if hi >= lo {
-                    hi - lo
-                } else {
-                    0.0
-                }
-            })
-            .fold(0.0, f64::max)
     }
 
     /// For every pose, the `k` other poses closest to it, nearest first; equal costs are ordered
@@ -137,4 +148,37 @@ impl Neighbours {
             .copied()
             .zip(self.cost[r].iter().copied())
     }
+}
+
+/// The largest entry: per joint the widest spread of the poses. Exact: the pair (argmax,
+/// argmin) of that joint gives the same subtraction.
+fn spread(poses: &[[f64; 6]]) -> f64 {
+    (0..6)
+        .map(|k| {
+            let (lo, hi) = poses
+                .iter()
+                .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), p| {
+                    (lo.min(p[k]), hi.max(p[k]))
+                });
+            if hi >= lo {
+                hi - lo
+            } else {
+                0.0
+            }
+        })
+        .fold(0.0, f64::max)
+}
+
+#[inline]
+fn linf(a: &[f64; 6], b: &[f64; 6]) -> f64 {
+    // Poses are finite (checked by `solve`), so a plain comparison is `f64::max` without
+    // its NaN handling, which costs more than the rest of this function.
+    let mut t = 0.0_f64;
+    for k in 0..6 {
+        let d = (a[k] - b[k]).abs();
+        if d > t {
+            t = d;
+        }
+    }
+    t
 }

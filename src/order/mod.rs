@@ -93,14 +93,45 @@ pub enum OrderError {
 /// With no poses every `start` is out of range, so `poses` must be non-empty. One or two poses
 /// have a single open path from `start`, returned as is.
 pub fn solve(poses: &[[f64; 6]], start: usize, max_speed: &[f64; 6]) -> Result<Tour, OrderError> {
+    solve_with(poses, start, max_speed, None)
+}
+
+/// [`solve`] with the trapezoid cost when `accel` (rad/s², every joint positive) is given: each
+/// move between exact stops timed with its acceleration ramps ([`crate::timing::move_time`]);
+/// the tour's times are then those too. `None` is Eq. 7.
+pub fn solve_with(
+    poses: &[[f64; 6]],
+    start: usize,
+    max_speed: &[f64; 6],
+    accel: Option<&[f64; 6]>,
+) -> Result<Tour, OrderError> {
     check(poses, start, max_speed)?;
+    if let Some(a) = accel {
+        check(poses, start, a)?;
+    }
     let n = poses.len();
     let unsorted: Vec<usize> = std::iter::once(start)
         .chain((0..n).filter(|&i| i != start))
         .collect();
-    let time_unsorted = path_time(poses, &unsorted, max_speed);
+    let time = |order: &[usize]| match accel {
+        None => path_time(poses, order, max_speed),
+        Some(a) => {
+            let lim = crate::timing::Limits {
+                speed: *max_speed,
+                accel: *a,
+            };
+            order
+                .windows(2)
+                .map(|w| crate::timing::move_time(&poses[w[0]], &poses[w[1]], &lim, 1.0))
+                .sum()
+        }
+    };
+    let time_unsorted = time(&unsorted);
 
-    let costs = cost::Costs::new(poses, max_speed);
+    let costs = match accel {
+        None => cost::Costs::new(poses, max_speed),
+        Some(a) => cost::Costs::with_accel(poses, max_speed, a),
+    };
     let nbrs = costs.neighbours(cost::NEIGHBOURS);
     let mut order = local::nearest_neighbour(&costs, &nbrs, start);
     let eps = EPS * costs.max().max(1.0);
@@ -114,7 +145,7 @@ pub fn solve(poses: &[[f64; 6]], start: usize, max_speed: &[f64; 6]) -> Result<T
         KICK_SEED,
     );
 
-    let time_sorted = path_time(poses, &order, max_speed);
+    let time_sorted = time(&order);
     Ok(Tour {
         order,
         time_unsorted,

@@ -421,3 +421,56 @@ fn kicks_return_the_best_path_seen_and_end_at_a_local_optimum() {
         }
     }
 }
+
+/// The trapezoid cost: on small instances the tour equals the brute-force optimum of the sum of
+/// [`crate::timing::move_time`] (an independent cost: the timing module's trapezoid), and its
+/// reported times are those sums.
+#[test]
+fn trapezoid_cost_tours_match_brute_force() {
+    use rand::{Rng, SeedableRng};
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(21);
+    let speed = [1.9, 1.7, 1.9, 3.1, 3.1, 4.5];
+    let accel = [3.8, 3.4, 3.8, 6.2, 6.2, 9.0];
+    let lim = crate::timing::Limits { speed, accel };
+    for _ in 0..20 {
+        let n = rng.random_range(3..8);
+        // Short and long moves mixed: triangles and trapezoids.
+        let poses: Vec<[f64; 6]> = (0..n)
+            .map(|_| {
+                std::array::from_fn(|_| rng.random_range(-1.0..1.0) * rng.random_range(0.02..2.0))
+            })
+            .collect();
+        let tour = super::solve_with(&poses, 0, &speed, Some(&accel)).unwrap();
+        let cost = |order: &[usize]| -> f64 {
+            order
+                .windows(2)
+                .map(|w| crate::timing::move_time(&poses[w[0]], &poses[w[1]], &lim, 1.0))
+                .sum()
+        };
+        let mut rest: Vec<usize> = (1..n).collect();
+        let mut best = f64::INFINITY;
+        permute(&mut rest, 0, &mut |p| {
+            let mut order = vec![0];
+            order.extend_from_slice(p);
+            best = best.min(cost(&order));
+        });
+        assert!((tour.time_sorted - cost(&tour.order)).abs() < 1e-12);
+        assert!(
+            tour.time_sorted <= best * (1.0 + 1e-9),
+            "{} vs {best}",
+            tour.time_sorted
+        );
+    }
+}
+
+fn permute(v: &mut Vec<usize>, k: usize, f: &mut dyn FnMut(&[usize])) {
+    if k == v.len() {
+        f(v);
+        return;
+    }
+    for i in k..v.len() {
+        v.swap(k, i);
+        permute(v, k + 1, f);
+        v.swap(k, i);
+    }
+}

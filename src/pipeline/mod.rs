@@ -18,7 +18,7 @@ pub use sections::{
 use crate::cell::CellSpec;
 use crate::collision::{self, Scene, SceneReport};
 use crate::controller::ControllerMap;
-use crate::dialect::Template;
+use crate::dialect::{Dialect, Template};
 use crate::emit;
 use crate::ir::{Candidate, Cell, Path, Pool, Program, Reason, Selection};
 use crate::model::{self, Identifiability, IdentifyOptions, MeasurementModel, N_PARAMS};
@@ -28,6 +28,7 @@ use crate::safety::path::{self as safepath, Plan};
 use crate::safety::{Checker, LineMemo};
 use crate::sample::{self, Progress, SampleConfig, SampleReport};
 use crate::select::{self, SelectConfig};
+use crate::timing::{self, Limits};
 use crate::units::{fmt_fixed, to_deg, to_mm};
 use crate::verify;
 use nalgebra::Vector3;
@@ -54,10 +55,29 @@ pub struct CompileOptions {
     /// calibration uncertainty assumes.
     pub bar_noise: f64,
     pub bar_rate: f64,
+    /// A short check program: the poses are chosen for these parameters only (Eq. 6 indices;
+    /// those the pool cannot identify are left out), e.g. the ones that drifted last time and
+    /// the joint zeros (`--focus`). None: every identifiable parameter.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub focus: Option<Vec<usize>>,
     /// The program's name (KRL's DEF, FANUC's /PROG, RAPID's MODULE): the output file's stem.
     /// Not part of the input hash: the text carries it.
     #[serde(skip)]
     pub program_name: String,
+    /// What the tour minimises.
+    #[serde(default)]
+    pub tour_cost: TourCost,
+}
+
+/// The tour's cost per move (`--tour-cost`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum TourCost {
+    /// The move between exact stops with its acceleration ramps ([`crate::timing`]).
+    #[default]
+    Trapezoid,
+    /// Eq. 7: the slowest joint at its maximum speed, no acceleration (the paper's).
+    Eq7,
 }
 
 impl CompileOptions {
@@ -74,7 +94,9 @@ impl CompileOptions {
             start: [0.0; 6],
             bar_noise: DEFAULT_BAR_NOISE_UM * 1e-6,
             bar_rate: DEFAULT_BAR_RATE_HZ,
+            focus: None,
             program_name: DEFAULT_PROGRAM_NAME.to_string(),
+            tour_cost: TourCost::default(),
         }
     }
 }
@@ -160,6 +182,8 @@ pub enum PipelineError {
     Controller(#[from] crate::controller::ControllerError),
     #[error("refusing to write an unsafe program: {0}")]
     Unsafe(String),
+    #[error("--focus: {0}")]
+    Focus(String),
 }
 
 impl PipelineError {
@@ -478,15 +502,36 @@ pub fn compile(
     progress.stage("identify");
     // Identifiability over the poses the bar can actually measure: the pool itself.
     let pool_q: Vec<[f64; 6]> = sections.pool.candidates.iter().map(|c| c.q).collect();
-    let identifiability = model::analyse(&model.rows(&pool_q), &IdentifyOptions::default());
+    let mut identifiability = model::analyse(&model.rows(&pool_q), &IdentifyOptions::default());
     warnings.extend(map_warnings(&model, &identifiability));
-    let planned = select_order_plan(&ck, &sections, &identifiability, opts, progress)?;
+    if let Some(focus) = &opts.focus {
+        warnings.extend(focus_on(&mut identifiability, focus)?);
+    }
+    let mut planned = select_order_plan(&ck, &sections, &identifiability, opts, progress)?;
+    progress.stage("blend");
+    blend(&ck, &mut planned.plan, opts, template.dialect, &axes);
     warnings.extend(planned.warnings());
     sections.report.measured_per_section = sections::measured_per_section(&planned.plan);
-    let path = timed_path(&planned.plan, planned.time_unsorted, &speeds);
+    let path = timed_path(
+        &planned.plan,
+        planned.time_unsorted,
+        &Limits::of(robot),
+        template.dialect,
+    );
     progress.stage("path, predict");
     let predicted = predict(&ck, &identifiability, &path, &planned.plan, opts);
-    let base = program::base(&ck, opts, &identifiability, &planned, &path, &predicted);
+    let mut base = program::base(&ck, opts, &identifiability, &planned, &path, &predicted);
+    if opts.focus.is_some() {
+        base.header.notes.push(format!(
+            "check program: poses chosen for {} (--focus)",
+            identifiability
+                .identifiable
+                .iter()
+                .map(|&i| model::PARAM_NAMES[i])
+                .collect::<Vec<_>>()
+                .join(", ")
+        ));
+    }
     progress.stage("emit, verify");
     // The compiler does not trust its own memory either: `finish` re-reads the text and checks it.
     let (program, text, verified) = finish(&ck, robot, opts, &base, &template, &axes)?;
@@ -540,6 +585,38 @@ pub fn compile(
         report,
         warnings,
     })
+}
+
+/// `--focus`: the selection's columns become the focus parameters the pool identifies; the
+/// others named are left out with a warning.
+fn focus_on(id: &mut Identifiability, focus: &[usize]) -> Result<Vec<String>, PipelineError> {
+    let keep: Vec<usize> = id
+        .identifiable
+        .iter()
+        .copied()
+        .filter(|i| focus.contains(i))
+        .collect();
+    let left: Vec<&str> = focus
+        .iter()
+        .filter(|i| !keep.contains(i))
+        .map(|&i| model::PARAM_NAMES[i])
+        .collect();
+    if keep.is_empty() {
+        return Err(PipelineError::Focus(format!(
+            "none of {} is identifiable from the poses the bar can measure here",
+            left.join(", ")
+        )));
+    }
+    id.identifiable = keep;
+    Ok((!left.is_empty())
+        .then(|| {
+            format!(
+                "--focus: {} not identifiable from the poses the bar can measure here: left out of the check program",
+                left.join(", ")
+            )
+        })
+        .into_iter()
+        .collect())
 }
 
 /// The poses that pass every check, in grid order, with the counts of the two stages.
@@ -691,9 +768,23 @@ fn select_order_plan(
             continue;
         }
         progress.stage("order");
-        let (ordered, time_unsorted) = sections.order(&chosen, &opts.start, &speeds)?;
+        // The tour cost: each move with its acceleration ramps, or Eq. 7 as in the paper.
+        let accel = ck.robot.max_accelerations();
+        let (ordered, _) = sections.order(
+            &chosen,
+            &opts.start,
+            &speeds,
+            (opts.tour_cost == TourCost::Trapezoid).then_some(&accel),
+        )?;
+        // The "unsorted" time: the chosen poses in pool order, each move with its ramps and
+        // an exact stop (the tour's estimate counts the same way).
+        let lim = Limits::of(ck.robot);
+        let time_unsorted: f64 = chosen
+            .windows(2)
+            .map(|w| timing::move_time(&pool[w[0]].q, &pool[w[1]].q, &lim, 1.0))
+            .sum();
         progress.stage("plan");
-        let plan = safepath::plan_sections(&planner, &ordered, opts.blend, &speeds, opts.seed);
+        let plan = safepath::plan_sections(&planner, &ordered, &speeds, opts.seed);
         if plan.dropped.is_empty()
             || round == REPAIR_ROUNDS
             || usable.len() <= id.count() + plan.dropped.len()
@@ -712,25 +803,52 @@ fn select_order_plan(
     }
 }
 
+/// The blend stage: every corner of the plan blended or stopped by the dialect's corner model
+/// (what its controller's blend instruction bounds), [`safepath::blend_corners`].
+fn blend(
+    ck: &Checker,
+    plan: &mut Plan,
+    opts: &CompileOptions,
+    dialect: &Dialect,
+    map: &ControllerMap,
+) {
+    safepath::blend_corners(
+        ck,
+        plan,
+        &safepath::CornerSpec {
+            corner: &dialect.corner,
+            distance: opts.blend,
+            map,
+        },
+    );
+}
+
 /// The path on exactly the joint values the program carries (the 0.001° grid every dialect
-/// prints), each move timed on those values, so the emitted feed never asks an axis for more
-/// than its speed.
-fn timed_path(plan: &Plan, time_unsorted: f64, speeds: &[f64; 6]) -> Path {
+/// prints), each move timed on those values (so the emitted feed never asks an axis for more
+/// than its speed): its cruise at the slowest joint's speed (Eq. 7) and its duration with the
+/// ramps at the joints' accelerations (the dialect's controller scales them on moves that
+/// blend); the total takes the blends' overlaps off ([`crate::timing`]).
+pub fn timed_path(plan: &Plan, time_unsorted: f64, lim: &Limits, dialect: &Dialect) -> Path {
     let wq: Vec<[f64; 6]> = plan
         .waypoints
         .iter()
         .map(|w| w.q.map(|r| emit::round_deg(to_deg(r)).to_radians()))
         .collect();
-    let move_times: Vec<f64> = std::iter::once(0.0)
-        .chain(
-            wq.windows(2)
-                .map(|w| order::move_time(&w[0], &w[1], speeds)),
-        )
+    let cruise_times: Vec<f64> = std::iter::once(0.0)
+        .chain(wq.windows(2).map(|w| timing::eq7(&w[0], &w[1], &lim.speed)))
         .collect();
-    let time_sorted = move_times.iter().sum();
+    let blended: Vec<bool> = plan.waypoints.iter().map(|w| w.blend > 0.0).collect();
+    let (move_times, time_sorted) = timing::program(
+        &wq,
+        &cruise_times,
+        &blended,
+        lim,
+        dialect.corner.blend_acceleration,
+    );
     Path {
         poses: wq,
         move_times,
+        cruise_times,
         time_unsorted,
         time_sorted,
     }
@@ -858,7 +976,29 @@ pub fn retarget(
         &scene,
         opts.cell.margin,
     );
-    let (program, text, _) = finish(&ck, robot, opts, &compiled.program, &template, &map)?;
+    // The same poses and order; the corners by this dialect's controller, timed for it.
+    let mut planned = Planned {
+        selection: compiled.selection.clone(),
+        time_unsorted: compiled.path.time_unsorted,
+        plan: compiled.plan.clone(),
+        replaced: compiled.report.replaced_unreachable,
+    };
+    blend(&ck, &mut planned.plan, opts, template.dialect, &map);
+    let path = timed_path(
+        &planned.plan,
+        planned.time_unsorted,
+        &Limits::of(robot),
+        template.dialect,
+    );
+    let base = program::base(
+        &ck,
+        opts,
+        &compiled.identifiability,
+        &planned,
+        &path,
+        &compiled.report.predicted_position_std_um,
+    );
+    let (program, text, _) = finish(&ck, robot, opts, &base, &template, &map)?;
     Ok((program, text))
 }
 

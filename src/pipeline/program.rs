@@ -60,6 +60,7 @@ fn header(
         cond,
         time_unsorted_s: path.time_unsorted,
         time_s: path.time_sorted,
+        accelerations: robot.max_accelerations().map(to_deg),
         inputs_sha256: String::new(),
         joint_names: robot.joints.iter().map(|j| j.name.clone()).collect(),
         predicted_std_um: predicted.workspace_rms,
@@ -82,6 +83,7 @@ fn moves(ck: &Checker, planned: &Planned, path: &Path) -> Vec<Move> {
         .zip(&path.move_times)
         .enumerate()
         .map(|(k, (w, &t))| {
+            let cruise = path.cruise_times.get(k).copied().unwrap_or(t);
             if !w.support {
                 pose_no += 1;
             }
@@ -98,6 +100,8 @@ fn moves(ck: &Checker, planned: &Planned, path: &Path) -> Vec<Move> {
                 pose: if w.support { 0 } else { pose_no },
                 blend_mm: to_mm(w.blend),
                 time_s: t,
+                cruise_s: cruise,
+                blend_value: w.blend_value,
                 length_mm: to_mm(model.length(&model.nominal, &w.q)),
                 note: String::new(),
                 pause: String::new(),

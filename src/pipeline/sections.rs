@@ -129,6 +129,7 @@ impl Sections {
         chosen: &[usize],
         start: &[f64; 6],
         speeds: &[f64; 6],
+        accel: Option<&[f64; 6]>,
     ) -> Result<(Vec<Section>, f64), PipelineError> {
         let pool = &self.pool.candidates;
         let all: Vec<[f64; 6]> = chosen.iter().map(|&i| pool[i].q).collect();
@@ -163,7 +164,7 @@ impl Sections {
                 .map(|k| (k, order::move_time(&here, &poses[k], speeds)))
                 .fold((0, f64::INFINITY), |b, c| if c.1 < b.1 { c } else { b })
                 .0;
-            let tour = order::solve(&poses, first, speeds)?;
+            let tour = order::solve_with(&poses, first, speeds, accel)?;
             // Plan on exactly the joint values the program text will carry.
             let ordered: Vec<[f64; 6]> = tour
                 .order

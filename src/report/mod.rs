@@ -9,6 +9,7 @@
 //! was actually drawn.
 
 pub mod calibrate;
+pub mod compensate;
 pub mod compile;
 pub mod diagnose;
 pub mod ldbb;

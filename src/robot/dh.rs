@@ -29,6 +29,9 @@ struct JointSpec {
     theta: f64,
     limits: [f64; 2],
     max_speed: f64,
+    /// angle_unit per s²; absent = the documented default (see `robot::DEFAULT_ACCELERATION_PER_S`).
+    #[serde(default)]
+    max_acceleration: Option<f64>,
 }
 
 /// Turns a TOML error into one line: `line L, column C: message`.
@@ -102,6 +105,14 @@ pub fn from_str(text: &str, path: &Path) -> Result<Robot, LoadError> {
             lower: j.limits[0] * ascale,
             upper: j.limits[1] * ascale,
             max_speed: j.max_speed * ascale,
+            // 0 = not given: the loader puts the default in.
+            max_acceleration: j.max_acceleration.map_or(0.0, |a| {
+                if a > 0.0 {
+                    a * ascale
+                } else {
+                    f64::NAN
+                }
+            }),
         }
     });
     Ok(Robot {

@@ -31,7 +31,16 @@ pub struct Joint {
     pub lower: f64,
     pub upper: f64,
     pub max_speed: f64,
+    /// Maximum joint acceleration (rad/s²): the robot file's `max_acceleration`, the cell's
+    /// `[robot] accelerations`, else [`DEFAULT_ACCELERATION_PER_S`] × `max_speed`.
+    #[serde(default)]
+    pub max_acceleration: f64,
 }
+
+/// A joint's acceleration when neither the robot file nor the cell gives one: this many times its
+/// maximum speed per second (full speed in 0.5 s). Industrial arms reach theirs in 0.2-0.5 s, so
+/// the default errs on the slow side: planned times are then long rather than short.
+pub const DEFAULT_ACCELERATION_PER_S: f64 = 2.0;
 
 /// A collision primitive attached to a DH frame (0 = base frame, i = after joint i), or to a
 /// passive link. Used by later stages; the URDF and DH loaders fill it where the file has
@@ -187,6 +196,8 @@ pub struct LoadOptions {
     /// Joint speeds (rad/s) that replace the file's (e.g. from the cell file, for URDFs
     /// without joint velocities).
     pub speeds: Option<[f64; 6]>,
+    /// Joint accelerations (rad/s²) that replace the file's (the cell's `[robot] accelerations`).
+    pub accelerations: Option<[f64; 6]>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -240,6 +251,17 @@ pub fn load(path: &Path, opts: &LoadOptions) -> Result<Robot, LoadError> {
             j.max_speed = v;
         }
     }
+    if let Some(a) = opts.accelerations {
+        for (j, v) in robot.joints.iter_mut().zip(a) {
+            j.max_acceleration = v;
+        }
+    }
+    // No acceleration given: the documented default, from the speed in force.
+    for j in robot.joints.iter_mut() {
+        if j.max_acceleration == 0.0 {
+            j.max_acceleration = DEFAULT_ACCELERATION_PER_S * j.max_speed;
+        }
+    }
     robot.validate(path)?;
     Ok(Robot {
         digest: sha256_hex(text.as_bytes()),
@@ -279,6 +301,15 @@ impl Robot {
                     ),
                 ));
             }
+            if !(j.max_acceleration.is_finite() && j.max_acceleration > 0.0) {
+                return Err(LoadError::invalid(
+                    path,
+                    format!(
+                        "joint {n} ({}): max_acceleration must be a positive number",
+                        j.name
+                    ),
+                ));
+            }
         }
         if let Some(t) = self.tool {
             if !t.iter().all(|v| v.is_finite()) {
@@ -294,6 +325,11 @@ impl Robot {
             std::array::from_fn(|i| self.joints[i].lower),
             std::array::from_fn(|i| self.joints[i].upper),
         )
+    }
+
+    /// Joint accelerations (rad/s²).
+    pub fn max_accelerations(&self) -> [f64; 6] {
+        std::array::from_fn(|i| self.joints[i].max_acceleration)
     }
 
     pub fn max_speeds(&self) -> [f64; 6] {

@@ -116,6 +116,8 @@ fn convert(text: &str, path: &Path, opts: &LoadOptions) -> Result<Robot, String>
             upper,
             // Missing, zero or unbounded: left for `Robot::validate` to reject with its message.
             max_speed: if v.is_finite() && v > 0.0 { v } else { 0.0 },
+            // URDF states no acceleration: the cell's, else the documented default.
+            max_acceleration: 0.0,
         }
     });
 

@@ -1,12 +1,22 @@
-//! The blend model: how the controller rounds a corner, shared by the compiler and `verify`.
+//! The corner models, shared by the compiler and `verify`: in = a corner (the moves a → k → b),
+//! the dialect's [`Corner`] model and its blend value; out = the joint-space region a controller
+//! following its manual may execute there ([`Region`]), and edbbgen's own intended blend
+//! ([`geometry`], which the LDBB circle program plans with).
 //!
-//! At a via point k between the moves a → k and k → b the controller leaves the first move where
-//! the MAP comes within the blend distance of its position at k, and joins the second where the
-//! MAP leaves that distance again — each on at most half of its move (as controllers do, so
-//! consecutive blends never overlap). Between the two it follows the joint-space quadratic Bézier
-//! with k as control point: the usual parabolic blend of joint-interpolated motion, which stays
-//! inside the convex hull of its three points and cuts the corner by less than the blend distance.
+//! The region is the parallelogram k + u·(q_in − k) + w·(q_out − k), u, w ∈ [0, 1], where q_in
+//! and q_out are the farthest points on the two moves where the blend may begin and end by the
+//! dialect's documentation ([`region`]). It holds the triangle of those three points (every
+//! rounding curve whose control polygon runs along the two moves) and every superposition of
+//! the end of the first move with the start of the second (a parabolic blend, LinuxCNC's). The
+//! checker proves it safe as a surface ([`crate::safety::Checker::patch`]).
+//!
+//! edbbgen's intended blend (the old convention, kept for the LDBB circle's own planning): the
+//! controller leaves the incoming move where the MAP comes within the blend distance of its
+//! position at k, and joins the second where the MAP leaves that distance again, each on at most
+//! half of its move, following the joint-space quadratic Bézier with k as control point.
 
+use super::Checker;
+use crate::dialect::{Corner, CornerKind};
 use crate::model::MeasurementModel;
 use crate::safety::lerp;
 
@@ -37,6 +47,125 @@ impl Blend {
                 .max((self.q_out[i] - self.corner[i]).abs())
         })
     }
+}
+
+/// The corner region at via point k: k + u·(q_in − k) + w·(q_out − k), u, w ∈ [0, 1].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Region {
+    pub corner: [f64; 6],
+    /// The farthest points where the blend may begin (on a → k) and end (on k → b).
+    pub q_in: [f64; 6],
+    pub q_out: [f64; 6],
+    /// Their fractions of the moves, from the corner (0 = at k).
+    pub s_in: f64,
+    pub s_out: f64,
+}
+
+impl Region {
+    pub fn point(&self, u: f64, w: f64) -> [f64; 6] {
+        std::array::from_fn(|i| {
+            self.corner[i]
+                + u * (self.q_in[i] - self.corner[i])
+                + w * (self.q_out[i] - self.corner[i])
+        })
+    }
+
+    /// The parallelogram's edge vectors (q_in − k, q_out − k).
+    pub fn edges(&self) -> ([f64; 6], [f64; 6]) {
+        (
+            std::array::from_fn(|i| self.q_in[i] - self.corner[i]),
+            std::array::from_fn(|i| self.q_out[i] - self.corner[i]),
+        )
+    }
+}
+
+/// Why a corner has no bounded region.
+pub const UNBOUNDED: &str =
+    "the blend instruction is not a distance and bounds no corner region (use an exact stop)";
+
+/// The region a controller following `corner`'s documentation may execute at k for a blend of
+/// `value` (the dialect's unit: mm at the MAP for a TCP distance, program axis units of path for
+/// an axis-path distance; ignored where only the moves bound it). `axis_len` are the lengths of
+/// the moves a → k and k → b over the controller axes in program units (for an axis path).
+/// `kind` overrides the dialect's (FANUC `CR`). Err for a model that bounds nothing.
+#[allow(clippy::too_many_arguments)]
+pub fn region(
+    ck: &Checker,
+    corner: &Corner,
+    kind: Option<CornerKind>,
+    a: &[f64; 6],
+    k: &[f64; 6],
+    b: &[f64; 6],
+    value: f64,
+    axis_len: (f64, f64),
+) -> Result<Region, &'static str> {
+    let cap = corner.cap.clamp(0.0, 1.0);
+    let (s_in, s_out) = match kind.unwrap_or(corner.kind) {
+        CornerKind::Unbounded => return Err(UNBOUNDED),
+        CornerKind::Moves => (cap, cap),
+        CornerKind::AxisPath => {
+            let frac = |len: f64| {
+                if len > 0.0 {
+                    (value.max(0.0) / len).min(cap)
+                } else {
+                    0.0
+                }
+            };
+            (frac(axis_len.0), frac(axis_len.1))
+        }
+        CornerKind::TcpDistance => {
+            let d = value.max(0.0) * 1e-3;
+            (tcp_reach(ck, k, a, d, cap), tcp_reach(ck, k, b, d, cap))
+        }
+    };
+    Ok(Region {
+        corner: *k,
+        q_in: lerp(k, a, s_in),
+        q_out: lerp(k, b, s_out),
+        s_in,
+        s_out,
+    })
+}
+
+/// The largest fraction s ≤ `cap` of the move k → c at which the MAP may still be within `d` of
+/// its position at k (a zone is entered where the TCP first comes within the distance, which
+/// may be before a later exit and re-entry): every interval of a fine scan that a Lipschitz
+/// bound cannot prove to lie outside counts as inside.
+fn tcp_reach(ck: &Checker, k: &[f64; 6], c: &[f64; 6], d: f64, cap: f64) -> f64 {
+    if d <= 0.0 || cap <= 0.0 {
+        return 0.0;
+    }
+    const SCAN: usize = 256;
+    let model = ck.model;
+    let p = &model.nominal;
+    let at_k = model.map_position(p, k);
+    let f = |s: f64| (model.map_position(p, &lerp(k, c, s)) - at_k).norm();
+    // How far the MAP moves per unit of s at most.
+    let sweep = ck.sweep_radius();
+    let speed: f64 = (0..6).map(|i| sweep[i] * (c[i] - k[i]).abs()).sum();
+    let h = cap / SCAN as f64;
+    let mut reach = 0.0;
+    let mut prev = 0.0_f64;
+    for j in 1..=SCAN {
+        let s = j as f64 * h;
+        let cur = f(s);
+        if prev.min(cur) - speed * h / 2.0 <= d {
+            reach = s;
+        }
+        prev = cur;
+    }
+    reach
+}
+
+/// The MAP's largest distance from its position at the corner over the blend's two ends: how
+/// far from the pose the executed path may pass it (the path runs through both ends).
+pub fn end_distance(ck: &Checker, r: &Region) -> f64 {
+    let model = ck.model;
+    let p = &model.nominal;
+    let at = model.map_position(p, &r.corner);
+    (model.map_position(p, &r.q_in) - at)
+        .norm()
+        .max((model.map_position(p, &r.q_out) - at).norm())
 }
 
 /// The blend at corner `k` (None when `distance` is zero).

@@ -475,6 +475,189 @@ impl<'a> Checker<'a> {
         self.refine(q, s, mid, s1, b, m / 2.0, w / 2.0, depth + 1, co, ext)
     }
 
+    /// Per joint, a bound on how far any body point (the MAP included) moves per radian.
+    pub fn sweep_radius(&self) -> [f64; 6] {
+        self.sweep
+    }
+
+    /// The grid a [`Checker::patch`] of this region checks: (n1 + 1)·(n2 + 1) poses, the
+    /// cost the planner weighs before it tries a blend.
+    pub fn patch_grid(&self, e1: &[f64; 6], e2: &[f64; 6]) -> (usize, usize) {
+        let step = self.sample_step();
+        let n = |e: &[f64; 6]| {
+            let m: f64 = (0..6).map(|i| self.sweep[i] * e[i].abs()).sum();
+            ((m / step).ceil() as usize).clamp(1, 100_000)
+        };
+        (n(e1), n(e2))
+    }
+
+    fn sample_step(&self) -> f64 {
+        if self.margin > 0.0 {
+            self.margin / 4.0
+        } else {
+            1e-3
+        }
+    }
+
+    /// Continuous check of a surface: every pose o + u·e1 + w·e2, u, w ∈ [0, 1] (a corner
+    /// region, [`blend::Region`]). The grid is spaced like [`Checker::curve`]'s samples: every
+    /// point of the surface lies within margin/4 of body motion from a grid pose, and every grid
+    /// pose keeps the full margin, so the clearance stays above margin/2. Joint and harness limits
+    /// are linear in (u, w): the corners of the grid bound them. The bar length and the cone
+    /// angles are proven on every cell from its four poses and a Lipschitz bound, subdividing
+    /// where that is not yet tight enough. Returns the (u, w) and the violation of a failure.
+    pub fn patch(
+        &self,
+        o: &[f64; 6],
+        e1: &[f64; 6],
+        e2: &[f64; 6],
+        ext: &mut Extremes,
+    ) -> Result<(), ((f64, f64), Violation)> {
+        let (n1, n2) = self.patch_grid(e1, e2);
+        let at =
+            |u: f64, w: f64| -> [f64; 6] { std::array::from_fn(|i| o[i] + u * e1[i] + w * e2[i]) };
+        let check =
+            |u: f64, w: f64, ext: &mut Extremes| -> Result<PoseInfo, ((f64, f64), Violation)> {
+                let info = self.pose(&at(u, w)).map_err(|v| ((u, w), v))?;
+                if self.mounted {
+                    ext.add(&info);
+                }
+                Ok(info)
+            };
+        // One row of the grid at a time: memory O(n2).
+        let mut prev: Vec<PoseInfo> = Vec::with_capacity(n2 + 1);
+        for j in 0..=n2 {
+            prev.push(check(0.0, j as f64 / n2 as f64, ext)?);
+        }
+        let m1: f64 = (0..6).map(|i| self.sweep[i] * e1[i].abs()).sum();
+        let m2: f64 = (0..6).map(|i| self.sweep[i] * e2[i].abs()).sum();
+        let r1: f64 = e1.iter().map(|x| x.abs()).sum();
+        let r2: f64 = e2.iter().map(|x| x.abs()).sum();
+        for i in 1..=n1 {
+            let u = i as f64 / n1 as f64;
+            let mut cur: Vec<PoseInfo> = Vec::with_capacity(n2 + 1);
+            for j in 0..=n2 {
+                cur.push(check(u, j as f64 / n2 as f64, ext)?);
+            }
+            for j in 0..n2 {
+                let cell = GridCell {
+                    u0: (i - 1) as f64 / n1 as f64,
+                    w0: j as f64 / n2 as f64,
+                    du: 1.0 / n1 as f64,
+                    dw: 1.0 / n2 as f64,
+                };
+                let v = [prev[j], prev[j + 1], cur[j], cur[j + 1]];
+                self.refine_cell(&at, &cell, v, (m1, m2), (r1, r2), 0, ext)?;
+            }
+            prev = cur;
+        }
+        Ok(())
+    }
+
+    /// Proves the bar length and the cones over one grid cell from its corner poses `v`
+    /// ((u0, w0), (u0, w1), (u1, w0), (u1, w1)), subdividing into four where the bound is not
+    /// tight enough. `m`: the MAP's motion per unit of u and of w; `r`: the flange's rotation.
+    #[allow(clippy::too_many_arguments)]
+    fn refine_cell(
+        &self,
+        at: &dyn Fn(f64, f64) -> [f64; 6],
+        c: &GridCell,
+        v: [PoseInfo; 4],
+        m: (f64, f64),
+        r: (f64, f64),
+        depth: u32,
+        ext: &mut Extremes,
+    ) -> Result<(), ((f64, f64), Violation)> {
+        if !self.mounted {
+            return Ok(());
+        }
+        let cl = self.cell;
+        // Every point of the cell is within h of some corner of it (MAP motion), w of rotation.
+        let h = (m.0 * c.du + m.1 * c.dw) / 2.0;
+        let w = (r.0 * c.du + r.1 * c.dw) / 2.0;
+        let max = |f: &dyn Fn(&PoseInfo) -> f64| v.iter().map(f).fold(f64::NEG_INFINITY, f64::max);
+        let min_len = v.iter().map(|p| p.length).fold(f64::INFINITY, f64::min);
+        let max_len = max(&|p| p.length);
+        let lmin = min_len - h;
+        let ang = if lmin > 0.0 { h / lmin } else { f64::INFINITY };
+        let ok_len =
+            max_len + h <= cl.bar_max + BAR_TOLERANCE && min_len - h >= cl.bar_min - BAR_TOLERANCE;
+        let socket_limit = cl.fixture_cone_cos.clamp(-1.0, 1.0).acos();
+        let cup_limit = cl.tool_cone_cos.clamp(-1.0, 1.0).acos();
+        let ok_socket = cl.fixture_cone_cos <= -1.0
+            || max(&|p| p.socket) + ang <= socket_limit + ANGLE_TOLERANCE;
+        let ok_cup =
+            cl.tool_cone_cos <= -1.0 || max(&|p| p.cup) + ang + w <= cup_limit + ANGLE_TOLERANCE;
+        if ok_len && ok_socket && ok_cup {
+            return Ok(());
+        }
+        let (um, wm) = (c.u0 + c.du / 2.0, c.w0 + c.dw / 2.0);
+        if depth >= 24 {
+            return Err((
+                (um, wm),
+                Violation {
+                    reason: Reason::BarLength,
+                    detail: "cannot prove the bar range and cones over the corner region".into(),
+                },
+            ));
+        }
+        let probe =
+            |u: f64, w: f64, ext: &mut Extremes| -> Result<PoseInfo, ((f64, f64), Violation)> {
+                let info = self.pose(&at(u, w)).map_err(|v| ((u, w), v))?;
+                ext.add(&info);
+                Ok(info)
+            };
+        let (u1, w1) = (c.u0 + c.du, c.w0 + c.dw);
+        let mid = probe(um, wm, ext)?;
+        let left = probe(um, c.w0, ext)?; // (um, w0)
+        let right = probe(um, w1, ext)?; // (um, w1)
+        let low = probe(c.u0, wm, ext)?; // (u0, wm)
+        let high = probe(u1, wm, ext)?; // (u1, wm)
+        let (hu, hw) = (c.du / 2.0, c.dw / 2.0);
+        let sub = |u0: f64, w0: f64| GridCell {
+            u0,
+            w0,
+            du: hu,
+            dw: hw,
+        };
+        self.refine_cell(
+            at,
+            &sub(c.u0, c.w0),
+            [v[0], low, left, mid],
+            m,
+            r,
+            depth + 1,
+            ext,
+        )?;
+        self.refine_cell(
+            at,
+            &sub(c.u0, wm),
+            [low, v[1], mid, right],
+            m,
+            r,
+            depth + 1,
+            ext,
+        )?;
+        self.refine_cell(
+            at,
+            &sub(um, c.w0),
+            [left, mid, v[2], high],
+            m,
+            r,
+            depth + 1,
+            ext,
+        )?;
+        self.refine_cell(
+            at,
+            &sub(um, wm),
+            [mid, right, high, v[3]],
+            m,
+            r,
+            depth + 1,
+            ext,
+        )
+    }
+
     /// [`Checker::line`]'s verdict for searches that only need yes or no: a few poses along
     /// the move are checked first, so a move that fails far from `a` fails fast; a move that
     /// passes them gets the full continuous check (and its extremes).
@@ -505,6 +688,14 @@ impl<'a> Checker<'a> {
         ext.merge(&met);
         verdict
     }
+}
+
+/// A cell of a [`Checker::patch`] grid: [u0, u0 + du] × [w0, w0 + dw].
+struct GridCell {
+    u0: f64,
+    w0: f64,
+    du: f64,
+    dw: f64,
 }
 
 /// Where [`Checker::line_passes`] looks before the full check.

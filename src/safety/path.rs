@@ -1,11 +1,13 @@
 //! Path safety: in = measurement poses in tour order and the pool of admitted poses; out = the
 //! waypoints actually commanded: every move checked continuously, support poses inserted where a
-//! straight joint move fails, poses dropped where no support is found, and a blend (or an exact
-//! stop) decided for every corner.
+//! straight joint move fails, poses dropped where no support is found; then ([`blend_corners`])
+//! a blend or an exact stop for every corner, by the controller's corner model.
 
 use super::blend::{self, Blend};
 use super::roadmap::Nearest;
 use super::{lerp, Checker, Extremes, Violation};
+use crate::controller::ControllerMap;
+use crate::dialect::{Corner, CornerKind};
 use crate::order::move_time;
 use rand::{Rng, SeedableRng};
 use rayon::prelude::*;
@@ -22,6 +24,11 @@ pub struct Waypoint {
     pub transit: bool,
     /// Blend distance at this corner (m); 0 = exact stop.
     pub blend: f64,
+    /// The blend instruction's value the program writes here, in the dialect's unit (its
+    /// corner model's: mm for a TCP distance, axis units of path for SINUMERIK's ADIS; 0 where
+    /// the instruction takes none).
+    #[serde(default)]
+    pub blend_value: f64,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -64,7 +71,6 @@ pub fn plan(
     ck: &Checker,
     tour: &[[f64; 6]],
     pool: &[[f64; 6]],
-    blend_distance: f64,
     speeds: &[f64; 6],
     seed: u64,
 ) -> Plan {
@@ -79,6 +85,7 @@ pub fn plan(
         support: false,
         transit: false,
         blend: 0.0,
+        blend_value: 0.0,
     };
     // Pass 1: the tour as ordered; a pose that cannot be reached safely (not even through
     // support poses) is deferred, and the tour goes on from where it is. Every leg from one
@@ -143,6 +150,7 @@ pub fn plan(
                     support: true,
                     transit: false,
                     blend: 0.0,
+                    blend_value: 0.0,
                 }));
                 wps.push(measure(q));
             }
@@ -204,6 +212,7 @@ pub fn plan(
                 support: true,
                 transit: false,
                 blend: 0.0,
+                blend_value: 0.0,
             };
             let mut seq: Vec<Waypoint> = into.into_iter().map(support).collect();
             seq.push(measure(&q));
@@ -223,33 +232,7 @@ pub fn plan(
         wps.pop();
         supports -= 1;
     }
-    // Blends: every corner is checked on its own (in parallel); the results are taken in order.
-    let mut exact_stops = 0;
-    if blend_distance > 0.0 {
-        let corners: Vec<Option<Extremes>> = (1..wps.len().saturating_sub(1))
-            .into_par_iter()
-            .map(|k| {
-                let bl = blend::geometry(
-                    ck.model,
-                    &wps[k - 1].q,
-                    &wps[k].q,
-                    &wps[k + 1].q,
-                    blend_distance,
-                )?;
-                let mut e = Extremes::default();
-                check_blend(ck, &bl, &mut e).ok().map(|()| e)
-            })
-            .collect();
-        for (k, corner) in (1..).zip(corners) {
-            match corner {
-                Some(e) => {
-                    ext.merge(&e);
-                    wps[k].blend = blend_distance;
-                }
-                None => exact_stops += 1,
-            }
-        }
-    }
+    let exact_stops = 0;
     Plan {
         waypoints: wps,
         supports,
@@ -299,13 +282,7 @@ pub struct Section {
 
 /// Plans every section (bar mounted) and the transits between them (bar removed). A section
 /// whose transit cannot be made safe is dropped whole.
-pub fn plan_sections(
-    ck: &Checker,
-    sections: &[Section],
-    blend_distance: f64,
-    speeds: &[f64; 6],
-    seed: u64,
-) -> Plan {
+pub fn plan_sections(ck: &Checker, sections: &[Section], speeds: &[f64; 6], seed: u64) -> Plan {
     let free = ck.unmounted();
     let mut out = Plan {
         waypoints: Vec::new(),
@@ -316,14 +293,7 @@ pub fn plan_sections(
     };
     let mut offset = 0;
     for (k, sec) in sections.iter().enumerate() {
-        let mut p = plan(
-            ck,
-            &sec.tour,
-            &sec.pool,
-            blend_distance,
-            speeds,
-            seed ^ k as u64,
-        );
+        let mut p = plan(ck, &sec.tour, &sec.pool, speeds, seed ^ k as u64);
         for d in &mut p.dropped {
             d.index += offset;
         }
@@ -368,6 +338,7 @@ pub fn plan_sections(
             support: true,
             transit: true,
             blend: 0.0,
+            blend_value: 0.0,
         }));
         p.waypoints[0].transit = true;
         out.waypoints.append(&mut p.waypoints);
@@ -376,6 +347,120 @@ pub fn plan_sections(
         out.extremes.merge(&p.extremes);
     }
     out
+}
+
+/// What [`blend_corners`] blends by: the controller's corner model, the blend distance at the
+/// MAP and the controller mapping (axis-path lengths are measured on the controller's axes).
+pub struct CornerSpec<'a> {
+    pub corner: &'a Corner,
+    /// Blend distance at the MAP (m); 0 = exact stops everywhere.
+    pub distance: f64,
+    pub map: &'a ControllerMap,
+}
+
+/// A corner region larger than this many grid poses is not tried: an exact stop costs less than
+/// proving it (a corner region spans up to half of two moves where the controller's blend
+/// instruction bounds only some axes).
+pub const PATCH_BUDGET: usize = 2500;
+
+/// Decides every corner of the plan: a blend where the corner region a controller following
+/// the dialect's documentation may execute is proven safe (and, at a measurement pose, its ends
+/// keep the MAP within the blend distance of the pose), else an exact stop. Corners are checked
+/// in parallel and taken in order. Resets what an earlier call decided.
+pub fn blend_corners(ck: &Checker, plan: &mut Plan, spec: &CornerSpec) {
+    let wps = &mut plan.waypoints;
+    for w in wps.iter_mut() {
+        w.blend = 0.0;
+        w.blend_value = 0.0;
+    }
+    plan.exact_stops = 0;
+    if spec.distance <= 0.0 || wps.len() < 3 {
+        return;
+    }
+    let n = wps.len();
+    let decided: Vec<Option<(f64, Extremes)>> = (1..n - 1)
+        .into_par_iter()
+        .map(|k| {
+            // A blend joins two moves made with the bar: not across a pause.
+            if wps[k].transit || wps[k + 1].transit {
+                return None;
+            }
+            let (a, q, b) = (&wps[k - 1].q, &wps[k].q, &wps[k + 1].q);
+            corner_blend(ck, spec, a, q, b, !wps[k].support)
+        })
+        .collect();
+    for (k, d) in (1..).zip(decided) {
+        let eligible = !wps[k].transit && !wps[k + 1].transit;
+        match d {
+            Some((value, e)) => {
+                plan.extremes.merge(&e);
+                wps[k].blend = spec.distance;
+                wps[k].blend_value = value;
+            }
+            None if eligible => plan.exact_stops += 1,
+            None => {}
+        }
+    }
+}
+
+/// The blend value for the corner a → q → b and the extremes its region met, or None for an
+/// exact stop.
+fn corner_blend(
+    ck: &Checker,
+    spec: &CornerSpec,
+    a: &[f64; 6],
+    q: &[f64; 6],
+    b: &[f64; 6],
+    measured: bool,
+) -> Option<(f64, Extremes)> {
+    let d_mm = crate::units::to_mm(spec.distance);
+    let axes = |x: &[f64; 6]| {
+        spec.map
+            .apply(&crate::emit::emitted(x).map(crate::units::to_deg))
+    };
+    let len = |x: &[f64; 6], y: &[f64; 6]| {
+        let (x, y) = (axes(x), axes(y));
+        (0..6).map(|i| (x[i] - y[i]).powi(2)).sum::<f64>().sqrt()
+    };
+    let axis_len = (len(a, q), len(q, b));
+    let kind = spec.corner.kind;
+    let value = match kind {
+        CornerKind::Unbounded => return None,
+        CornerKind::Moves => 0.0,
+        CornerKind::TcpDistance => d_mm,
+        CornerKind::AxisPath => {
+            // The axis-path distance whose ends stay within the blend distance at the MAP,
+            // rounded down to what the program prints.
+            let tcp = Corner {
+                kind: CornerKind::TcpDistance,
+                ..spec.corner.clone()
+            };
+            let r = blend::region(ck, &tcp, None, a, q, b, d_mm, axis_len).ok()?;
+            let v = (r.s_in * axis_len.0).min(r.s_out * axis_len.1);
+            let v = (v * 1e3 * (1.0 - 1e-12)).floor() / 1e3;
+            if v <= 0.0 {
+                return None;
+            }
+            v
+        }
+    };
+    let r = blend::region(ck, spec.corner, None, a, q, b, value, axis_len).ok()?;
+    // At a measurement pose the path must pass the pose within the blend distance: it runs
+    // through the blend's ends (a TCP-distance blend begins within the distance by definition).
+    if measured
+        && kind != CornerKind::TcpDistance
+        && blend::end_distance(ck, &r) > spec.distance * (1.0 + 1e-9)
+    {
+        return None;
+    }
+    let (e1, e2) = r.edges();
+    let (n1, n2) = ck.patch_grid(&e1, &e2);
+    if (n1 + 1) * (n2 + 1) > PATCH_BUDGET {
+        return None;
+    }
+    let mut e = Extremes::default();
+    ck.patch(&r.corner, &e1, &e2, &mut e).ok()?;
+    Some((value, e))
 }
 
 pub fn check_blend(ck: &Checker, b: &Blend, ext: &mut Extremes) -> Result<(), (f64, Violation)> {

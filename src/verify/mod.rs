@@ -3,12 +3,15 @@
 //!
 //! `verify` never looks at the compiler's memory: it re-reads the text with the dialect's
 //! reader ([`crate::dialect`]), undoing the controller mapping, reconstructs the motion the
-//! controller will execute — straight joint moves, and at every corner the blend of
-//! [`crate::safety::blend`] with the blend distance in force — and checks every pose, move and
-//! blend continuously with [`crate::safety::Checker`]. The bar is mounted at the first pause,
+//! controller will execute — straight joint moves, and at every blended corner the whole region
+//! a controller following the dialect's documented corner model may execute
+//! ([`crate::safety::blend::region`]) — and checks every pose, move and corner region
+//! continuously with [`crate::safety::Checker`]. The bar is mounted at the first pause,
 //! removed at the next, and so on; moves without it (the approach, transits between sections)
 //! are checked for the robot's collisions, limits and harness. A program whose header declares
 //! a controller mapping other than the one in force fails before anything else.
+
+pub mod trace;
 
 /// The RS274/NGC reader under its old path (`verify::gcode::parse` reads ngc text with the
 /// identity mapping); the readers live in [`crate::dialect`].
@@ -23,12 +26,13 @@ pub mod gcode {
 
 use crate::collision::Contact;
 use crate::controller::ControllerMap;
-use crate::dialect::{Dialect, Parsed, Step};
+use crate::dialect::{CornerKind, Dialect, MoveTime, Parsed, Step};
 use crate::ir::Reason;
 use crate::order::move_time;
 use crate::robot::Robot;
 use crate::safety::{blend, describe_contact, Checker, Extremes, Violation};
-use crate::units::{fmt_fixed, to_mm, DEG};
+use crate::timing::{self, Limits};
+use crate::units::{fmt_fixed, DEG};
 use serde::{Deserialize, Serialize};
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -69,7 +73,7 @@ impl std::fmt::Display for Failure {
     }
 }
 
-fn fail(line: usize, time: f64, reason: Reason, detail: String) -> Failure {
+pub(crate) fn fail(line: usize, time: f64, reason: Reason, detail: String) -> Failure {
     Failure {
         line,
         time,
@@ -80,11 +84,19 @@ fn fail(line: usize, time: f64, reason: Reason, detail: String) -> Failure {
 struct Motion {
     line: usize,
     target: [f64; 6],
+    /// The controller axes as the program states them.
+    axes: [f64; 6],
+    /// Its time at the cruise speed, and the whole move with its ramps.
+    cruise: f64,
     duration: f64,
-    blend: f64,
+    /// The blend instruction's value (dialect unit) when the corner blends.
+    blend: Option<f64>,
+    corner: Option<CornerKind>,
     support: bool,
     /// Followed directly by another motion (no pause/dwell/end between): blendable corner.
     flows_on: bool,
+    /// Followed by a pause.
+    pause_after: bool,
     /// The bar is in place during this move.
     mounted: bool,
 }
@@ -106,11 +118,41 @@ pub fn check_text(
             format!("cannot read the program: {}", e.msg),
         )
     })?;
-    check(ck, robot, &parsed)
+    check(ck, robot, &parsed, dialect)
 }
 
-/// Checks a parsed program (any dialect) against the checker's robot and cell.
-pub fn check(ck: &Checker, robot: &Robot, parsed: &Parsed) -> Result<Summary, Failure> {
+/// Checks a parsed program of `dialect` against the checker's robot and cell.
+pub fn check(
+    ck: &Checker,
+    robot: &Robot,
+    parsed: &Parsed,
+    dialect: &Dialect,
+) -> Result<Summary, Failure> {
+    Ok(rebuild(ck, robot, parsed, dialect)?.0)
+}
+
+/// The motion a program commands, as `verify` rebuilt and checked it: per motion line (in
+/// order) its line, target (model joints, rad), whether the bar is mounted during it, whether
+/// it is a support pose, and its estimated start and end times (s from the first move).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Executed {
+    pub line: usize,
+    pub target: [f64; 6],
+    pub mounted: bool,
+    pub support: bool,
+    pub start: f64,
+    pub end: f64,
+    /// The move ends in a pause (the operator acts there).
+    pub pause_after: bool,
+}
+
+/// [`check`], and the motions it rebuilt.
+pub fn rebuild(
+    ck: &Checker,
+    robot: &Robot,
+    parsed: &Parsed,
+    dialect: &Dialect,
+) -> Result<(Summary, Vec<Executed>), Failure> {
     // The joint values only mean what the mapping says: a program written for another
     // mapping (a wrong J2/J3 coupling, sign or offset) is refused before its poses are read.
     if let Some(declared) = parsed.header_value("controller") {
@@ -126,7 +168,162 @@ pub fn check(ck: &Checker, robot: &Robot, parsed: &Parsed) -> Result<Summary, Fa
             ));
         }
     }
+    let (motions, mount_at, blended, total) = timed_motions(robot, parsed, dialect)?;
+    let n = motions.len();
+    let free = ck.unmounted();
+    let mut ext = Extremes::default();
+    let mut time = 0.0;
+    let mut min_clear = Contact {
+        distance: f64::INFINITY,
+        a: String::new(),
+        b: String::new(),
+    };
+    let mut blends = 0;
+    let note_clear = |q: &[f64; 6], min_clear: &mut Contact| {
+        let c = ck.clearance(q);
+        if c.distance < min_clear.distance {
+            *min_clear = c;
+        }
+    };
+    let mut executed = Vec::with_capacity(n);
+    for j in 0..n {
+        let m = &motions[j];
+        let with = if m.mounted { ck } else { &free };
+        let start = time;
+        if j == 0 {
+            // The approach starts wherever the robot is: only its target can be checked.
+            with.pose(&m.target).map_err(|v| Failure {
+                line: m.line,
+                time,
+                violation: v,
+            })?;
+        } else {
+            let a = motions[j - 1].target;
+            let mut e = Extremes::default();
+            if let Err((s, v)) = with.line(&a, &m.target, &mut e) {
+                return Err(Failure {
+                    line: m.line,
+                    time: time + s * m.duration,
+                    violation: v,
+                });
+            }
+            ext.merge(&e);
+            time += m.duration;
+        }
+        executed.push(Executed {
+            line: m.line,
+            target: m.target,
+            mounted: m.mounted,
+            support: m.support,
+            start,
+            end: time,
+            pause_after: m.pause_after,
+        });
+        // Where the bar goes in, the pose must hold it.
+        if mount_at.contains(&(j + 1)) {
+            ck.pose(&m.target).map_err(|v| Failure {
+                line: m.line,
+                time,
+                violation: Violation {
+                    reason: v.reason,
+                    detail: format!("where the bar is mounted: {}", v.detail),
+                },
+            })?;
+        }
+        if m.mounted {
+            note_clear(&m.target, &mut min_clear);
+        }
+        // The corner at the end of this move: the whole region the controller may execute.
+        if blended[j] {
+            let (a, b) = (&motions[j - 1], &motions[j + 1]);
+            let len = |x: &[f64; 6], y: &[f64; 6]| {
+                (0..6).map(|i| (x[i] - y[i]).powi(2)).sum::<f64>().sqrt()
+            };
+            let value = m.blend.unwrap_or(0.0);
+            let at_corner = |v: Violation| Failure {
+                line: m.line,
+                time,
+                violation: Violation {
+                    reason: v.reason,
+                    detail: format!(
+                        "in the corner region of its blend ({} {}{}): {}",
+                        dialect.corner.instruction,
+                        fmt_fixed(value, 3),
+                        if dialect.corner.unit.is_empty() {
+                            String::new()
+                        } else {
+                            format!(" {}", dialect.corner.unit)
+                        },
+                        v.detail
+                    ),
+                },
+            };
+            let r = blend::region(
+                ck,
+                &dialect.corner,
+                m.corner,
+                &a.target,
+                &m.target,
+                &b.target,
+                value,
+                (len(&a.axes, &m.axes), len(&m.axes, &b.axes)),
+            )
+            .map_err(|why| {
+                at_corner(Violation {
+                    reason: Reason::Program,
+                    detail: why.to_string(),
+                })
+            })?;
+            let (e1, e2) = r.edges();
+            let mut e = Extremes::default();
+            ck.patch(&r.corner, &e1, &e2, &mut e)
+                .map_err(|(_, v)| at_corner(v))?;
+            ext.merge(&e);
+            note_clear(&r.point(0.5, 0.5), &mut min_clear);
+            blends += 1;
+        }
+    }
+    debug_assert!((time - total).abs() >= 0.0);
+    if min_clear.distance < ck.margin {
+        return Err(fail(
+            0,
+            time,
+            Reason::Collision,
+            describe_contact(&min_clear, ck.margin),
+        ));
+    }
+    Ok((
+        Summary {
+            moves: n,
+            poses: motions.iter().filter(|m| !m.support).count(),
+            supports: motions.iter().filter(|m| m.support).count(),
+            sections: mount_at.len(),
+            blends,
+            duration: total,
+            extremes: ext,
+            min_clearance: min_clear,
+        },
+        executed,
+    ))
+}
+
+/// The program's estimated duration as `verify` times it (each move with its ramps at the robot's
+/// accelerations, scaled where the dialect's controller blends; the blended corners' overlaps
+/// taken off), without any safety check: what a recorded run of any program is compared with.
+pub fn estimate(robot: &Robot, parsed: &Parsed, dialect: &Dialect) -> Result<f64, Failure> {
+    Ok(timed_motions(robot, parsed, dialect)?.3)
+}
+
+/// The motions of a program with their mount state, the motions after which the bar goes in,
+/// which corners blend, and the total time.
+#[allow(clippy::type_complexity)]
+fn timed_motions(
+    robot: &Robot,
+    parsed: &Parsed,
+    dialect: &Dialect,
+) -> Result<(Vec<Motion>, Vec<usize>, Vec<bool>, f64), Failure> {
     let speeds = robot.max_speeds();
+    let lim = Limits::of(robot);
     // Collect the motions; the bar is mounted at the first pause, removed at the next, and so
     // on: a motion made while it is in place is checked with it.
     let mut motions: Vec<Motion> = Vec::new();
@@ -142,7 +339,7 @@ pub fn check(ck: &Checker, robot: &Robot, parsed: &Parsed) -> Result<Summary, Fa
                 ..
             } => {
                 let q = target.map(|d| d * DEG);
-                let duration = match prev {
+                let cruise = match prev {
                     None => 0.0,
                     Some((p, from_axes)) => {
                         let min_time = move_time(&p, &q, &speeds);
@@ -160,19 +357,44 @@ pub fn check(ck: &Checker, robot: &Robot, parsed: &Parsed) -> Result<Summary, Fa
                                     "the move's speed is left to the controller: only the approach (the first move) may do that".into(),
                                 )
                             })?;
+                        // A whole-move time (RAPID `\T`, URScript `t`) must leave room for the ramps.
+                        let (min_time, what) = match (dialect.move_time, step) {
+                            (
+                                MoveTime::Total,
+                                Step::Move {
+                                    timing: crate::dialect::Timing::Duration(_),
+                                    ..
+                                },
+                            ) => (
+                                timing::move_time(&p, &q, &lim, 1.0),
+                                "at its maximum speed and acceleration",
+                            ),
+                            _ => (min_time, "at its maximum speed"),
+                        };
                         if duration < min_time * (1.0 - 1e-6) {
                             return Err(fail(
                                 l.line,
                                 0.0,
                                 Reason::JointSpeed,
                                 format!(
-                                    "move takes {} s but the slowest axis needs {} s at its maximum speed",
+                                    "move takes {} s but the slowest axis needs {} s {what}",
                                     fmt_fixed(duration, 3),
                                     fmt_fixed(min_time, 3)
                                 ),
                             ));
                         }
-                        duration
+                        // What the time word states: at the cruise (the ramps on top), or the
+                        // whole move (its cruise is what leaves the ramps room).
+                        match (dialect.move_time, step) {
+                            (
+                                MoveTime::Total,
+                                Step::Move {
+                                    timing: crate::dialect::Timing::Duration(_),
+                                    ..
+                                },
+                            ) => cruise_of(duration, timing::accel_time(&p, &q, &lim.accel)),
+                            _ => duration,
+                        }
                     }
                 };
                 let flows_on = matches!(
@@ -180,13 +402,24 @@ pub fn check(ck: &Checker, robot: &Robot, parsed: &Parsed) -> Result<Summary, Fa
                     Some(Step::Move { .. })
                 );
                 let support = l.comment.as_deref().is_some_and(|c| c.contains("support"));
+                let corner = match step {
+                    Step::Move { corner, .. } => *corner,
+                    _ => None,
+                };
                 motions.push(Motion {
                     line: l.line,
                     target: q,
-                    duration,
-                    blend: blend.unwrap_or(0.0) * 1e-3,
+                    axes: *axes,
+                    cruise,
+                    duration: 0.0,
+                    blend: *blend,
+                    corner,
                     support,
                     flows_on,
+                    pause_after: matches!(
+                        parsed.lines.get(k + 1).map(|n| &n.step),
+                        Some(Step::Pause)
+                    ),
                     mounted,
                 });
                 prev = Some((q, *axes));
@@ -213,106 +446,43 @@ pub fn check(ck: &Checker, robot: &Robot, parsed: &Parsed) -> Result<Summary, Fa
         motions.iter_mut().for_each(|m| m.mounted = true);
         mount_at.push(1);
     }
-    let free = ck.unmounted();
-    let mut ext = Extremes::default();
-    let mut time = 0.0;
-    let mut min_clear = Contact {
-        distance: f64::INFINITY,
-        a: String::new(),
-        b: String::new(),
-    };
-    let mut blends = 0;
-    let note_clear = |q: &[f64; 6], min_clear: &mut Contact| {
-        let c = ck.clearance(q);
-        if c.distance < min_clear.distance {
-            *min_clear = c;
-        }
-    };
-    for j in 0..motions.len() {
-        let m = &motions[j];
-        let with = if m.mounted { ck } else { &free };
-        if j == 0 {
-            // The approach starts wherever the robot is: only its target can be checked.
-            with.pose(&m.target).map_err(|v| Failure {
-                line: m.line,
-                time,
-                violation: v,
-            })?;
-        } else {
-            let a = motions[j - 1].target;
-            let mut e = Extremes::default();
-            if let Err((s, v)) = with.line(&a, &m.target, &mut e) {
-                return Err(Failure {
-                    line: m.line,
-                    time: time + s * m.duration,
-                    violation: v,
-                });
-            }
-            ext.merge(&e);
-            time += m.duration;
-        }
-        // Where the bar goes in, the pose must hold it.
-        if mount_at.contains(&(j + 1)) {
-            ck.pose(&m.target).map_err(|v| Failure {
-                line: m.line,
-                time,
-                violation: Violation {
-                    reason: v.reason,
-                    detail: format!("where the bar is mounted: {}", v.detail),
-                },
-            })?;
-        }
-        if m.mounted {
-            note_clear(&m.target, &mut min_clear);
-        }
-        // The corner at the end of this move, blended when the next motion follows directly.
-        if m.mounted
-            && m.blend > 0.0
-            && m.flows_on
-            && j > 0
-            && j + 1 < motions.len()
-            && motions[j + 1].mounted
-        {
-            let (a, b) = (motions[j - 1].target, motions[j + 1].target);
-            if let Some(bl) = blend::geometry(ck.model, &a, &m.target, &b, m.blend) {
-                let mut e = Extremes::default();
-                if let Err((_, v)) = crate::safety::path::check_blend(ck, &bl, &mut e) {
-                    let detail = format!(
-                        "in the {} mm blend at the end of this move: {}",
-                        fmt_fixed(to_mm(m.blend), 1),
-                        v.detail
-                    );
-                    return Err(Failure {
-                        line: m.line,
-                        time,
-                        violation: Violation {
-                            reason: v.reason,
-                            detail,
-                        },
-                    });
-                }
-                ext.merge(&e);
-                note_clear(&bl.point(0.5), &mut min_clear);
-                blends += 1;
-            }
-        }
+    // The corners that blend: into a move that follows directly, the bar in place on both.
+    let n = motions.len();
+    let blended: Vec<bool> = (0..n)
+        .map(|j| {
+            let m = &motions[j];
+            m.blend.is_some()
+                && m.mounted
+                && m.flows_on
+                && j > 0
+                && j + 1 < n
+                && motions[j + 1].mounted
+        })
+        .collect();
+    // The times: each move with its ramps (scaled where the controller blends), the blends'
+    // overlaps off the total, as the compiler estimates them.
+    let poses: Vec<[f64; 6]> = motions.iter().map(|m| m.target).collect();
+    let cruise: Vec<f64> = motions.iter().map(|m| m.cruise).collect();
+    let (durations, total) = timing::program(
+        &poses,
+        &cruise,
+        &blended,
+        &lim,
+        dialect.corner.blend_acceleration,
+    );
+    for (m, d) in motions.iter_mut().zip(&durations) {
+        m.duration = *d;
     }
-    if min_clear.distance < ck.margin {
-        return Err(fail(
-            0,
-            time,
-            Reason::Collision,
-            describe_contact(&min_clear, ck.margin),
-        ));
+    Ok((motions, mount_at, blended, total))
+}
+
+/// The cruise time of a move whose whole time (ramps included) is `total`: T = T₇ + T_a²/T₇
+/// solved for T₇ (a move too short for a cruise runs its triangle at T_a).
+fn cruise_of(total: f64, ta: f64) -> f64 {
+    let disc = total * total - 4.0 * ta * ta;
+    if disc <= 0.0 {
+        ta
+    } else {
+        (total + disc.sqrt()) / 2.0
     }
-    Ok(Summary {
-        moves: motions.len(),
-        poses: motions.iter().filter(|m| !m.support).count(),
-        supports: motions.iter().filter(|m| m.support).count(),
-        sections: mount_at.len(),
-        blends,
-        duration: time,
-        extremes: ext,
-        min_clearance: min_clear,
-    })
 }
