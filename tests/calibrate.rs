@@ -339,7 +339,10 @@ fn a_cyclic_error_of_a_joint_short_of_a_turn_goes_into_its_zero_with_an_honest_u
         serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
     let qs = joint_space(&c.robot, 2000, 7);
     let effective = with_cyclic_mean(&truth, &m);
-    let err = registered_um(&file_points(&out, &qs), &true_points(&c.model, &effective, &qs));
+    let err = registered_um(
+        &file_points(&out, &qs),
+        &true_points(&c.model, &effective, &qs),
+    );
     let zero_convention =
         registered_um(&file_points(&out, &qs), &true_points(&c.model, &truth, &qs));
     let pred = report["predicted_position_std_um"]["workspace_rms"]

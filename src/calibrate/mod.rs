@@ -750,7 +750,10 @@ pub fn run(
             .filter(|&k| problem.weight[k] > 0.0)
             .collect();
         let stride = rows.len().div_ceil(REGION_POSES).max(1);
-        rows.iter().step_by(stride).map(|&k| problem.m.q[k]).collect()
+        rows.iter()
+            .step_by(stride)
+            .map(|&k| problem.m.q[k])
+            .collect()
     };
     let space = predict::workspace(robot, opts.workspace_poses, opts.seed);
     let shared = shared_columns(&free);
@@ -874,7 +877,11 @@ pub fn run(
         let dev = est.get(*q) - nominal.get(*q);
         let p = prior(opts, *q);
         if flagged && dev.abs() > FLAG_SIGMAS * p {
-            let (u, unit) = if q.is_angle() { (DEG, "deg") } else { (MM, "mm") };
+            let (u, unit) = if q.is_angle() {
+                (DEG, "deg")
+            } else {
+                (MM, "mm")
+            };
             let check = match q {
                 Param::Shared(i) if crate::model::is_map(*i) => "check --tool",
                 Param::Fixture { .. } => "check --fixture",
@@ -902,13 +909,9 @@ pub fn run(
         let fixture_fitted = free
             .iter()
             .any(|q| matches!(q, Param::Fixture { group, .. } if *group == r));
-        let kept_r: Vec<usize> = range
-            .clone()
-            .filter(|&k| problem.weight[k] > 0.0)
-            .collect();
+        let kept_r: Vec<usize> = range.clone().filter(|&k| problem.weight[k] > 0.0).collect();
         let rms_kept = |v: &[f64]| -> f64 {
-            (kept_r.iter().map(|&k| v[k] * v[k]).sum::<f64>() / kept_r.len().max(1) as f64)
-                .sqrt()
+            (kept_r.iter().map(|&k| v[k] * v[k]).sum::<f64>() / kept_r.len().max(1) as f64).sqrt()
         };
         let fixture_mm: [f64; 3] = problem.fixtures[r].map(|v| round(v / MM, 6)).into();
         run_reports.push(RunReport {
@@ -919,9 +922,8 @@ pub fn run(
             rms_after_um: round(rms_kept(&residual) * 1e6, 3),
             fixture_fitted_mm: fixture_fitted
                 .then(|| est.fixtures[r].map(|v| round(v / MM, 6)).into()),
-            fixture_std_mm: fixture_fitted.then(|| {
-                [0, 1, 2].map(|axis| std_of(Param::Fixture { group: r, axis }))
-            }),
+            fixture_std_mm: fixture_fitted
+                .then(|| [0, 1, 2].map(|axis| std_of(Param::Fixture { group: r, axis }))),
             fixture_moved_mm: fixture_fitted
                 .then(|| round((est.fixtures[r] - problem.fixtures[r]).norm() / MM, 6)),
             length_offset_mm: round(est.offsets[r] / MM, 6),
@@ -996,8 +998,13 @@ pub fn run(
             if a >= b {
                 continue;
             }
-            let starts = |groups: &[fit::Group]| groups.iter().any(|g| g.rows.start == a && !g.given);
-            let cause = match (a == range.start, starts(&problem.fix_groups), starts(&problem.off_groups)) {
+            let starts =
+                |groups: &[fit::Group]| groups.iter().any(|g| g.rows.start == a && !g.given);
+            let cause = match (
+                a == range.start,
+                starts(&problem.fix_groups),
+                starts(&problem.off_groups),
+            ) {
                 (true, _, _) => "run start",
                 (false, true, true) => "fixture moved and length zero changed",
                 (false, true, false) => "fixture moved",
@@ -1381,7 +1388,11 @@ pub fn summary(r: &Report) -> String {
         r.runs.len(),
         if r.runs.len() == 1 { "" } else { "s" },
         r.rows,
-        if static_only { " (static readings)" } else { "" },
+        if static_only {
+            " (static readings)"
+        } else {
+            ""
+        },
         if static_only { "reading" } else { "bar" },
         fmt_fixed(r.noise_um, 3),
         fmt_fixed(r.residual_lag1, 2)

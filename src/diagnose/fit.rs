@@ -205,7 +205,9 @@ impl Estimate {
         self.effects
             .iter()
             .find(|t| t.effect == Effect::ServoLag)
-            .map_or((0.0, 0.0), |t| (t.coef[0], t.coef.get(1).copied().unwrap_or(0.0)))
+            .map_or((0.0, 0.0), |t| {
+                (t.coef[0], t.coef.get(1).copied().unwrap_or(0.0))
+            })
     }
 
     /// The thermal lag's amplitude and time constant, when the model has one.
@@ -247,9 +249,16 @@ pub(crate) enum Col {
     /// joint j's compliance times its gravity torque from the known masses.
     CompKnown(usize),
     /// A step candidate: a new fixture coordinate for rows `from..to`.
-    StepFix { from: usize, to: usize, axis: usize },
+    StepFix {
+        from: usize,
+        to: usize,
+        axis: usize,
+    },
     /// A step candidate: a new length zero for rows `from..to`.
-    StepOff { from: usize, to: usize },
+    StepOff {
+        from: usize,
+        to: usize,
+    },
 }
 
 pub(crate) fn effect_cols(e: Effect, basis: Basis) -> Vec<Col> {
@@ -365,8 +374,8 @@ fn derivatives(t: &[f64], q: &[[f64; 6]]) -> (Vec<[f64; 6]>, Vec<[f64; 6]>) {
         for j in 0..6 {
             if k >= 2 && k + 2 < n {
                 let h = (t[k + 2] - t[k - 2]) / 4.0;
-                qdot[k][j] =
-                    (-q[k + 2][j] + 8.0 * q[k + 1][j] - 8.0 * q[k - 1][j] + q[k - 2][j]) / (12.0 * h);
+                qdot[k][j] = (-q[k + 2][j] + 8.0 * q[k + 1][j] - 8.0 * q[k - 1][j] + q[k - 2][j])
+                    / (12.0 * h);
                 qdd[k][j] = (-q[k + 2][j] + 16.0 * q[k + 1][j] - 30.0 * q[k][j]
                     + 16.0 * q[k - 1][j]
                     - q[k - 2][j])
@@ -392,11 +401,13 @@ fn harmonic_means(q: &[[f64; 6]]) -> [[(f64, f64); MAX_HARMONIC]; 6] {
     std::array::from_fn(|j| {
         let (lo, hi) = q
             .iter()
-            .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), x| (a.min(x[j]), b.max(x[j])));
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), x| {
+                (a.min(x[j]), b.max(x[j]))
+            });
         let span = hi - lo;
         std::array::from_fn(|k| {
             let h = (k + 1) as f64;
-            if !(span > 1e-9) {
+            if span.is_nan() || span <= 1e-9 {
                 let (s, c) = (h * lo).sin_cos();
                 return if lo.is_finite() { (s, c) } else { (0.0, 0.0) };
             }
@@ -744,10 +755,7 @@ impl Problem {
         };
         let g = &groups[group];
         let same: Vec<&Group> = groups.iter().filter(|h| h.run == g.run).collect();
-        let before = same
-            .iter()
-            .filter(|h| h.rows.start < g.rows.start)
-            .count();
+        let before = same.iter().filter(|h| h.rows.start < g.rows.start).count();
         (before + 1, same.len())
     }
 
@@ -807,9 +815,7 @@ impl Problem {
                 }
                 Effect::ThermalDrift => {
                     let f = match t.basis {
-                        Basis::Temperature => {
-                            c[0] * self.temp_rise.as_ref().map_or(0.0, |r| r[k])
-                        }
+                        Basis::Temperature => c[0] * self.temp_rise.as_ref().map_or(0.0, |r| r[k]),
                         _ => c[0] * lag(self.since[k], c[1]).0,
                     };
                     for i in 0..6 {
@@ -847,7 +853,11 @@ impl Problem {
                 Effect::Geometric | Effect::ServoLag => {}
             }
         }
-        (q, Params::from_array(&p), est.offsets[self.off_of[k] as usize])
+        (
+            q,
+            Params::from_array(&p),
+            est.offsets[self.off_of[k] as usize],
+        )
     }
 
     /// Fills the regressor values of row k for `cols`; returns the residual measured − model
@@ -906,7 +916,9 @@ impl Problem {
                     j[THETA + jj] * if sine { sn } else { cs }
                 }
                 Col::Back(jj) => {
-                    let side = prep.back[jj].as_ref().map_or(self.dir[k][jj], |b| b.side[k]);
+                    let side = prep.back[jj]
+                        .as_ref()
+                        .map_or(self.dir[k][jj], |b| b.side[k]);
                     -0.5 * j[THETA + jj] * side
                 }
                 Col::Servo => -(0..6).map(|i| j[THETA + i] * qd[i]).sum::<f64>(),
@@ -962,13 +974,16 @@ impl Problem {
     }
 }
 
+/// Per-row joint velocities and accelerations.
+type Rates = (Vec<[f64; 6]>, Vec<[f64; 6]>);
+
 /// What the rows need from the estimate before they can be evaluated one by one: the motor
 /// angles under a servo lag and the backlash play operator, which runs along each run.
 pub(crate) struct Prep {
     /// Motor-side joint angles (the logged setpoints delayed), when a servo lag is fitted.
     motor: Option<Vec<[f64; 6]>>,
     /// Joint rates at the delayed time (velocity, acceleration), with a servo lag.
-    rates: Option<(Vec<[f64; 6]>, Vec<[f64; 6]>)>,
+    rates: Option<Rates>,
     /// Per joint with a backlash term: the load's offset from the motor and the flank it
     /// rests on (+1: it was last pushed in the positive direction).
     back: [Option<Play>; 6],
@@ -1056,11 +1071,7 @@ pub(crate) fn prepare(problem: &Problem, est: &Estimate) -> Prep {
             back[j] = Some(Play { offset, side });
         }
     }
-    Prep {
-        motor,
-        rates,
-        back,
-    }
+    Prep { motor, rates, back }
 }
 
 /// Torque about joint j per unit mass (comp 0, mass at frame i's origin) or per unit first

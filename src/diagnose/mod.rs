@@ -182,12 +182,7 @@ pub fn noise_variance(fitted: &Fitted, weight: &[f64]) -> (f64, f64, f64) {
 
 /// An effect's parameters in report units, with standard uncertainties from the diagonal of
 /// the coefficient covariance `var` (same order as the coefficients).
-pub fn effect_report(
-    e: Effect,
-    basis: Basis,
-    coef: &[f64],
-    var: &[f64],
-) -> EffectReport {
+pub fn effect_report(e: Effect, basis: Basis, coef: &[f64], var: &[f64]) -> EffectReport {
     let sd = |k: usize| var.get(k).map_or(0.0, |v| v.max(0.0).sqrt());
     let mut params = serde_json::Map::new();
     let mut std = serde_json::Map::new();
@@ -206,7 +201,10 @@ pub fn effect_report(
             };
             params.insert("cos_deg".into(), pick(&|k| coef[k], 0).into());
             params.insert("sin_deg".into(), pick(&|k| coef[k], 1).into());
-            params.insert("harmonics".into(), serde_json::to_value(&orders).unwrap_or_default());
+            params.insert(
+                "harmonics".into(),
+                serde_json::to_value(&orders).unwrap_or_default(),
+            );
             std.insert("cos_deg".into(), pick(&sd, 0).into());
             std.insert("sin_deg".into(), pick(&sd, 1).into());
         }
@@ -417,14 +415,22 @@ enum Move {
 fn candidates(problem: &Problem) -> Vec<Move> {
     let mut c = Vec::new();
     if !problem.masses.is_empty() {
-        c.push(Move::Effect(Effect::JointCompliance, Basis::KnownMasses, 0.0));
+        c.push(Move::Effect(
+            Effect::JointCompliance,
+            Basis::KnownMasses,
+            0.0,
+        ));
     }
     c.push(Move::Effect(Effect::JointCompliance, Basis::Standard, 0.0));
     if problem.has_temperature() {
         c.push(Move::Effect(Effect::ThermalDrift, Basis::Temperature, 0.0));
     } else if problem.timed() && problem.span() > 0.0 {
         for f in LAG_GRID {
-            c.push(Move::Effect(Effect::ThermalDrift, Basis::Lag, f * problem.span()));
+            c.push(Move::Effect(
+                Effect::ThermalDrift,
+                Basis::Lag,
+                f * problem.span(),
+            ));
         }
     }
     if problem.moving() {
@@ -672,8 +678,7 @@ pub fn select(
                             let sel: Vec<usize> = (range.start..range.start + 2 * h).collect();
                             with(&sel)
                         };
-                        let all: Vec<(f64, f64, f64)> =
-                            (1..=fit::MAX_HARMONIC).map(upto).collect();
+                        let all: Vec<(f64, f64, f64)> = (1..=fit::MAX_HARMONIC).map(upto).collect();
                         let min = all.iter().map(|x| x.2).fold(f64::INFINITY, f64::min);
                         let h = (1..=fit::MAX_HARMONIC)
                             .find(|&h| all[h - 1].2 * (1.0 - HARMONIC_GAIN) <= min)

@@ -107,7 +107,12 @@ fn algebraic(problem: &Problem, est: &Estimate, setup: &[Param]) -> Option<Estim
         }
         let g = problem.fixture_group_of(k);
         let (a0, f, mm, c, og) = layout[g];
-        let frames = chain_frames(&problem.model.base, &p.dh, &problem.model.flange, &problem.m.q[k]);
+        let frames = chain_frames(
+            &problem.model.base,
+            &p.dh,
+            &problem.model.flange,
+            &problem.m.q[k],
+        );
         let (r, t) = (frames[7].r, frames[7].t);
         let fix = est.fixtures[g];
         let m = Vector3::new(est.p[MAP], est.p[MAP + 1], est.p[MAP + 2]);

@@ -41,12 +41,16 @@ pub struct Arm {
 
 fn rot_z(t: f64) -> Matrix4<f64> {
     let (s, c) = t.sin_cos();
-    Matrix4::new(c, -s, 0.0, 0.0, s, c, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0)
+    Matrix4::new(
+        c, -s, 0.0, 0.0, s, c, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0,
+    )
 }
 
 fn rot_x(t: f64) -> Matrix4<f64> {
     let (s, c) = t.sin_cos();
-    Matrix4::new(1.0, 0.0, 0.0, 0.0, 0.0, c, -s, 0.0, 0.0, s, c, 0.0, 0.0, 0.0, 0.0, 1.0)
+    Matrix4::new(
+        1.0, 0.0, 0.0, 0.0, 0.0, c, -s, 0.0, 0.0, s, c, 0.0, 0.0, 0.0, 0.0, 1.0,
+    )
 }
 
 fn shift(x: f64, y: f64, z: f64) -> Matrix4<f64> {
@@ -166,7 +170,10 @@ impl Path {
         if self.t.len() < 2 {
             return self.q[0];
         }
-        let k = self.t.partition_point(|&x| x <= t).clamp(1, self.t.len() - 1);
+        let k = self
+            .t
+            .partition_point(|&x| x <= t)
+            .clamp(1, self.t.len() - 1);
         let (t0, t1) = (self.t[k - 1], self.t[k]);
         let h = t1 - t0;
         let s = (t - t0) / h;
@@ -215,7 +222,10 @@ fn solve_q1(
     for base in [beta + d, beta - d] {
         for turn in -2..=2 {
             let phi = base + turn as f64 * 2.0 * PI;
-            if phi >= arm.lo[0] && phi <= arm.hi[0] && best.is_none_or(|x| (phi - near).abs() < (x - near).abs()) {
+            if phi >= arm.lo[0]
+                && phi <= arm.hi[0]
+                && best.is_none_or(|x| (phi - near).abs() < (x - near).abs())
+            {
                 best = Some(phi);
             }
         }
@@ -296,9 +306,8 @@ pub fn walk(arm: &Arm, w: &Walk) -> Path {
             let prev = trial.q[k - 1];
             let tp = trial.t[k] - trial.t[k - 1];
             let here = trial.q[k];
-            trial.v[k] = std::array::from_fn(|j| {
-                0.5 * ((here[j] - prev[j]) / tp + (n[j] - here[j]) / dt)
-            });
+            trial.v[k] =
+                std::array::from_fn(|j| 0.5 * ((here[j] - prev[j]) / tp + (n[j] - here[j]) / dt));
             trial.a[k] = std::array::from_fn(|j| {
                 ((n[j] - here[j]) / dt - (here[j] - prev[j]) / tp) / (0.5 * (tp + dt))
             });
@@ -334,16 +343,22 @@ fn path_stopped(p: &Path) -> bool {
 
 // ---- the real robot -----------------------------------------------------------------------
 
+/// A point mass: link frame index (1..6), position in that frame (m), mass (kg).
+pub type Mass = (usize, Vector3<f64>, f64);
+
+/// A cyclic error's harmonic: order, amplitude (rad), phase (rad).
+pub type Harmonic = (usize, f64, f64);
+
 /// What the real robot does besides its geometry; each effect in this module's own formulas.
 #[derive(Clone, Debug, Default)]
 pub struct Physics {
     /// Point masses (kg) fixed in link frames (frame index 1..6, position in that frame), and
     /// the joint stiffnesses (N·m/rad).
-    pub compliance: Option<(Vec<(usize, Vector3<f64>, f64)>, [f64; 6])>,
+    pub compliance: Option<(Vec<Mass>, [f64; 6])>,
     /// α (1/K), final rise R (K), starting rise T₀ (K), τ (s).
     pub thermal: Option<(f64, f64, f64, f64)>,
     /// Joint, and (order, amplitude rad, phase rad) per harmonic.
-    pub cyclic: Option<(usize, Vec<(usize, f64, f64)>)>,
+    pub cyclic: Option<(usize, Vec<Harmonic>)>,
     /// Joint, full play (rad).
     pub backlash: Option<(usize, f64)>,
     /// First-order servo loop time constant (s).
@@ -406,7 +421,9 @@ impl Truth {
 
     fn grow(&self, t: f64) -> f64 {
         match self.physics.thermal {
-            Some((alpha, rise, start, tau)) => 1.0 + alpha * (rise - (rise - start) * (-t / tau).exp()),
+            Some((alpha, rise, start, tau)) => {
+                1.0 + alpha * (rise - (rise - start) * (-t / tau).exp())
+            }
             None => 1.0,
         }
     }
@@ -610,7 +627,8 @@ pub fn static_readings(truth: &Truth, c: &Static) -> StaticRecording {
     let mut rng = ChaCha8Rng::seed_from_u64(c.seed ^ 0x57a7);
     let mut out = StaticRecording::default();
     while out.length.len() < c.poses {
-        let q: [f64; 6] = std::array::from_fn(|j| rng.random_range(truth.arm.lo[j]..truth.arm.hi[j]));
+        let q: [f64; 6] =
+            std::array::from_fn(|j| rng.random_range(truth.arm.lo[j]..truth.arm.hi[j]));
         let p = truth.point(&q);
         let d = (p - truth.fixture).norm();
         if p.z < c.min_z || d > c.max_len {
@@ -621,7 +639,13 @@ pub fn static_readings(truth: &Truth, c: &Static) -> StaticRecording {
         if let Some((_, e)) = c.outliers.iter().find(|(r, _)| *r == k) {
             l += e;
         }
-        let quant = |v: f64, step: f64| if step > 0.0 { (v / step).round() * step } else { v };
+        let quant = |v: f64, step: f64| {
+            if step > 0.0 {
+                (v / step).round() * step
+            } else {
+                v
+            }
+        };
         out.q_true.push(q);
         out.q_logged.push(q.map(|v| quant(v, c.joint_step)));
         out.length.push(quant(l, c.length_step));
