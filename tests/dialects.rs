@@ -209,8 +209,8 @@ fn every_dialect_of_every_cell_is_golden_and_reads_back_as_planned() {
             }
             // Blends, exact stops, pauses and support marks in the same order.
             assert_eq!(read_events(&parsed), planned_events(program), "{label}");
-            // Each blend's value as planned: the TCP distance, SINUMERIK's per-corner ADIS,
-            // nothing for LinuxCNC's G64.
+            // Each blend's value as planned: the TCP distance (RAPID's zone a tenth smaller),
+            // SINUMERIK's per-corner ADIS, nothing for LinuxCNC's G64.
             let blends: Vec<f64> = parsed
                 .lines
                 .iter()
@@ -226,6 +226,13 @@ fn every_dialect_of_every_cell_is_golden_and_reads_back_as_planned() {
                 .map(|m| match dl.corner.kind {
                     dialect::CornerKind::AxisPath => (m.blend_value * 1e3).round() / 1e3,
                     dialect::CornerKind::Moves => 0.0,
+                    dialect::CornerKind::TcpDistance => {
+                        assert!(
+                            m.blend_value * (1.0 + dl.corner.tolerance) <= m.blend_mm + 1e-9,
+                            "{label}: a zone the controller may enlarge past the blend distance"
+                        );
+                        m.blend_value
+                    }
                     _ => m.blend_mm,
                 })
                 .collect();

@@ -7,8 +7,9 @@
 //!   deg };` per position, `/END`;
 //! - `J P[k] n% FINE|CNTn|CRn` (also `P[k:label]`; `n sec`/`n msec` as the move's time): `n%`
 //!   runs the slowest axis at n % of its speed, all axes arriving together. FINE is an exact
-//!   stop; CRn (corner region) an n mm blend; CNTn is read as an n mm blend at the MAP — the
-//!   edbbgen convention, since FANUC's CNT is a speed criterion, not a distance;
+//!   stop; CNTn is a blend with the value n, a continuity criterion bounding no corner region
+//!   (verify refuses it with the bar in place); CRn (corner region) a blend verified as up to
+//!   half of each adjacent move (no available FANUC document says what its distance bounds);
 //! - `!remark` (at most 32 characters; a remark goes with the motion after it; `..` lines
 //!   continue the header's long values), `MESSAGE[…]` (at most 24), `PAUSE`, `WAIT t(sec)`,
 //!   `UFRAME_NUM=n`, `UTOOL_NUM=n`, `END`.
@@ -26,7 +27,7 @@ struct Motion {
     p: usize,
     timing: Timing,
     blend: Option<f64>,
-    /// CR (a TCP distance) rather than CNT (a continuity value).
+    /// CR (up to half of each adjacent move, assumed) rather than CNT (a continuity value).
     corner: Option<super::CornerKind>,
     comment: Option<String>,
 }
@@ -368,9 +369,9 @@ fn motion(line: usize, s: &str, comment: Option<String>) -> Result<Motion, Parse
             format!("'{term}' is not a termination (FINE, CNTn, CRn)"),
         ));
     };
-    let corner = term
-        .starts_with("CR")
-        .then_some(super::CornerKind::TcpDistance);
+    // No available FANUC document says what CR's distance bounds: up to half of each adjacent
+    // move (the dialect's cap) is assumed, not a TCP distance.
+    let corner = term.starts_with("CR").then_some(super::CornerKind::Moves);
     Ok(Motion {
         line,
         p,

@@ -92,9 +92,15 @@ pub struct Corner {
     pub instruction: String,
     /// The unit of its value as the program writes it ("mm", "m", "deg", "%", "" for none).
     pub unit: String,
-    /// At most this fraction of each adjacent move is blended (the controllers shorten a blend
-    /// to half of a move so that neighbouring blends never overlap).
+    /// At most this fraction of each adjacent move is blended: 0.5 where the controller's
+    /// documentation limits a blend to half a move (LinuxCNC), 1 where it documents no such
+    /// limit (the blend may then reach anywhere along the move where the value allows).
     pub cap: f64,
+    /// How far the controller may exceed the programmed value, as a fraction of it (ABB: in
+    /// joint movement a zone's size "may differ somewhat from the one programmed"; 10 % is
+    /// assumed): the region is checked at value × (1 + tolerance). 0 where nothing says so.
+    #[serde(default)]
+    pub tolerance: f64,
     /// The controller's acceleration on moves that blend, as a fraction of the joints' limits.
     pub blend_acceleration: f64,
     /// What the value bounds, and what it leaves free, in the vendor's words (for people).
@@ -107,17 +113,17 @@ pub struct Corner {
 #[serde(rename_all = "snake_case")]
 pub enum CornerKind {
     /// A TCP distance: the blend begins where the TCP (set to the MAP) comes within the value of
-    /// the corner and ends where it leaves it again (KRL `C_DIS`, RAPID zones, URScript `r`,
-    /// FANUC `CR`).
+    /// the corner and ends where it leaves it again (KRL `C_DIS`, RAPID zones).
     TcpDistance,
     /// A path distance over the controller axes in their units: the blend begins at most the
     /// value before the corner and ends at most the value after it (SINUMERIK `G641 ADIS` on
     /// the FGROUP axes, degrees of joint path).
     AxisPath,
-    /// The value bounds only some axes (LinuxCNC `G64 P`: X Y Z): the blend may take up to
-    /// `cap` of each adjacent move.
+    /// The value bounds only some axes (LinuxCNC `G64 P`: X Y Z), or nothing documented bounds
+    /// it (FANUC `CR`): the blend may take up to `cap` of each adjacent move.
     Moves,
-    /// Not a distance (FANUC `CNT`): nothing bounds the corner region.
+    /// No documented corner region (FANUC `CNT`, a continuity value; URScript `movej` blends,
+    /// which Universal Robots says may deviate from the waypoints' course).
     Unbounded,
 }
 

@@ -158,6 +158,22 @@ pub fn compile(
             to_deg(opts.step)
         )));
     }
+    let template = crate::dialect::Template::from_source(template)
+        .map_err(|e| ProgramError::Template(e.to_string()))?;
+    // The chords' blends by the dialect's corner model: none where its blend instruction bounds
+    // no corner region (URScript's movej blends, FANUC's CNT); a zone the controller may enlarge
+    // (ABB: up to 10 %) written that much smaller; else the blend distance.
+    let corner = &template.dialect.corner;
+    let blend = if corner.kind == crate::dialect::CornerKind::Unbounded {
+        0.0
+    } else {
+        opts.blend
+    };
+    let blend_value = if corner.kind == crate::dialect::CornerKind::TcpDistance {
+        (to_mm(blend) / (1.0 + corner.tolerance.max(0.0)) * 1e3 * (1.0 - 1e-12)).floor() / 1e3
+    } else {
+        to_mm(blend)
+    };
     let (map, orientation) = setup.tool().map_err(input)?;
     let arm = Arm { robot, map };
     let ik = CircleIk::new(arm.clone(), orientation, setup).map_err(input)?;
@@ -255,18 +271,18 @@ pub fn compile(
                 support: false,
                 transit: false,
                 pose: moves.len() + 1,
-                blend_mm: if s == per_load {
+                blend_mm: if s == per_load || blend_value <= 0.0 {
                     0.0
                 } else {
-                    to_mm(opts.blend)
+                    to_mm(blend)
                 },
                 time_s: t,
                 // The circle's constant speed is the cruise; its chords blend into each other.
                 cruise_s: t,
-                blend_value: if s == per_load {
+                blend_value: if s == per_load || blend_value <= 0.0 {
                     0.0
                 } else {
-                    to_mm(opts.blend)
+                    blend_value
                 },
                 length_mm: to_mm(length(&q)),
                 note,
@@ -289,7 +305,7 @@ pub fn compile(
         let mid: [f64; 6] = std::array::from_fn(|i| 0.5 * (a[i] + b[i]));
         dev = dev.max((length(&mid) - setup.bar_length).abs());
         dev = dev.max((length(&b) - setup.bar_length).abs());
-        if let Some(bl) = crate::safety::blend::geometry(&model, &a, &b, &c, opts.blend) {
+        if let Some(bl) = crate::safety::blend::geometry(&model, &a, &b, &c, blend) {
             dev = dev.max((length(&bl.point(0.5)) - setup.bar_length).abs());
         }
     }
@@ -335,9 +351,14 @@ pub fn compile(
             fmt_fixed(run_time, 1)
         ),
         format!(
-            "path: joint moves {} deg apart, {} mm blends; they change the bar length by at most {} um against the circle",
+            "path: joint moves {} deg apart, {}; they change the bar length by at most {} um against the circle",
             fmt_fixed(step / DEG, 3),
-            fmt_fixed(to_mm(opts.blend), 2),
+            if blend > 0.0 {
+                format!("{} mm blends", fmt_fixed(to_mm(blend), 2))
+            } else {
+                "an exact stop at each (this controller's joint-move blends bound no corner region)"
+                    .to_string()
+            },
             fmt_fixed(dev * 1e6, 2)
         ),
         format!("estimated time: {} s of motion; pauses not included", fmt_fixed(total, 1)),
@@ -353,7 +374,7 @@ pub fn compile(
         map_mm: map.map(to_mm).into(),
         bar_mm: [to_mm(spec.bar_min), to_mm(spec.bar_max)],
         accelerations: robot.max_accelerations().map(to_deg),
-        blend_mm: to_mm(opts.blend),
+        blend_mm: to_mm(blend),
         margin_mm: to_mm(spec.margin),
         joint_margin_deg: to_deg(spec.joint_margin),
         poses: moves.len(),
@@ -377,8 +398,6 @@ pub fn compile(
         axis_decimals: 0,
     };
     let base = Program { header, moves };
-    let template = crate::dialect::Template::from_source(template)
-        .map_err(|e| ProgramError::Template(e.to_string()))?;
     let cmap = crate::controller::ControllerMap::resolve(
         spec.controller.as_ref(),
         &template.dialect.defaults(),

@@ -81,11 +81,12 @@ impl Region {
 
 /// Why a corner has no bounded region.
 pub const UNBOUNDED: &str =
-    "the blend instruction is not a distance and bounds no corner region (use an exact stop)";
+    "the blend instruction bounds no documented corner region on this controller (use an exact stop)";
 
 /// The region a controller following `corner`'s documentation may execute at k for a blend of
-/// `value` (the dialect's unit: mm at the MAP for a TCP distance, program axis units of path for
-/// an axis-path distance; ignored where only the moves bound it). `axis_len` are the lengths of
+/// `value` (the dialect's unit: mm at the MAP for a TCP distance, enlarged by the corner's
+/// `tolerance`; program axis units of path for an axis-path distance; ignored where only the
+/// moves bound it), each end at most `corner.cap` of its move from k. `axis_len` are the lengths of
 /// the moves a → k and k → b over the controller axes in program units (for an axis path).
 /// `kind` overrides the dialect's (FANUC `CR`). Err for a model that bounds nothing.
 #[allow(clippy::too_many_arguments)]
@@ -114,7 +115,8 @@ pub fn region(
             (frac(axis_len.0), frac(axis_len.1))
         }
         CornerKind::TcpDistance => {
-            let d = value.max(0.0) * 1e-3;
+            // What the controller may make of the programmed distance (ABB: up to 10 % more).
+            let d = value.max(0.0) * 1e-3 * (1.0 + corner.tolerance.max(0.0));
             (tcp_reach(ck, k, a, d, cap), tcp_reach(ck, k, b, d, cap))
         }
     };

@@ -427,12 +427,26 @@ fn corner_blend(
     let value = match kind {
         CornerKind::Unbounded => return None,
         CornerKind::Moves => 0.0,
+        CornerKind::TcpDistance if spec.corner.tolerance > 0.0 => {
+            // The value whose enlarged zone (ABB: up to 10 % more) is still the blend distance,
+            // rounded down to what the program prints.
+            let v = (d_mm / (1.0 + spec.corner.tolerance) * 1e3 * (1.0 - 1e-12)).floor() / 1e3;
+            if v <= 0.0 {
+                return None;
+            }
+            v
+        }
         CornerKind::TcpDistance => d_mm,
         CornerKind::AxisPath => {
             // The axis-path distance whose ends stay within the blend distance at the MAP,
-            // rounded down to what the program prints.
+            // rounded down to what the program prints. The compiler keeps it within half of
+            // each move (a controller may take more where the value allows: SINUMERIK limits
+            // the rounding only by the block), so that the two roundings of a move never
+            // compete for it and the controller's own reductions only shrink the region.
             let tcp = Corner {
                 kind: CornerKind::TcpDistance,
+                cap: spec.corner.cap.min(0.5),
+                tolerance: 0.0,
                 ..spec.corner.clone()
             };
             let r = blend::region(ck, &tcp, None, a, q, b, d_mm, axis_len).ok()?;
