@@ -512,11 +512,19 @@ impl Problem {
                 continue;
             }
             since.extend(rm.t.iter().map(|t| t - rm.t[0]));
+            let (g, nd) = restarts(&rm.t, &rm.q, rm.form);
             match rm.form {
                 Form::Continuous => {
-                    let (v, a) = derivatives(&rm.t, &rm.q);
-                    qdot.extend(v);
-                    qddot.extend(a);
+                    // Rates of each stretch between gaps on its own: across a gap the robot
+                    // moved unrecorded, and a stencil spanning it would see a jump.
+                    let mut a = 0;
+                    while a < rm.len() {
+                        let b = (a + 1..rm.len()).find(|&i| g[i]).unwrap_or(rm.len());
+                        let (v, acc) = derivatives(&rm.t[a..b], &rm.q[a..b]);
+                        qdot.extend(v);
+                        qddot.extend(acc);
+                        a = b;
+                    }
                 }
                 Form::Static { .. } => {
                     qdot.extend(std::iter::repeat_n([0.0; 6], rm.len()));
@@ -524,7 +532,6 @@ impl Problem {
                 }
             }
             dir.extend(directions(&rm.q));
-            let (g, nd) = restarts(&rm.t, &rm.q, rm.form);
             gap.extend(g);
             next_dir.extend(nd);
             if let (Some(all), Some(t), Some(rise)) = (&mut m.temp, &rm.temp, &mut temp_rise) {
@@ -786,10 +793,21 @@ impl Problem {
         }
     }
 
-    /// Recorded values of row k's run, re-interpolated at that run's time `at`.
+    /// Recorded values of row k's run, re-interpolated at that run's time `at` (near row k)
+    /// from the rows of k's stretch between gaps only: across a gap the robot moved
+    /// unrecorded, and a polynomial through samples on both sides of it is no estimate of
+    /// where it was (before a stretch's first row it is extrapolated from the stretch).
     fn interp_run(&self, k: usize, values: &[[f64; 6]], at: f64) -> [f64; 6] {
         let r = self.ranges[self.run[k]].clone();
-        interp(&self.m.t[r.clone()], &values[r], at)
+        let mut lo = k;
+        while lo > r.start && !self.gap[lo] && k - lo < 6 {
+            lo -= 1;
+        }
+        let mut hi = k + 1;
+        while hi < r.end && !self.gap[hi] && hi - k < 6 {
+            hi += 1;
+        }
+        interp(&self.m.t[lo..hi], &values[lo..hi], at)
     }
 
     /// Effective (load-side) configuration, parameters and length zero of row k under the
@@ -1389,6 +1407,13 @@ pub fn refit(problem: &Problem, est: &mut Estimate, free: &[Param]) -> Fitted {
     }
 }
 
+/// At most this many Gauss-Newton steps per refit. A fit that starts far from its optimum
+/// with many nearly collinear columns (joint compliance's general gravity basis on top of a
+/// geometry that had absorbed it by hundreds of micrometres) descends by damped steps of a
+/// few per cent each: one such fit on the KR 210 takes some 230 steps to converge. A fit
+/// near its optimum stops on convergence after a few.
+const MAX_REFIT_STEPS: usize = 300;
+
 pub(crate) fn refit_stats(problem: &Problem, est: &mut Estimate, free: &[Param]) -> Stats {
     let cols = model_cols(est, free);
     let sel: Vec<usize> = (0..cols.len()).collect();
@@ -1400,7 +1425,7 @@ pub(crate) fn refit_stats(problem: &Problem, est: &mut Estimate, free: &[Param])
     // worse than where it started.
     let mut lambda = 0.0;
     let mut gain = 1.0;
-    for _ in 0..40 {
+    for _ in 0..MAX_REFIT_STEPS {
         let before = st.rr[0];
         let mut accepted = None;
         // Near the optimum (the last, undamped step gained little), a step that does not
