@@ -2,7 +2,7 @@
 CARGO ?= cargo
 NJ130 := robots/comau_nj130/robot.dh.toml
 
-.PHONY: build run test check fmt clippy doc snapshots bench bench-peers bench-diagnose paper calibration ci fuzz rapidchecker
+.PHONY: build run test check fmt clippy doc snapshots bench bench-peers bench-diagnose paper calibration stop-and-measure ci fuzz rapidchecker
 
 build:
 	$(CARGO) build --release --locked
@@ -54,6 +54,12 @@ paper:
 # circle and random poses; true MAP error over the joint space next to the prediction.
 calibration:
 	$(CARGO) run --release --locked --example calibration
+
+# Measuring without a synchronous joint log (issue 23): 10 simulated NJ-130s, the
+# stop-and-measure program from the bar's own log and the continuous one with a joint log,
+# each against its synchronous reference.
+stop-and-measure:
+	$(CARGO) run --release --locked --example stop_and_measure
 
 # edbbgen against LKH-3 (elkai), OR-tools and Pinocchio on the same instances, in a throwaway
 # venv under target/. Not part of `make test` or CI: it downloads the peers from PyPI.

@@ -19,6 +19,30 @@ use std::time::Instant;
 
 const ROOT: &str = env!("CARGO_MANIFEST_DIR");
 
+#[path = "../bench/ur10/meshes.rs"]
+mod ur10_meshes;
+
+/// The UR10 with stand-in collision meshes (bench/ur10): the URDF copied to target/bench-ur10
+/// with its meshes written next to it. Returns the URDF's path relative to the crate root.
+fn ur10_with_meshes() -> Option<String> {
+    let dir = Path::new(ROOT).join("target/bench-ur10");
+    let made = std::fs::create_dir_all(&dir)
+        .and_then(|()| {
+            std::fs::copy(
+                Path::new(ROOT).join("bench/ur10/robot.urdf"),
+                dir.join("robot.urdf"),
+            )
+        })
+        .and_then(|_| ur10_meshes::write(&dir));
+    match made {
+        Ok(()) => Some("target/bench-ur10/robot.urdf".to_string()),
+        Err(e) => {
+            eprintln!("UR10 with meshes: cannot write {}: {e}", dir.display());
+            None
+        }
+    }
+}
+
 struct Row {
     name: String,
     value: f64,
@@ -106,6 +130,11 @@ fn timed(args: &[&str], reps: usize) -> Option<(f64, f64)> {
     }
     best
 }
+
+/// The UR10 bench case: a fixture 700 mm in front of the base, the MAP 120 mm along the
+/// flange axis and 60 mm off it (REP-199 flange: x along joint 6).
+const UR10_FIXTURE: &str = "700,300,300";
+const UR10_TOOL: &str = "120,30,60";
 
 fn strings(a: &[&str]) -> Vec<String> {
     a.iter().map(|s| s.to_string()).collect()
@@ -382,8 +411,9 @@ fn main() {
     }
 
     // End to end: the release binary, wall time and peak memory, on every shared robot in its
-    // test cell, the NJ-130 at the default grid and at 5 deg, and a 6R arm whose joints all turn
-    // +-360 deg (issue 13's targets: < 3 s at the default grid, NJ-130 at 5 deg < 10 s, < 300 MB).
+    // test cell, the NJ-130 at the default grid and at 5 deg, a 6R arm whose joints all turn
+    // +-360 deg, and a UR10 URDF with collision meshes, every joint +-360 deg (issue 13's and
+    // issue 21's targets: < 3 s at the default grid, NJ-130 at 5 deg < 10 s, < 300 MB).
     let mut e2e = Vec::new();
     let mut cases: Vec<(String, Vec<String>)> = vec![
         (
@@ -409,6 +439,12 @@ fn main() {
             strings(&["bench/arm360.dh.toml", "--fixture", "700,300,300"]),
         ),
     ];
+    if let Some(ur10) = ur10_with_meshes() {
+        cases.push((
+            "UR10 URDF with meshes, all joints +-360 deg (bench/ur10)".into(),
+            strings(&[&ur10, "--fixture", UR10_FIXTURE, "--tool", UR10_TOOL]),
+        ));
+    }
     for robot in shared_robots() {
         let cell = format!("tests/cells/{robot}.toml");
         if Path::new(ROOT).join(&cell).exists() {

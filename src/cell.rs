@@ -147,6 +147,21 @@ pub struct CellSpec {
     /// Skipped when absent so that cells without it keep their input hash.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub controller: Option<ControllerSpec>,
+    /// Which limits the cell file (or a flag) stated rather than left at their defaults:
+    /// `verify` takes the others from the program's header. Not part of the input hash (the
+    /// values are).
+    #[serde(skip)]
+    pub stated: Stated,
+}
+
+/// The limits a cell file or a flag stated (see [`CellSpec::stated`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Stated {
+    pub bar_min: bool,
+    pub bar_max: bool,
+    pub ball: bool,
+    pub margin: bool,
+    pub joint_margin: bool,
 }
 
 /// Usable bar length (ball-centre distance) when neither the cell nor `--bar` gives one (mm).
@@ -186,6 +201,7 @@ impl Default for CellSpec {
             margin: DEFAULT_MARGIN_MM * MM,
             joint_margin: DEFAULT_JOINT_MARGIN_DEG * DEG,
             controller: None,
+            stated: Stated::default(),
         }
     }
 }
@@ -374,9 +390,11 @@ pub fn from_str(text: &str, path: &Path) -> Result<CellSpec, CellError> {
     if let Some(b) = f.bar {
         if let Some(v) = b.min {
             c.bar_min = positive(v, "bar.min")?;
+            c.stated.bar_min = true;
         }
         if let Some(v) = b.max {
             c.bar_max = positive(v, "bar.max")?;
+            c.stated.bar_max = true;
         }
         if c.bar_max <= c.bar_min {
             return Err(bad("bar: max must be greater than min".into()));
@@ -386,6 +404,7 @@ pub fn from_str(text: &str, path: &Path) -> Result<CellSpec, CellError> {
         }
         if let Some(v) = b.ball {
             c.ball = positive(v, "bar.ball")?;
+            c.stated.ball = true;
         }
     }
     if let Some(t) = f.tool {
@@ -459,6 +478,7 @@ pub fn from_str(text: &str, path: &Path) -> Result<CellSpec, CellError> {
     if let Some(s) = f.safety {
         if let Some(m) = s.margin {
             c.margin = positive(m, "safety.margin")?;
+            c.stated.margin = true;
         }
         if let Some(m) = s.joint_margin {
             if !(m.is_finite() && (0.0..=30.0).contains(&m)) {
@@ -467,6 +487,7 @@ pub fn from_str(text: &str, path: &Path) -> Result<CellSpec, CellError> {
                 )));
             }
             c.joint_margin = m * DEG;
+            c.stated.joint_margin = true;
         }
     }
     c.controller = f.controller;

@@ -116,6 +116,10 @@ pub struct ControllerDefaults {
     /// False: the language fixes the names (A1..A6 in KRL, J1..J6 in FANUC LS, ...).
     pub axis_names_configurable: bool,
     pub j3_coupling: Coupling,
+    /// The coupling this controller uses on a parallel-arm robot ([`parallel_arm`]) when the
+    /// cell does not state one; None: `j3_coupling` whatever the arm (with a warning on a
+    /// parallel arm, see [`ControllerMap::coupling_note`]).
+    pub j3_coupling_parallel_arm: Option<Coupling>,
 }
 
 /// The resolved mapping model joints ↔ controller axes.
@@ -282,7 +286,11 @@ impl ControllerMap {
             }
             None => defaults.axis_names.clone(),
         };
-        let j3_coupling = match spec.j3_coupling.unwrap_or(defaults.j3_coupling) {
+        let default_coupling = match (defaults.j3_coupling_parallel_arm, parallel_arm(robot)) {
+            (Some(c), Some(_)) => c,
+            _ => defaults.j3_coupling,
+        };
+        let j3_coupling = match spec.j3_coupling.unwrap_or(default_coupling) {
             Coupling::Factor(f) if (-1..=1).contains(&f) => f64::from(f),
             Coupling::Factor(f) => {
                 return Err(bad(format!(
@@ -303,6 +311,94 @@ impl ControllerMap {
             axis_names,
         })
     }
+}
+
+impl ControllerMap {
+    /// What a user must know about axis 3 when the cell does not state `j3_coupling` and the
+    /// robot is a parallel-arm robot ([`parallel_arm`]): such a controller may measure axis 3
+    /// from the horizontal (the motor drives the forearm through the parallelogram), and a
+    /// program written for the other convention commands axis 3 wrong by q2. None when the
+    /// cell states the coupling or the robot shows no parallel arm. The compiler puts the note
+    /// in its warnings, the report and the program header.
+    pub fn coupling_note(
+        spec: Option<&ControllerSpec>,
+        defaults: &ControllerDefaults,
+        dialect: &str,
+        robot: &Robot,
+    ) -> Option<String> {
+        if spec.is_some_and(|s| s.j3_coupling.is_some()) {
+            return None;
+        }
+        let why = parallel_arm(robot)?;
+        Some(match defaults.j3_coupling_parallel_arm {
+            Some(_) => format!(
+                "J3: {why}; the {dialect} controller measures axis 3 of a parallel-arm robot from the horizontal, so the program writes J3 = q3 {} q2 (j3_coupling = \"auto\"); if this controller measures it from the upper arm, set [controller] j3_coupling = 0 in the cell file",
+                if forearm_coupling(robot).unwrap_or(1.0) < 0.0 { "-" } else { "+" }
+            ),
+            None => match defaults.j3_coupling {
+                Coupling::Factor(0) => format!(
+                    "J3: {why}; the program writes J3 = q3 (the {dialect} default, j3_coupling = 0); if this controller measures axis 3 from the horizontal (the forearm angle, as ABB and FANUC controllers do on parallel-arm robots), set [controller] j3_coupling = \"auto\" in the cell file, else axis 3 is commanded wrong by q2"
+                ),
+                _ => return None,
+            },
+        })
+    }
+}
+
+/// Robots that are parallel-arm (J2/J3 parallelogram) robots by name, lowercase with spaces,
+/// dashes and underscores removed: (name fragment, robot, source). The J3 motor of such a
+/// robot sits on the base and drives the forearm through a tie rod, so its controller may
+/// count axis 3 from the horizontal.
+pub const PARALLEL_ARMS: &[(&str, &str, &str)] = &[
+    (
+        "irb2400",
+        "ABB IRB 2400",
+        "ROS-Industrial's abb_driver runs it with J23_coupled = true, abb_irb2400_support",
+    ),
+    (
+        "irb4400",
+        "ABB IRB 4400",
+        "a parallel arm and tie rod: ABB's IRB 4400 product manual, 3HAC022032-001",
+    ),
+    (
+        "irb5400",
+        "ABB IRB 5400",
+        "ROS-Industrial's abb_driver runs it with J23_coupled = true, abb_irb5400_support",
+    ),
+];
+
+/// Why the robot looks like a parallel-arm robot, or None: a passive link (a link with
+/// collision geometry behind a mimic joint, [`Robot::passive`]) that follows q3 but hangs off
+/// a frame before joint 3 (the base, link 1 or the upper arm):
+/// the J3 motion then reaches the forearm through a linkage from behind joint 3, a
+/// parallelogram; or a name of [`PARALLEL_ARMS`]. A balancing cylinder that follows q2 (the
+/// IRB 6700's) is no such link.
+pub fn parallel_arm(robot: &Robot) -> Option<String> {
+    if let Some(p) = robot
+        .passive
+        .iter()
+        .find(|p| p.frame < 3 && p.steps.iter().any(|s| s.joint == Some(2)))
+    {
+        return Some(format!(
+            "the robot file's passive link '{}' follows joint 3 from before joint 3 (a parallelogram between joints 2 and 3)",
+            p.name
+        ));
+    }
+    let key: String = robot
+        .name
+        .to_ascii_lowercase()
+        .chars()
+        .filter(|c| c.is_ascii_alphanumeric())
+        .collect();
+    PARALLEL_ARMS
+        .iter()
+        .find(|(frag, _, _)| key.contains(frag))
+        .map(|(_, what, src)| {
+            format!(
+                "the robot '{}' is an {what}, a parallel-arm robot ({src})",
+                robot.name
+            )
+        })
 }
 
 /// `f(values, offsets)`, in exact integer thousandths of a degree when every value lies on the
@@ -425,6 +521,7 @@ mod tests {
             axis_names: ["A1", "A2", "A3", "A4", "A5", "A6"].map(str::to_string),
             axis_names_configurable: false,
             j3_coupling: Coupling::Factor(0),
+            j3_coupling_parallel_arm: None,
         };
         let ok = ControllerMap::resolve(None, &defaults, "krl", &robot).unwrap();
         assert_eq!(ok.sign, [1.0; 6]);

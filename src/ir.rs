@@ -284,6 +284,22 @@ pub struct Header {
     pub axis_units: String,
     #[serde(default)]
     pub axis_decimals: usize,
+    /// Stop-and-measure (`--dwell S`): the dwell (s) at every measurement pose after an exact
+    /// stop; 0 for a continuous program.
+    #[serde(default)]
+    pub dwell_s: f64,
+    /// Stop-and-measure: the nominal bar length (mm) of each measurement pose in the order the
+    /// program dwells at them (pose k = entry k − 1), printed in the header: the key that turns
+    /// a bar log's plateaus back into pose readings. Empty for a continuous program.
+    #[serde(default)]
+    pub measure_mm: Vec<f64>,
+    /// Stop-and-measure: the bar samples the prediction averages per plateau, and the predicted
+    /// MAP position uncertainty (µm RMS over the joint space) were the same program recorded
+    /// continuously with a synchronous joint log (`predicted_std_um` is then the plateaus').
+    #[serde(default)]
+    pub plateau_samples: usize,
+    #[serde(default)]
+    pub predicted_continuous_std_um: f64,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -336,6 +352,10 @@ pub struct Move {
     /// cannot be that fast on the controller's axes: the template caps it).
     #[serde(default)]
     pub speed_pct: f64,
+    /// Stop-and-measure: the dwell (s) at this move's target, after the exact stop (and, at a
+    /// section's first pose, after the mount pause); 0 = none.
+    #[serde(default)]
+    pub dwell_s: f64,
 }
 
 pub const EDBB_TITLE: &str = "EDBB error-sensitive measurement program";

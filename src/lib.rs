@@ -39,6 +39,7 @@ pub mod emit;
 pub mod files;
 pub mod ir;
 pub mod ldbb;
+pub mod logs;
 pub mod model;
 pub mod order;
 pub mod pipeline;

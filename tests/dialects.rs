@@ -30,6 +30,15 @@ pub struct Cell {
 }
 
 fn compile_cell(case: &'static str, robot_path: PathBuf, cell_path: PathBuf) -> Cell {
+    compile_cell_with(case, robot_path, cell_path, None)
+}
+
+fn compile_cell_with(
+    case: &'static str,
+    robot_path: PathBuf,
+    cell_path: PathBuf,
+    dwell: Option<f64>,
+) -> Cell {
     let spec = edbbgen::cell::load(&cell_path).expect("cell");
     let robot = edbbgen::robot::load(
         &robot_path,
@@ -44,6 +53,7 @@ fn compile_cell(case: &'static str, robot_path: PathBuf, cell_path: PathBuf) -> 
     opts.cell = spec;
     opts.step = [20f64.to_radians(); 6];
     opts.max_candidates = 600;
+    opts.dwell = dwell;
     let ngc = edbbgen::emit::dialect("ngc").unwrap();
     let compiled = edbbgen::pipeline::compile(&robot, &opts, ngc, &edbbgen::sample::NoProgress)
         .unwrap_or_else(|e| panic!("{case}: {e}"));
@@ -93,6 +103,19 @@ pub fn cells() -> &'static [Cell] {
             ));
         }
         v
+    })
+}
+
+/// The NJ-130's cell as a stop-and-measure program (`--dwell 2`), compiled once.
+pub fn dwell_cell() -> &'static Cell {
+    static CELL: OnceLock<Cell> = OnceLock::new();
+    CELL.get_or_init(|| {
+        compile_cell_with(
+            "nj130_dwell",
+            nj130_dh(),
+            root().join("robots/comau_nj130/cell.toml"),
+            Some(2.0),
+        )
     })
 }
 
@@ -151,9 +174,102 @@ fn read_events(parsed: &dialect::Parsed) -> Vec<String> {
                 if blend.is_some() { "B" } else { "" }
             )),
             Step::Pause => Some("P".to_string()),
+            Step::Dwell(t) => Some(format!("D{t}")),
             _ => None,
         })
         .collect()
+}
+
+/// A stop-and-measure plan's events: every measurement pose's move ends in an exact stop and
+/// its dwell follows (at a section's first pose, after the mount pause).
+fn planned_dwell_events(p: &Program) -> Vec<String> {
+    let mut ev = Vec::new();
+    for m in &p.moves {
+        if m.remove_before {
+            ev.push("P".to_string());
+        }
+        ev.push(format!(
+            "M{}{}",
+            if m.support { "S" } else { "" },
+            if m.blend_mm > 0.0 { "B" } else { "" }
+        ));
+        if m.mount_after {
+            ev.push("P".to_string());
+        }
+        if m.dwell_s > 0.0 {
+            ev.push(format!("D{}", m.dwell_s));
+        }
+    }
+    ev.push("P".to_string());
+    ev
+}
+
+/// `--dwell` in every dialect (issue 23): golden (`<dialect>@nj130_dwell`), read back with
+/// its dwells after exact stops, the header's list of measurement poses read back by every
+/// reader, the language's structure, verify on the written file, `rs274` on the ngc program.
+#[test]
+fn every_dialect_of_a_stop_and_measure_program_is_golden_and_reads_back_its_dwells() {
+    let c = dwell_cell();
+    let base = &c.programs[0].1;
+    assert!(base.header.dwell_s == 2.0 && !base.header.measure_mm.is_empty());
+    let dir = tempdir();
+    for (d, program, text) in &c.programs {
+        let label = format!("{d}@{}", c.case);
+        assert_golden(&label, text);
+        let dl = dialect::by_name(d).unwrap();
+        let map = edbbgen::controller::ControllerMap::resolve(
+            c.opts.cell.controller.as_ref(),
+            &dl.defaults(),
+            d,
+            &c.robot,
+        )
+        .unwrap();
+        let parsed = dl
+            .read(text, &map)
+            .unwrap_or_else(|e| panic!("{label}: {e}"));
+        let events = read_events(&parsed);
+        assert_eq!(events, planned_dwell_events(program), "{label}");
+        // Every measurement pose is dwelt at, each dwell after an exact stop or the mount.
+        let dwells = events.iter().filter(|e| e.starts_with('D')).count();
+        assert_eq!(dwells, program.header.poses, "{label}");
+        for w in events.windows(2) {
+            if w[1].starts_with('D') {
+                assert!(
+                    w[0] == "M" || w[0] == "P",
+                    "{label}: {} before a dwell",
+                    w[0]
+                );
+            }
+        }
+        // The key that turns a bar log into readings, read back from the text.
+        let list = edbbgen::logs::measure_list(&parsed)
+            .unwrap_or_else(|e| panic!("{label}: {e}"))
+            .unwrap_or_else(|| panic!("{label}: no measure list in the header"));
+        assert_eq!(list.len(), program.header.measure_mm.len(), "{label}");
+        for (a, b) in list.iter().zip(&program.header.measure_mm) {
+            assert!((a * 1e3 - b).abs() < 5e-4, "{label}: {a} vs {b}");
+        }
+        let stem = &program.header.program_name;
+        structure::check(d, text, stem).unwrap_or_else(|e| panic!("{label}: {e}"));
+        let path = file_for(dir.path(), d, program);
+        std::fs::write(&path, text).unwrap();
+        let r = edbbgen([
+            "verify",
+            c.robot_path.to_str().unwrap(),
+            path.to_str().unwrap(),
+            "--cell",
+            c.cell_path.to_str().unwrap(),
+            "-q",
+        ]);
+        assert_eq!(r.code, 0, "{label}: {}", r.stderr);
+        assert!(
+            r.stdout
+                .contains(&format!("{} dwells", program.header.poses)),
+            "{label}: {}",
+            r.stdout
+        );
+    }
+    crate::linuxcnc::check("ngc@nj130_dwell", c.text("ngc"));
 }
 
 #[test]

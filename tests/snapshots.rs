@@ -87,7 +87,7 @@ fn no_orphaned_snapshots() {
         };
         let dialect_case = case.split_once('@').is_some_and(|(d, c)| {
             crate::dialects::DIALECTS.contains(&d)
-                && (c == "nj130_cell" || SHARED_ROBOTS.contains(&c))
+                && (c == "nj130_cell" || c == "nj130_dwell" || SHARED_ROBOTS.contains(&c))
         });
         assert!(
             CASES.contains(&case) || dialect_case,

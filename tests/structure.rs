@@ -7,7 +7,9 @@
 //! most 32 characters, strings at most 80); FANUC TP (remarks at most 32 characters, MESSAGE at
 //! most 24, joint speed 1..100 %, CNT 0..100, LINE_COUNT = the /MN lines); SINUMERIK 840D
 //! (blocks at most 512 characters); URScript (joint positions within ±360°, `popup(...,
-//! blocking=True)` to wait); RS274/NGC (LinuxCNC's `rs274` checks the rest).
+//! blocking=True)` to wait); RS274/NGC (LinuxCNC's `rs274` checks the rest). Dwells: KRL `WAIT
+//! SEC t`, RAPID `WaitTime [\InPos,] t;`, URScript `sleep(t)`, FANUC `WAIT t(sec)` (0.01 s
+//! steps), SINUMERIK `G4 F t` in a block of its own.
 
 fn balanced(line: &str) -> bool {
     let (mut round, mut square, mut curly, mut quote) = (0i32, 0i32, 0i32, false);
@@ -146,6 +148,13 @@ fn krl(text: &str, stem: &str) -> Result<(), String> {
         if *l == "HALT" {
             continue;
         }
+        if let Some(t) = l.strip_prefix("WAIT SEC ") {
+            // A dwell: REAL seconds, stops the advance run.
+            if num(t)? < 0.0 {
+                return Err(format!("line {n}: WAIT SEC needs a time >= 0"));
+            }
+            continue;
+        }
         let (lhs, rhs) = l
             .split_once('=')
             .ok_or(format!("line {n}: not a statement: {l}"))?;
@@ -268,6 +277,13 @@ fn rapid(text: &str) -> Result<(), String> {
                         return Err(format!("line {n}: joint value outside ±720 deg"));
                     }
                 }
+            } else if let Some(r) = l.strip_prefix("WaitTime ") {
+                // WaitTime [\InPos,] Time: num seconds.
+                let r = r.trim_end_matches(';');
+                let t = r.strip_prefix("\\InPos,").unwrap_or(r);
+                if num(t)? < 0.0 {
+                    return Err(format!("line {n}: WaitTime needs a time >= 0"));
+                }
             } else if !(l.starts_with("TPWrite \"") || l == "Stop;") {
                 return Err(format!("line {n}: unexpected statement {l}"));
             }
@@ -340,6 +356,15 @@ fn urscript(text: &str) -> Result<(), String> {
                 }
             }
             "set_tcp" => {}
+            "sleep" => {
+                let t = l
+                    .strip_prefix("sleep(")
+                    .and_then(|r| r.strip_suffix(')'))
+                    .ok_or(format!("line {n}: sleep(t)"))?;
+                if num(t)? <= 0.0 {
+                    return Err(format!("line {n}: sleep needs a time > 0"));
+                }
+            }
             _ => return Err(format!("line {n}: unexpected call {call}")),
         }
     }
@@ -423,6 +448,18 @@ fn fanuc(text: &str, stem: &str) -> Result<(), String> {
             } else if w[1] != "FINE" {
                 return Err(format!("/MN line {}: termination {}", k + 1, w[1]));
             }
+        } else if let Some(w) = instr.strip_prefix("WAIT ") {
+            // WAIT t(sec): a timer wait, 0.01 s resolution.
+            let t = w
+                .strip_suffix("(sec)")
+                .ok_or(format!("/MN line {}: WAIT t(sec)", k + 1))?;
+            let v = num(t)?;
+            if v < 0.0 || ((v * 100.0).round() - v * 100.0).abs() > 1e-9 {
+                return Err(format!(
+                    "/MN line {}: WAIT {t}: a time >= 0 in 0.01 s steps",
+                    k + 1
+                ));
+            }
         } else if !["PAUSE", "UFRAME_NUM=0", "UTOOL_NUM=1"].contains(&instr) {
             return Err(format!("/MN line {}: unexpected {instr}", k + 1));
         }
@@ -497,9 +534,18 @@ fn sinumerik(text: &str) -> Result<(), String> {
         }
         let words: Vec<&str> = l.split_whitespace().collect();
         if words.contains(&"G4") {
-            return Err(format!(
-                "line {n}: G4 (dwell) is not part of these programs"
-            ));
+            // A dwell: G4 F (seconds) in a block of its own.
+            let ok = words.len() == 2
+                && words[1]
+                    .strip_prefix('F')
+                    .and_then(|f| num(f).ok())
+                    .is_some_and(|t| t >= 0.0);
+            if !ok {
+                return Err(format!(
+                    "line {n}: a dwell is G4 F<seconds> in a block of its own"
+                ));
+            }
+            continue;
         }
         for w in &words {
             if let Some((a, v)) = w.split_once('=') {

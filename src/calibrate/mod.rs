@@ -204,7 +204,8 @@ pub struct Predicted {
     pub nominal_workspace_rms: f64,
     /// The variance factor Type A carries beyond the white-noise one: the larger of the
     /// residual's integrated autocorrelation time and the held-out residual's mean square
-    /// over the in-sample one (what the held-out data say about model error).
+    /// over the one noise alone gives held out (what the held-out data say about model
+    /// error).
     pub model_error_factor: f64,
 }
 
@@ -710,6 +711,7 @@ pub fn run(
     let st = accumulate(&problem, &est, &cols, folds);
     let cv_cal = score(&st, &all).3;
     let heldout_cal = (cv_cal / kept_rows as f64).sqrt();
+    let cv_noise = fit::heldout_noise(&st, &all);
     let heldout_nom = {
         let mut e = est.clone();
         e.p[crate::model::ALPHA..MAP].copy_from_slice(&nominal.p[crate::model::ALPHA..MAP]);
@@ -723,10 +725,11 @@ pub fn run(
     };
 
     // Step 6: uncertainty. Type A from the residual, with what the held-out residual says
-    // about model error.
-    let insample = (fitted.rss / kept_rows as f64).sqrt();
-    let model_factor = if insample > 0.0 {
-        (heldout_cal / insample).powi(2).max(1.0)
+    // about model error: its mean square over what the noise alone gives held out (the
+    // noise plus the variance of predicting a block from the others, which on a few static
+    // readings is no model error).
+    let model_factor = if sigma > 0.0 && cv_noise > 0.0 {
+        (cv_cal / (sigma * sigma * cv_noise)).max(1.0)
     } else {
         1.0
     };

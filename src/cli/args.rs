@@ -174,6 +174,11 @@ pub struct CompileArgs {
     /// The bar's sample rate, Hz: readings along every move made with the bar.
     #[arg(long, value_name = "HZ", default_value = "50")]
     pub bar_rate: String,
+    /// Stop-and-measure: an exact stop and a dwell of S seconds at every measurement pose, for
+    /// controllers without a synchronous joint log (calibrate reads the bar's own log with
+    /// --bar-log and --program); rounded to 0.01 s.
+    #[arg(long, value_name = "S")]
+    pub dwell: Option<String>,
     /// A short check program: the poses are chosen for these parameters only (names such as
     /// theta2,a3), or for a calibration report's (calibrate --json, e.g. of a --baseline
     /// run): the parameters its drift section found moved, then the six joint zeros.
@@ -288,6 +293,67 @@ pub struct SimulateArgs {
     /// Noise seed.
     #[arg(long, value_name = "N", default_value_t = 1)]
     pub seed: u64,
+    /// Also write the bar's own log (t_s,length_mm on its own clock, with what it reads while
+    /// unmounted); -o then holds the same mounted samples with the true joints (the
+    /// synchronous reference).
+    #[arg(long, value_name = "BAR.csv")]
+    pub bar_log: Option<PathBuf>,
+    /// Also write the controller's joint log (t_s,q1_deg..q6_deg in the controller's axis
+    /// values, on its own clock); needs --bar-log.
+    #[arg(long, value_name = "JOINTS.csv", requires = "bar_log")]
+    pub joint_log: Option<PathBuf>,
+    /// The joint log's rate, Hz.
+    #[arg(long, value_name = "HZ", default_value = "100")]
+    pub joint_rate: String,
+    /// The bar's clock: t_bar = OFFSET + (1 + DRIFT·1e-6)·t_controller, s.
+    #[arg(
+        long,
+        value_name = "S",
+        default_value = "0",
+        allow_hyphen_values = true
+    )]
+    pub clock_offset: String,
+    /// The bar's clock drift against the controller's, ppm.
+    #[arg(
+        long,
+        value_name = "PPM",
+        default_value = "0",
+        allow_hyphen_values = true
+    )]
+    pub clock_drift: String,
+    /// How long the operator takes at each pause (mounting, removing the bar), s: uniform.
+    #[arg(long, value_name = "MIN..MAX", default_value = "5..20")]
+    pub pause: String,
+    /// The bar's reading minus the ball-centre distance (a bar whose zero is not it), mm.
+    #[arg(
+        long,
+        value_name = "MM",
+        default_value = "0",
+        allow_hyphen_values = true
+    )]
+    pub bar_zero: String,
+    /// Random gaps (0.5..3 s) in the bar log.
+    #[arg(long, value_name = "N", default_value_t = 0)]
+    pub gaps: usize,
+    /// Probability that a bar sample is lost.
+    #[arg(long, value_name = "P", default_value = "0")]
+    pub dropout: String,
+    /// Poses (1-based, in dwell order) whose plateau the bar log loses.
+    #[arg(long, value_name = "K,..")]
+    pub missing: Option<String>,
+    /// The controller's moves take this many times the program's time (acceleration ramps, a
+    /// speed override); dwells are exact.
+    #[arg(long, value_name = "F", default_value = "1")]
+    pub move_scale: String,
+    /// Controller stops (0.5..3 s) in moves made with the bar: plateaus of no pose.
+    #[arg(long, value_name = "N", default_value_t = 0)]
+    pub holds: usize,
+    /// Poses (1-based) whose plateau a decaying 15 Hz vibration (10 um) disturbs.
+    #[arg(long, value_name = "K,..")]
+    pub vibration: Option<String>,
+    /// The bar logs nothing while unmounted (default: it reads what a handled bar reads).
+    #[arg(long)]
+    pub no_handling: bool,
     /// No progress output.
     #[arg(short, long)]
     pub quiet: bool,
@@ -298,15 +364,30 @@ pub struct DiagnoseArgs {
     /// Robot description: a .urdf or a .dh.toml file.
     #[arg(value_name = "ROBOT")]
     pub robot: PathBuf,
-    /// Fixture ball centre in the robot base frame, mm.
+    /// Fixture ball centre in the robot base frame, mm [default with --program: its header's].
     #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true)]
-    pub fixture: String,
-    /// MAP in the flange frame, mm [default: the robot file's tool].
+    pub fixture: Option<String>,
+    /// MAP in the flange frame, mm [default: the program header's, else the robot file's tool].
     #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true)]
     pub tool: Option<String>,
     /// Measured EDBB data (CSV contract).
-    #[arg(long, value_name = "MEASURED.csv")]
-    pub measured: PathBuf,
+    #[arg(
+        long,
+        value_name = "MEASURED.csv",
+        required_unless_present = "bar_log",
+        conflicts_with = "bar_log"
+    )]
+    pub measured: Option<PathBuf>,
+    /// Instead of --measured: the bar's own log, with --program (stop-and-measure) or
+    /// --joint-log (continuous).
+    #[arg(long, value_name = "BAR.csv")]
+    pub bar_log: Option<PathBuf>,
+    /// The program the bar log recorded.
+    #[arg(long, value_name = "PROG", requires = "bar_log")]
+    pub program: Option<PathBuf>,
+    /// The controller's joint log (t_s,q1_deg..q6_deg on its clock).
+    #[arg(long, value_name = "JOINTS.csv", requires = "bar_log")]
+    pub joint_log: Option<PathBuf>,
     /// Write the JSON report here.
     #[arg(long, value_name = "REPORT.json")]
     pub json: Option<PathBuf>,
@@ -468,17 +549,25 @@ pub struct CalibrateArgs {
     pub robot: PathBuf,
     /// Measured EDBB data of one run (CSV contract); repeat for a campaign of runs, in pairs
     /// with --fixture.
-    #[arg(long, value_name = "M.csv", required = true)]
+    #[arg(long, value_name = "M.csv", required_unless_present = "bar_log")]
     pub measured: Vec<PathBuf>,
-    /// Fixture ball centre of the run, mm, robot base frame; repeat in pairs with --measured,
-    /// or give it once for every run.
-    #[arg(
-        long,
-        value_name = "X,Y,Z",
-        allow_hyphen_values = true,
-        required = true
-    )]
+    /// Fixture ball centre of the run, mm, robot base frame; repeat in pairs with --measured
+    /// (then --bar-log), or give it once for every run [default for a --bar-log run: its
+    /// program's header].
+    #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true)]
     pub fixture: Vec<String>,
+    /// A run without a synchronous joint log: the bar's own log (t_s,length_mm on its clock);
+    /// with --program (stop-and-measure: its plateaus matched to the program's poses) or
+    /// --joint-log (continuous: the clocks synchronised). Repeatable: one run each.
+    #[arg(long, value_name = "BAR.csv")]
+    pub bar_log: Vec<PathBuf>,
+    /// The program a --bar-log run recorded (once for every --bar-log, or once each).
+    #[arg(long, value_name = "PROG")]
+    pub program: Vec<PathBuf>,
+    /// The controller's joint log of a --bar-log run (t_s,q1_deg..q6_deg on its clock; once
+    /// each).
+    #[arg(long, value_name = "JOINTS.csv")]
+    pub joint_log: Vec<PathBuf>,
     /// MAP in the flange frame, mm [default: the robot file's tool].
     #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true)]
     pub tool: Option<String>,

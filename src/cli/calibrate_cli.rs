@@ -115,19 +115,54 @@ fn is_toml(path: &Path) -> bool {
 
 pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
     // Everything about the command line first: nothing is read before it is sound.
-    let runs_n = a.measured.len();
-    if a.fixture.len() != runs_n && a.fixture.len() != 1 {
+    let logs_n = a.bar_log.len();
+    let runs_n = a.measured.len() + logs_n;
+    if runs_n == 0 {
+        return Err(usage(
+            "--measured or --bar-log: at least one run is required",
+        ));
+    }
+    if a.fixture.len() != runs_n && a.fixture.len() > 1 {
         return Err(usage(format!(
-            "--measured is given {runs_n} times but --fixture {} times: give one --fixture per --measured, in the same order (or one for every run)",
+            "--measured and --bar-log give {runs_n} runs but --fixture is given {} times: give one --fixture per run, in the same order (--measured first), or one for every run",
             a.fixture.len()
         )));
+    }
+    if a.fixture.is_empty() && !a.measured.is_empty() {
+        return Err(usage("--fixture: required with --measured"));
+    }
+    if !(a.program.is_empty() || a.program.len() == 1 || a.program.len() == logs_n) {
+        return Err(usage(format!(
+            "--program is given {} times for {logs_n} --bar-log runs: give one for all, or one each",
+            a.program.len()
+        )));
+    }
+    if !(a.joint_log.is_empty() || a.joint_log.len() == logs_n) {
+        return Err(usage(format!(
+            "--joint-log is given {} times for {logs_n} --bar-log runs: give one each",
+            a.joint_log.len()
+        )));
+    }
+    if logs_n == 0 && !(a.program.is_empty() && a.joint_log.is_empty()) {
+        return Err(usage("--program and --joint-log belong to a --bar-log run"));
+    }
+    if a.joint_log.is_empty() && a.program.is_empty() && logs_n > 0 {
+        return Err(usage(
+            "--bar-log: needs --program (the stop-and-measure program it recorded) or --joint-log",
+        ));
     }
     let fixtures: Vec<Vector3<f64>> = a
         .fixture
         .iter()
         .map(|f| xyz_mm("--fixture", f))
         .collect::<Result<_, _>>()?;
-    let fixture_of = |k: usize| fixtures[if fixtures.len() == 1 { 0 } else { k }];
+    let fixture_flag = |k: usize| -> Option<Vector3<f64>> {
+        match fixtures.len() {
+            0 => None,
+            1 => Some(fixtures[0]),
+            _ => Some(fixtures[k]),
+        }
+    };
     super::check_outputs(&[
         Some(a.output.as_path()),
         a.json.as_deref(),
@@ -194,19 +229,81 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
     };
     let robot_text = super::read_input(&a.robot, "robot", crate::files::Kind::Robot)?;
     let robot = robot::load(&a.robot, &load_opts)?;
-    let map = match &a.tool {
-        Some(s) => xyz_mm("--tool", s)?,
-        None => robot.tool.unwrap_or_else(Vector3::zeros),
+    let programs: Vec<super::logs_cli::Program> = a
+        .program
+        .iter()
+        .map(|p| super::logs_cli::read_program(&robot, p))
+        .collect::<Result<_, _>>()?;
+    let program_of = |k: usize| match programs.len() {
+        0 => None,
+        1 => Some(&programs[0]),
+        _ => Some(&programs[k]),
+    };
+    // The MAP: the flag, else the first program header's, else the robot file's.
+    let map = match (
+        &a.tool,
+        programs.first().and_then(|p| p.parsed.header_value("MAP")),
+    ) {
+        (Some(s), _) => xyz_mm("--tool", s)?,
+        (None, Some(h)) => super::logs_cli::header_xyz(h)
+            .ok_or_else(|| usage("the program header's MAP is not X, Y, Z mm: give --tool"))?,
+        (None, None) => robot.tool.unwrap_or_else(Vector3::zeros),
     };
     let mut data: Vec<(Measured, String)> = Vec::with_capacity(runs_n);
-    for path in &a.measured {
+    let mut run_fixtures: Vec<Vector3<f64>> = Vec::with_capacity(runs_n);
+    let mut labels: Vec<String> = Vec::with_capacity(runs_n);
+    let mut sources: Vec<&Path> = Vec::with_capacity(runs_n);
+    for (k, path) in a.measured.iter().enumerate() {
         let text = super::read_input(path, "measured data", crate::files::Kind::Measured)?;
         // A run of a campaign may be short when the others carry the robot; one run alone
         // must carry it.
         let min = if runs_n == 1 { calibrate::MIN_ROWS } else { 1 };
         let m = twin::parse_csv(&text, min).map_err(|e| file_err(path, e))?;
         data.push((m, robot::sha256_hex(text.as_bytes())));
+        run_fixtures.push(fixture_flag(k).unwrap_or_else(Vector3::zeros));
+        labels.push(name(path));
+        sources.push(path);
     }
+    let mut extras: Vec<Option<super::logs_cli::RunExtra>> = vec![None; a.measured.len()];
+    let mut kept: Vec<Option<super::logs_cli::Logs>> =
+        (0..a.measured.len()).map(|_| None).collect();
+    let mut log_lines: Vec<Vec<String>> = vec![Vec::new(); a.measured.len()];
+    for (i, bar) in a.bar_log.iter().enumerate() {
+        let k = a.measured.len() + i;
+        let run = super::logs_cli::read_run(
+            &robot,
+            bar,
+            program_of(i),
+            a.joint_log.get(i).map(|p| p.as_path()),
+            fixture_flag(k),
+            map,
+        )?;
+        // As for a measured file: one run alone must carry the robot, a campaign's run may
+        // be short.
+        let min = if runs_n == 1 { calibrate::MIN_ROWS } else { 1 };
+        if run.measured.len() < min {
+            return Err(file_err(
+                bar,
+                format!(
+                    "{} readings, fewer than the {min} the fit needs{}",
+                    run.measured.len(),
+                    if runs_n == 1 {
+                        " (one per parameter at least)"
+                    } else {
+                        ""
+                    }
+                ),
+            ));
+        }
+        log_lines.push(run.summary);
+        data.push((run.measured, run.sha256));
+        run_fixtures.push(run.fixture);
+        labels.push(run.label);
+        sources.push(bar);
+        extras.push(Some(run.extra));
+        kept.push(run.logs);
+    }
+    let fixture_of = |k: usize| run_fixtures[k];
     let model = MeasurementModel::new(&robot, fixture_of(0), map);
     let runs: Vec<Run> = data
         .iter()
@@ -216,37 +313,73 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
             fixture: fixture_of(k),
         })
         .collect();
-    let labels: Vec<String> = a.measured.iter().map(|p| name(p)).collect();
     // --baseline: the fit starts from the previous calibration and states what moved since.
-    let (cal, drift) = match &baseline {
+    let fit = |runs: &[Run]| match &baseline {
         Some((baseline, label, _)) => {
-            let (cal, d) =
-                drift::calibrate_against(&model, &robot, &runs, &labels, &opts, baseline, label)
-                    .map_err(|e| file_err(&a.measured[0], e))?;
-            (cal, Some(d))
+            drift::calibrate_against(&model, &robot, runs, &labels, &opts, baseline, label)
+                .map(|(cal, d)| (cal, Some(d)))
+                .map_err(|e| file_err(sources[0], e))
         }
-        None => (
-            calibrate::run(&model, &robot, &runs, &labels, &opts)
-                .map_err(|e| file_err(&a.measured[0], e))?,
-            None,
-        ),
+        None => calibrate::run(&model, &robot, runs, &labels, &opts)
+            .map(|cal| (cal, None))
+            .map_err(|e| file_err(sources[0], e)),
     };
+    let (mut cal, mut drift) = fit(&runs)?;
+    drop(runs);
+    // Continuous runs from logs were synchronised against the nominal model, whose errors
+    // bias the clock (a 20 µs offset costs micrometres where the bar moves fast): once more
+    // against the calibrated robot, then the calibration again.
+    if kept.iter().any(Option::is_some) {
+        for (k, logs) in kept.iter().enumerate() {
+            let Some(logs) = logs else { continue };
+            let p = cal.estimate.params(k);
+            let length = |q: &[f64; 6]| model.length(&p, q);
+            let i = k - a.measured.len();
+            let (m, extra, summary) = super::logs_cli::resync(logs, &length, program_of(i))?;
+            data[k].0 = m;
+            extras[k] = Some(extra);
+            log_lines[k] = summary;
+        }
+        let runs: Vec<Run> = data
+            .iter()
+            .enumerate()
+            .map(|(k, (m, _))| Run {
+                measured: m,
+                fixture: fixture_of(k),
+            })
+            .collect();
+        (cal, drift) = fit(&runs)?;
+    }
+    let fixtures = run_fixtures;
 
     // The report's keys, then `drift` (also when nothing is written as calibrated).
-    let json = match &drift {
-        Some(d) => {
-            #[derive(serde::Serialize)]
-            struct WithDrift<'a> {
-                #[serde(flatten)]
-                report: &'a calibrate::Report,
-                drift: &'a drift::Drift,
+    #[derive(serde::Serialize)]
+    struct WithDrift<'a> {
+        #[serde(flatten)]
+        report: &'a calibrate::Report,
+        #[serde(skip_serializing_if = "Option::is_none")]
+        drift: Option<&'a drift::Drift>,
+    }
+    let with_drift = WithDrift {
+        report: &cal.report,
+        drift: drift.as_ref(),
+    };
+    let json = if extras.iter().any(Option::is_some) {
+        // Runs read from logs keep how they were read: their plateaus, missing poses and
+        // clock, added to their run's keys.
+        let mut report = serde_json::to_value(&with_drift).unwrap_or_default();
+        if let Some(runs) = report.get_mut("runs").and_then(|r| r.as_array_mut()) {
+            for (run, extra) in runs.iter_mut().zip(&extras) {
+                if let (Some(obj), Some(extra)) = (run.as_object_mut(), extra) {
+                    if let Ok(serde_json::Value::Object(add)) = serde_json::to_value(extra) {
+                        obj.extend(add);
+                    }
+                }
             }
-            serde_json::to_string_pretty(&WithDrift {
-                report: &cal.report,
-                drift: d,
-            })
         }
-        None => serde_json::to_string_pretty(&cal.report),
+        serde_json::to_string_pretty(&report)
+    } else {
+        serde_json::to_string_pretty(&with_drift)
     }
     .unwrap_or_default()
         + "\n";
@@ -313,6 +446,11 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
         files.push((p.as_path(), html.as_str()));
     }
     write_all_atomic(&files)?;
+    for (k, lines) in log_lines.iter().enumerate() {
+        for l in lines {
+            println!("run {}: {l}", k + 1);
+        }
+    }
     print!("{}", cal.summary);
     println!("wrote {}", a.output.display());
     Ok(0)

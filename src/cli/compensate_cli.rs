@@ -53,6 +53,7 @@ fn plain_map(
         axis_names: ["J1", "J2", "J3", "J4", "J5", "J6"].map(str::to_string),
         axis_names_configurable: true,
         j3_coupling: Coupling::Factor(0),
+        j3_coupling_parallel_arm: None,
     };
     ControllerMap::resolve(spec, &defaults, "targets", robot)
 }

@@ -5,6 +5,7 @@ pub mod args;
 mod calibrate_cli;
 mod compensate_cli;
 mod ldbb_cli;
+mod logs_cli;
 mod place_cli;
 mod twin_cli;
 
@@ -200,6 +201,7 @@ fn resolve_cell(a: &CellArgs) -> Result<CellSpec, Error> {
     }
     if let Some(b) = &a.bar {
         (spec.bar_min, spec.bar_max) = bar_range(b)?;
+        (spec.stated.bar_min, spec.stated.bar_max) = (true, true);
     }
     if let Some(f) = &a.floor {
         spec.floor_z = scalar("--floor", f)? * MM;
@@ -212,6 +214,7 @@ fn resolve_cell(a: &CellArgs) -> Result<CellSpec, Error> {
             )));
         }
         spec.ball = b * MM;
+        spec.stated.ball = true;
     }
     set_margins(&mut spec, a.margin.as_deref(), a.joint_margin.as_deref())?;
     Ok(spec)
@@ -231,6 +234,7 @@ pub(crate) fn set_margins(
             )));
         }
         spec.margin = m * MM;
+        spec.stated.margin = true;
     }
     if let Some(m) = joint_margin {
         let m = scalar("--joint-margin", m)?;
@@ -240,6 +244,7 @@ pub(crate) fn set_margins(
             )));
         }
         spec.joint_margin = m * DEG;
+        spec.stated.joint_margin = true;
     }
     Ok(())
 }
@@ -457,6 +462,24 @@ fn run_compile(a: &CompileArgs) -> Result<i32, Error> {
             "--bar-rate: {bar_rate} Hz is outside 1..100000 Hz"
         )));
     }
+    let dwell = match &a.dwell {
+        Some(d) => {
+            // On the 0.01 s grid every dialect prints exactly (FANUC's WAIT resolves 0.01 s).
+            let d = (scalar("--dwell", d)? * 100.0).round() / 100.0;
+            if !(0.1..=60.0).contains(&d) {
+                return Err(usage(format!("--dwell: {d} s is outside 0.1..60 s")));
+            }
+            let n = crate::logs::plateau_core_samples(d, bar_rate);
+            if n < crate::logs::MIN_PLATEAU_SAMPLES {
+                return Err(usage(format!(
+                    "--dwell: {d} s at --bar-rate {bar_rate} Hz leaves {n} bar samples per pose, fewer than the {} a plateau needs: dwell longer",
+                    crate::logs::MIN_PLATEAU_SAMPLES
+                )));
+            }
+            Some(d)
+        }
+        None => None,
+    };
     let focus = a.focus.as_deref().map(parse_focus).transpose()?;
     let opts = CompileOptions {
         focus,
@@ -471,6 +494,7 @@ fn run_compile(a: &CompileArgs) -> Result<i32, Error> {
         program_name,
         bar_noise: bar_noise * 1e-6,
         bar_rate,
+        dwell,
         tour_cost: if a.tour_cost == "eq7" {
             pipeline::TourCost::Eq7
         } else {
@@ -567,6 +591,16 @@ fn run_compile(a: &CompileArgs) -> Result<i32, Error> {
             fmt_fixed(h.bar_noise_um, 2),
             fmt_fixed(h.bar_rate_hz, 0),
         );
+        if h.dwell_s > 0.0 {
+            println!(
+                "stop-and-measure: exact stop and {} s dwell at each of the {} measurement poses; predicted {} um RMS over the joint space from the plateau means ({} samples each), {} um from the same run recorded with a synchronous joint log",
+                fmt_fixed(h.dwell_s, 2),
+                h.measure_mm.len(),
+                fmt_fixed(h.predicted_std_um, 2),
+                h.plateau_samples,
+                fmt_fixed(h.predicted_continuous_std_um, 2)
+            );
+        }
     }
     Ok(0)
 }
@@ -844,10 +878,146 @@ struct VerifyReport<'a> {
     pairs_checked: usize,
     excluded_pairs: &'a [crate::collision::ExcludedPair],
     notes: &'a [String],
+    /// The limits checked and where each came from (flag or cell, the program header, default).
+    limits: &'a VerifyLimits,
+}
+
+/// The limits `verify` checks with and where each came from (`--json`'s `limits`).
+#[derive(serde::Serialize)]
+struct VerifyLimits {
+    bar_mm: [f64; 2],
+    margin_mm: f64,
+    joint_margin_deg: f64,
+    /// The most any corner may blend: the header's statement (None: not stated).
+    blend_mm: Option<f64>,
+    /// The joint accelerations (deg/s², per joint) the move times are checked at: the robot
+    /// file's or the cell's, never the header's (a note says where the header differs).
+    accelerations_deg: [f64; 6],
+    /// Per limit: "flag or cell", "header" or "default".
+    from: std::collections::BTreeMap<&'static str, &'static str>,
+}
+
+/// Every limit the program header states is the one `verify` checks unless a flag or the cell
+/// file states it: a program compiled with `--bar 150..300` or `--margin 5` verifies as it
+/// was made. An explicit flag or cell value wins; where the header states a looser one, the
+/// returned notes say so (the program was made to less than this check asks).
+fn header_limits(
+    spec: &mut CellSpec,
+    lim: &crate::verify::HeaderLimits,
+    robot: &Robot,
+) -> (VerifyLimits, Vec<String>) {
+    let mut notes = Vec::new();
+    let mut from = std::collections::BTreeMap::new();
+    let source = |stated: bool, header: bool| match (stated, header) {
+        (true, _) => "flag or cell",
+        (false, true) => "header",
+        (false, false) => "default",
+    };
+    let st = spec.stated;
+    if let Some([lo, hi]) = lim.bar_mm {
+        let cell = [to_mm(spec.bar_min), to_mm(spec.bar_max)];
+        if !st.bar_min {
+            spec.bar_min = lo * MM;
+        }
+        if !st.bar_max {
+            spec.bar_max = hi * MM;
+        }
+        if (st.bar_min && lo < cell[0] - 0.05) || (st.bar_max && hi > cell[1] + 0.05) {
+            notes.push(format!(
+                "the program header states bar range {}..{} mm, wider than the {}..{} mm this check uses (flag or cell)",
+                fmt_fixed(lo, 1), fmt_fixed(hi, 1), fmt_fixed(cell[0], 1), fmt_fixed(cell[1], 1)
+            ));
+        }
+    }
+    from.insert(
+        "bar",
+        match (st.bar_min, st.bar_max, lim.bar_mm.is_some()) {
+            (true, true, _) => "flag or cell",
+            (true, false, true) | (false, true, true) => "flag or cell and header",
+            (_, _, header) => source(false, header),
+        },
+    );
+    let mut scalar = |name: &'static str,
+                      unit: &str,
+                      stated: bool,
+                      header: Option<f64>,
+                      value: &mut f64,
+                      scale: f64| {
+        if let Some(h) = header {
+            if !stated {
+                *value = h * scale;
+            } else if h < *value / scale - 0.05 {
+                notes.push(format!(
+                    "the program header states {name} {} {unit}, less than the {} {unit} this check uses (flag or cell)",
+                    fmt_fixed(h, 1),
+                    fmt_fixed(*value / scale, 1)
+                ));
+            }
+        }
+        from.insert(name, source(stated, header.is_some()));
+    };
+    scalar(
+        "safety margin",
+        "mm",
+        st.margin,
+        lim.margin_mm,
+        &mut spec.margin,
+        MM,
+    );
+    scalar(
+        "joint margin",
+        "deg",
+        st.joint_margin,
+        lim.joint_margin_deg,
+        &mut spec.joint_margin,
+        DEG,
+    );
+    from.insert(
+        "corner blend",
+        if lim.blend_mm.is_some() {
+            "header"
+        } else {
+            "default"
+        },
+    );
+    // The accelerations are the robot's (its file or the cell's `[robot] accelerations`): they
+    // are what it does, whatever the program assumed. Where the header assumed others, the
+    // program's times were made for another robot or cell: a note says so.
+    let accelerations_deg = robot.max_accelerations().map(|a| a / DEG);
+    if let Some((stated, half)) = lim.accelerations_deg {
+        if (0..6).any(|i| (stated[i] - accelerations_deg[i]).abs() > half + 1e-9) {
+            let list = |a: &[f64; 6]| a.map(|v| fmt_fixed(v, 1)).join(", ");
+            notes.push(format!(
+                "the program header states joint accelerations {} deg/s^2, but the robot{} has {} deg/s^2: the program's times were made for other accelerations (this check uses the robot's)",
+                list(&stated),
+                if spec.accelerations.is_some() { " (cell)" } else { " file" },
+                list(&accelerations_deg)
+            ));
+        }
+    }
+    from.insert(
+        "joint accelerations",
+        if spec.accelerations.is_some() {
+            "cell"
+        } else {
+            "robot file"
+        },
+    );
+    (
+        VerifyLimits {
+            accelerations_deg,
+            bar_mm: [to_mm(spec.bar_min), to_mm(spec.bar_max)],
+            margin_mm: to_mm(spec.margin),
+            joint_margin_deg: spec.joint_margin / DEG,
+            blend_mm: lim.blend_mm,
+            from,
+        },
+        notes,
+    )
 }
 
 fn run_verify(a: &VerifyArgs) -> Result<i32, Error> {
-    let spec = resolve_cell(&a.cell)?;
+    let mut spec = resolve_cell(&a.cell)?;
     let text = read_input(&a.program, "program", crate::files::Kind::Program)?;
     let dialect = program_dialect(a.dialect.as_deref(), &a.program, &text)?;
     let robot = load_robot(&a.robot, &a.cell, &spec)?;
@@ -863,6 +1033,12 @@ fn run_verify(a: &VerifyArgs) -> Result<i32, Error> {
         });
     }
     let fixture = resolve_fixture(a.fixture.as_deref(), &spec, parsed.header_value("fixture"))?;
+    // The bar range, margins and blend: flag or cell, else the program header's.
+    let stated = crate::verify::HeaderLimits::read(&parsed).map_err(|msg| Error::File {
+        path: a.program.display().to_string(),
+        msg,
+    })?;
+    let (limits, limit_notes) = header_limits(&mut spec, &stated, &robot);
     // MAP: flag or cell, else the program header's, else the robot file's.
     let header_map = match (spec.map, parsed.header_value("MAP")) {
         (None, Some(h)) => Some(xyz_mm(
@@ -881,6 +1057,7 @@ fn run_verify(a: &VerifyArgs) -> Result<i32, Error> {
     }
     match crate::verify::check(&ck, &robot, &parsed, dialect) {
         Ok(s) => {
+            let notes: Vec<String> = robot.notes.iter().chain(&limit_notes).cloned().collect();
             if a.json {
                 let report = VerifyReport {
                     schema: "edbbgen.verify/1",
@@ -888,23 +1065,29 @@ fn run_verify(a: &VerifyArgs) -> Result<i32, Error> {
                     bodies: &scene_report.bodies,
                     pairs_checked: scene_report.pairs_checked,
                     excluded_pairs: &scene_report.excluded,
-                    notes: &robot.notes,
+                    notes: &notes,
+                    limits: &limits,
                 };
                 println!(
                     "{}",
                     serde_json::to_string_pretty(&report).unwrap_or_default()
                 );
             } else {
-                for n in &robot.notes {
+                for n in &notes {
                     eprintln!("edbbgen: warning: {n}");
                 }
                 println!(
-                    "{}: ok: {} poses, {} support poses, {} moves, {} blends, {} s; min clearance {} mm ({} / {}); bar {}..{} mm; max cone angles {} deg (socket), {} deg (cup); {} bodies, {} pairs checked, {} excluded (--json lists them)",
+                    "{}: ok: {} poses, {} support poses, {} moves, {} blends, {}{} s; min clearance {} mm ({} / {}); bar {}..{} mm; max cone angles {} deg (socket), {} deg (cup); {} bodies, {} pairs checked, {} excluded (--json lists them)",
                     a.program.display(),
                     s.poses,
                     s.supports,
                     s.moves,
                     s.blends,
+                    if s.dwells > 0 {
+                        format!("{} dwells ({} s), ", s.dwells, fmt_fixed(s.dwell_s, 1))
+                    } else {
+                        String::new()
+                    },
                     fmt_fixed(s.duration, 1),
                     fmt_fixed(to_mm(s.min_clearance.distance), 1),
                     s.min_clearance.a,
@@ -921,6 +1104,9 @@ fn run_verify(a: &VerifyArgs) -> Result<i32, Error> {
             Ok(0)
         }
         Err(f) => {
+            for n in &limit_notes {
+                eprintln!("edbbgen: warning: {n}");
+            }
             eprintln!("edbbgen: {}: {f}", a.program.display());
             Ok(1)
         }

@@ -5,7 +5,7 @@ use super::{scalar, usage, write_atomic, xyz_mm, Error};
 use crate::model::{MeasurementModel, N_PARAMS};
 use crate::robot::{self, Robot};
 use crate::twin::{self, SimOptions, Truth};
-use crate::units::MM;
+use crate::units::{fmt_fixed, MM};
 use nalgebra::Vector3;
 use std::path::Path;
 
@@ -74,6 +74,58 @@ pub fn simulate(a: &SimulateArgs) -> Result<i32, Error> {
         (None, None) => tool_or_robot(None, &robot)?,
     };
     let model = MeasurementModel::new(&robot, fixture, map);
+    if let Some(bar_path) = &a.bar_log {
+        let lopts = log_options(a, rate, &parsed)?;
+        super::check_outputs(&[
+            Some(a.output.as_path()),
+            Some(bar_path.as_path()),
+            a.joint_log.as_deref(),
+        ])?;
+        let traj = twin::Trajectory::from_program(&robot, &model, &parsed)
+            .map_err(|e| file_err(&a.program, e))?;
+        let logs = twin::logsim::simulate_logs(&robot, &model, &traj, &truth, &lopts)
+            .map_err(|e| file_err(&a.program, e))?;
+        let sync = logs.synchronous.to_csv();
+        let bar = logs.bar.to_csv();
+        let joints = a.joint_log.as_ref().map(|_| {
+            // The controller logs its own axis values (the mapping applied), in degrees.
+            let mut j = logs.joints.clone();
+            for q in j.q.iter_mut() {
+                *q = controller_axes(&axes, q);
+            }
+            j.to_csv()
+        });
+        let mut files: Vec<(&Path, &str)> = vec![
+            (a.output.as_path(), sync.as_str()),
+            (bar_path.as_path(), bar.as_str()),
+        ];
+        if let (Some(p), Some(j)) = (&a.joint_log, &joints) {
+            files.push((p.as_path(), j.as_str()));
+        }
+        super::write_all_atomic(&files)?;
+        println!(
+            "{}: {} rows on the bar's clock ({} Hz, offset {} s, drift {} ppm), {} plateaus lost or cut, {} controller stops; {}: the {} mounted samples with the true joints{}",
+            bar_path.display(),
+            logs.bar.len(),
+            fmt_fixed(lopts.bar_rate, 0),
+            fmt_fixed(lopts.offset, 3),
+            fmt_fixed(lopts.drift * 1e6, 1),
+            logs.truth.intact.iter().filter(|p| !**p).count(),
+            logs.truth.holds.len(),
+            a.output.display(),
+            logs.synchronous.len(),
+            match &a.joint_log {
+                Some(p) => format!(
+                    "; {}: {} rows at {} Hz",
+                    p.display(),
+                    logs.joints.len(),
+                    fmt_fixed(lopts.joint_rate, 0)
+                ),
+                None => String::new(),
+            }
+        );
+        return Ok(0);
+    }
     let opts = SimOptions { rate, seed: a.seed };
     let m = twin::simulate(&robot, &model, &parsed, &truth, &opts)
         .map_err(|e| file_err(&a.program, e))?;
@@ -87,20 +139,222 @@ pub fn simulate(a: &SimulateArgs) -> Result<i32, Error> {
     Ok(0)
 }
 
+/// Model joints (rad) as the controller's axis values in degrees (the joint log's columns).
+pub(super) fn controller_axes(map: &crate::controller::ControllerMap, q: &[f64; 6]) -> [f64; 6] {
+    let c = map.apply(&q.map(f64::to_degrees));
+    let deg = match map.units {
+        crate::controller::Units::Deg => c,
+        crate::controller::Units::Rad => c.map(f64::to_degrees),
+    };
+    deg.map(f64::to_radians)
+}
+
+/// The controller's axis values (rad, as a joint log holds them) as model joints (rad).
+pub(super) fn model_joints(map: &crate::controller::ControllerMap, c: &[f64; 6]) -> [f64; 6] {
+    let deg = c.map(f64::to_degrees);
+    let prog = match map.units {
+        crate::controller::Units::Deg => deg,
+        crate::controller::Units::Rad => deg.map(f64::to_radians),
+    };
+    map.undo(&prog).map(f64::to_radians)
+}
+
+/// `simulate`'s log flags, checked.
+fn log_options(
+    a: &SimulateArgs,
+    rate: f64,
+    parsed: &crate::dialect::Parsed,
+) -> Result<twin::logsim::LogOptions, Error> {
+    let joint_rate = scalar("--joint-rate", &a.joint_rate)?;
+    if !(1.0..=10_000.0).contains(&joint_rate) {
+        return Err(usage(format!(
+            "--joint-rate: {joint_rate} Hz is outside 1..10000 Hz"
+        )));
+    }
+    let drift = scalar("--clock-drift", &a.clock_drift)?;
+    if drift.abs() > 10_000.0 {
+        return Err(usage(format!(
+            "--clock-drift: {drift} ppm is beyond the ±10000 ppm of any clock"
+        )));
+    }
+    let (p0, p1) = a
+        .pause
+        .split_once("..")
+        .ok_or_else(|| usage(format!("--pause: '{}' is not MIN..MAX (s)", a.pause)))?;
+    let (p0, p1) = (scalar("--pause", p0)?, scalar("--pause", p1)?);
+    if !(0.0 <= p0 && p0 <= p1) {
+        return Err(usage(format!(
+            "--pause: '{}' needs 0 <= MIN <= MAX",
+            a.pause
+        )));
+    }
+    let move_scale = scalar("--move-scale", &a.move_scale)?;
+    if !(0.2..=5.0).contains(&move_scale) {
+        return Err(usage(format!(
+            "--move-scale: {move_scale} is outside 0.2..5"
+        )));
+    }
+    let dropout = scalar("--dropout", &a.dropout)?;
+    if !(0.0..1.0).contains(&dropout) {
+        return Err(usage(format!(
+            "--dropout: {dropout} is not a probability below 1"
+        )));
+    }
+    let poses = |flag: &str, v: &Option<String>| -> Result<Vec<usize>, Error> {
+        match v {
+            None => Ok(Vec::new()),
+            Some(s) => s
+                .split(',')
+                .map(|x| match x.trim().parse::<usize>() {
+                    Ok(k) if k >= 1 => Ok(k),
+                    _ => Err(usage(format!(
+                        "{flag}: '{s}' is not a list of pose numbers (1-based)"
+                    ))),
+                })
+                .collect(),
+        }
+    };
+    // A handled bar takes the lengths of the bar's range (the program header's, if it says).
+    let bar_range = parsed
+        .header_value("bar range")
+        .and_then(|v| {
+            let r = v.split(' ').next()?.trim_end_matches(';');
+            let (x, y) = r.split_once("..")?;
+            Some((x.parse::<f64>().ok()? * MM, y.parse::<f64>().ok()? * MM))
+        })
+        .unwrap_or((0.300, 0.520));
+    Ok(twin::logsim::LogOptions {
+        bar_rate: rate,
+        joint_rate,
+        offset: scalar("--clock-offset", &a.clock_offset)?,
+        drift: drift * 1e-6,
+        pause: (p0, p1),
+        zero: scalar("--bar-zero", &a.bar_zero)? * MM,
+        gaps: a.gaps,
+        dropout,
+        missing: poses("--missing", &a.missing)?,
+        holds: a.holds,
+        move_scale,
+        vibration: poses("--vibration", &a.vibration)?,
+        handling: !a.no_handling,
+        bar_range,
+        seed: a.seed,
+        ..Default::default()
+    })
+}
+
 pub fn diagnose(a: &DiagnoseArgs) -> Result<i32, Error> {
-    let fixture = xyz_mm("--fixture", &a.fixture)?;
+    let flag_fixture = a
+        .fixture
+        .as_deref()
+        .map(|f| xyz_mm("--fixture", f))
+        .transpose()?;
+    if a.bar_log.is_some() && a.program.is_none() && a.joint_log.is_none() {
+        return Err(usage(
+            "--bar-log: needs --program (the stop-and-measure program it recorded) or --joint-log",
+        ));
+    }
+    super::check_outputs(&[a.json.as_deref(), a.plot.as_deref(), a.html.as_deref()])?;
     let robot = load(&a.robot)?;
-    let map = tool_or_robot(a.tool.as_deref(), &robot)?;
-    let text = read(&a.measured, "measured data", crate::files::Kind::Measured)?;
-    let m = twin::parse_csv(&text, N_PARAMS + 2).map_err(|e| file_err(&a.measured, e))?;
+    let program = match &a.program {
+        Some(p) => Some(super::logs_cli::read_program(&robot, p)?),
+        None => None,
+    };
+    // The MAP: the flag, else the program header's, else the robot file's.
+    let map = match (
+        &a.tool,
+        program.as_ref().and_then(|p| p.parsed.header_value("MAP")),
+    ) {
+        (Some(s), _) => xyz_mm("--tool", s)?,
+        (None, Some(h)) => super::logs_cli::header_xyz(h)
+            .ok_or_else(|| usage("the program header's MAP is not X, Y, Z mm: give --tool"))?,
+        (None, None) => tool_or_robot(None, &robot)?,
+    };
+    let (m, fixture, text_hash, source, extra, lines) = match (&a.measured, &a.bar_log) {
+        (Some(path), _) => {
+            let fixture =
+                flag_fixture.ok_or_else(|| usage("--fixture: required with --measured"))?;
+            let text = read(path, "measured data", crate::files::Kind::Measured)?;
+            let m = twin::parse_csv(&text, N_PARAMS + 2).map_err(|e| file_err(path, e))?;
+            (
+                m,
+                fixture,
+                robot::sha256_hex(text.as_bytes()),
+                path.clone(),
+                None,
+                Vec::new(),
+            )
+        }
+        (None, Some(bar)) => {
+            let run = super::logs_cli::read_run(
+                &robot,
+                bar,
+                program.as_ref(),
+                a.joint_log.as_deref(),
+                flag_fixture,
+                map,
+            )?;
+            let mut read = (run.measured, run.extra, run.summary);
+            if let Some(logs) = &run.logs {
+                // Synchronised against the nominal model: once more against the geometry the
+                // data give (its errors no longer bias the clock).
+                let model = MeasurementModel::new(&robot, run.fixture, map);
+                let geometry = crate::calibrate::CalibrateOptions {
+                    effects: crate::calibrate::Effects::None,
+                    ..Default::default()
+                };
+                let one = [crate::diagnose::Run {
+                    measured: &read.0,
+                    fixture: run.fixture,
+                }];
+                let cal = crate::calibrate::run(
+                    &model,
+                    &robot,
+                    &one,
+                    std::slice::from_ref(&run.label),
+                    &geometry,
+                )
+                .map_err(|e| file_err(bar, e))?;
+                let p = cal.estimate.params(0);
+                let length = |q: &[f64; 6]| model.length(&p, q);
+                read = super::logs_cli::resync(logs, &length, program.as_ref())?;
+            }
+            (
+                read.0,
+                run.fixture,
+                run.sha256,
+                bar.clone(),
+                Some(read.1),
+                read.2,
+            )
+        }
+        (None, None) => return Err(usage("--measured or --bar-log: one is required")),
+    };
+    if m.len() < N_PARAMS + 2 {
+        return Err(file_err(
+            &source,
+            format!(
+                "{} readings, fewer than the {} the fit needs",
+                m.len(),
+                N_PARAMS + 2
+            ),
+        ));
+    }
     let model = MeasurementModel::new(&robot, fixture, map);
     let opts = crate::diagnose::DiagnoseOptions {
         masses: robot.masses.clone(),
         ..Default::default()
     };
-    let d = crate::diagnose::run(&model, &m, &opts).map_err(|e| file_err(&a.measured, e))?;
+    let d = crate::diagnose::run(&model, &m, &opts).map_err(|e| file_err(&source, e))?;
     // Everything is rendered before the first file is written: a failure leaves no file.
-    let json = serde_json::to_string_pretty(&d.report).unwrap_or_default() + "\n";
+    let mut report = serde_json::to_value(&d.report).unwrap_or_default();
+    if let (Some(extra), Some(obj)) = (&extra, report.as_object_mut()) {
+        obj.insert(
+            "run".into(),
+            serde_json::to_value(extra).unwrap_or_default(),
+        );
+    }
+    let json = serde_json::to_string_pretty(&report).unwrap_or_default() + "\n";
     let svg = match &a.plot {
         Some(_) => Some(crate::diagnose::plot::svg(&d)?),
         None => None,
@@ -111,7 +365,7 @@ pub fn diagnose(a: &DiagnoseArgs) -> Result<i32, Error> {
                 format!(
                     "{}\n{}\n{:?}\n{:?}\n",
                     robot.digest,
-                    robot::sha256_hex(text.as_bytes()),
+                    text_hash,
                     fixture.as_slice(),
                     map.as_slice()
                 )
@@ -131,6 +385,9 @@ pub fn diagnose(a: &DiagnoseArgs) -> Result<i32, Error> {
     }
     if let (Some(p), Some(html)) = (&a.html, &html) {
         write_atomic(p, html)?;
+    }
+    for l in &lines {
+        println!("{l}");
     }
     print!("{}", d.summary);
     Ok(0)

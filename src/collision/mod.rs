@@ -329,21 +329,25 @@ fn floor_distance(a: &Placed, b: &Placed) -> f64 {
 }
 
 /// A lower bound on the distance of two parts: exact where it is below `limit`, else the
-/// bounding spheres' gap or `limit` itself (−∞ where they intersect or parry cannot tell).
+/// bounding spheres' gap or `limit` itself (−∞ where they intersect or parry cannot tell);
+/// with the direction (world, unit, from `a` to `b`) that GJK found separating them, where it
+/// found one.
 #[inline]
-fn part_bound(a: &Placed, b: &Placed, limit: f64) -> f64 {
+fn part_bound(a: &Placed, b: &Placed, limit: f64) -> (f64, Option<Vector3<f64>>) {
     let g = gap(&a.center, a.radius, a.plane, &b.center, b.radius, b.plane);
     if g >= limit {
-        return g;
+        return (g, None);
     }
     if a.plane || b.plane {
-        return floor_distance(a, b);
+        return (floor_distance(a, b), None);
     }
     if a.hull.is_some() || b.hull.is_some() {
         let (Some(ga), Some(gb)) = (support_map(a), support_map(b)) else {
-            return f64::NEG_INFINITY;
+            return (f64::NEG_INFINITY, None);
         };
         let mut simplex = VoronoiSimplex::new();
+        // GJK's directions are in `a`'s frame.
+        let world = |v: &Unit<Vector3<f64>>| Some(a.iso.rotation * v.into_inner());
         return match details::closest_points_support_map_support_map_with_params(
             &a.iso.inv_mul(&b.iso),
             ga,
@@ -352,15 +356,63 @@ fn part_bound(a: &Placed, b: &Placed, limit: f64) -> f64 {
             &mut simplex,
             None,
         ) {
-            GJKResult::NoIntersection(_) => limit,
-            GJKResult::ClosestPoints(p, q, _) => (p - q).norm(),
-            GJKResult::Intersection | GJKResult::Proximity(_) => f64::NEG_INFINITY,
+            GJKResult::NoIntersection(v) => (limit, world(&v)),
+            GJKResult::ClosestPoints(p, q, v) => ((p - q).norm(), world(&v)),
+            GJKResult::Intersection | GJKResult::Proximity(_) => (f64::NEG_INFINITY, None),
         };
     }
     match query::closest_points(&a.iso, a.shape, &b.iso, b.shape, limit) {
-        Ok(ClosestPoints::Disjoint) => limit,
-        Ok(ClosestPoints::WithinMargin(p, q)) => (p - q).norm(),
-        Ok(ClosestPoints::Intersecting) | Err(_) => f64::NEG_INFINITY,
+        Ok(ClosestPoints::Disjoint) => (limit, None),
+        Ok(ClosestPoints::WithinMargin(p, q)) => ((p - q).norm(), (q - p).try_normalize(1e-12)),
+        Ok(ClosestPoints::Intersecting) | Err(_) => (f64::NEG_INFINITY, None),
+    }
+}
+
+/// How far a placed part reaches along a world direction: the largest p·v over its points
+/// (its support point's), or None for the floor or a shape without a support function.
+#[inline]
+fn extent(p: &Placed, v: &Vector3<f64>) -> Option<f64> {
+    if p.plane {
+        return None;
+    }
+    support_map(p).map(|m| m.support_point(&p.iso, v).coords.dot(v))
+}
+
+/// A pair's separating direction from its last exact measure along one motion: projected on it,
+/// two bodies that moved a little since are still as far apart, and two support points prove
+/// it (a separating-axis lower bound) where GJK converging to the distance takes many.
+#[derive(Clone, Copy)]
+struct Warm {
+    /// World, unit, from the pair's first body to its second; None before the first measure.
+    dir: Option<Vector3<f64>>,
+    /// The bound the last exact measure gave.
+    exact: f64,
+}
+
+/// How much less than the last exact measure a separation along the remembered direction may
+/// be and still serve as the bound (m), at least; a quarter of the measure's excess over the
+/// margin where that is more. Below it the direction has gone stale: GJK measures again.
+const WARM_TOLERANCE: f64 = 1e-3;
+
+impl Warm {
+    const NONE: Warm = Warm {
+        dir: None,
+        exact: f64::NEG_INFINITY,
+    };
+
+    /// Whether the separation `s` along the remembered direction serves as the bound: above the
+    /// margin (else the exact filter decides anyway), and near the last exact measure.
+    #[inline]
+    fn serves(&self, s: f64, margin: f64) -> bool {
+        s > margin + 2.0 * BOUND_SLACK
+            && s >= self.exact - WARM_TOLERANCE.max(0.25 * (self.exact - margin))
+    }
+
+    /// Remembers an exact measure and the direction it found (the old one where it found none).
+    #[inline]
+    fn measured(&mut self, bound: f64, dir: Option<Vector3<f64>>) {
+        self.exact = bound;
+        self.dir = dir.or(self.dir);
     }
 }
 
@@ -400,8 +452,14 @@ impl Body {
         best
     }
 
-    /// A lower bound on the distance of `a` to this body placed at `iso` (see [`part_bound`]).
-    fn bound_against(&self, iso: &Isometry3<f64>, a: &Placed, limit: f64) -> f64 {
+    /// A lower bound on the distance of `a` to this body placed at `iso` (see [`part_bound`]),
+    /// and the separating direction (from `a`) of the part that gave it.
+    fn bound_against(
+        &self,
+        iso: &Isometry3<f64>,
+        a: &Placed,
+        limit: f64,
+    ) -> (f64, Option<Vector3<f64>>) {
         let g = gap(
             &a.center,
             a.radius,
@@ -411,18 +469,54 @@ impl Body {
             self.plane,
         );
         if g >= limit {
-            return g;
+            return (g, None);
         }
         // A part farther than the best so far cannot lower the minimum: the limit shrinks.
-        let mut best = f64::INFINITY;
+        let mut best = (f64::INFINITY, None);
         for p in &self.parts {
-            best = best.min(part_bound(a, &p.place(iso), limit.min(best)));
+            let b = part_bound(a, &p.place(iso), limit.min(best.0));
+            if b.0 < best.0 {
+                best = b;
+            }
         }
         best
     }
 
+    /// [`Body::bound_against`] along a motion: where the direction `warm` remembers still
+    /// separates `a` from this body about as well as when it was measured, that separation is
+    /// the bound (two support points per part instead of GJK); else the exact measure, which
+    /// renews the direction.
+    fn bound_against_along(
+        &self,
+        iso: &Isometry3<f64>,
+        a: &Placed,
+        limit: f64,
+        margin: f64,
+        warm: &mut Warm,
+    ) -> f64 {
+        if let Some(v) = warm.dir {
+            let lo = self.parts.iter().try_fold(f64::INFINITY, |lo, p| {
+                Some(lo.min(-extent(&p.place(iso), &-v)?))
+            });
+            if let (Some(lo), Some(hi)) = (lo, extent(a, &v)) {
+                if warm.serves(lo - hi, margin) {
+                    return lo - hi;
+                }
+            }
+        }
+        let (b, dir) = self.bound_against(iso, a, limit);
+        warm.measured(b, dir);
+        b
+    }
+
     /// A lower bound on the distance of two bodies: exact where it is below `limit`.
-    fn bound(&self, ia: &Isometry3<f64>, other: &Body, ib: &Isometry3<f64>, limit: f64) -> f64 {
+    fn bound(
+        &self,
+        ia: &Isometry3<f64>,
+        other: &Body,
+        ib: &Isometry3<f64>,
+        limit: f64,
+    ) -> (f64, Option<Vector3<f64>>) {
         let g = gap(
             &(ia * self.center),
             self.radius,
@@ -432,13 +526,46 @@ impl Body {
             other.plane,
         );
         if g >= limit {
-            return g;
+            return (g, None);
         }
-        let mut best = f64::INFINITY;
+        let mut best = (f64::INFINITY, None);
         for p in &self.parts {
-            best = best.min(other.bound_against(ib, &p.place(ia), limit.min(best)));
+            let b = other.bound_against(ib, &p.place(ia), limit.min(best.0));
+            if b.0 < best.0 {
+                best = b;
+            }
         }
         best
+    }
+
+    /// [`Body::bound`] along a motion, with the remembered direction (see
+    /// [`Body::bound_against_along`]): a separating-axis bound from the support points of
+    /// every part where it serves, else the exact measure.
+    fn bound_along(
+        &self,
+        ia: &Isometry3<f64>,
+        other: &Body,
+        ib: &Isometry3<f64>,
+        limit: f64,
+        margin: f64,
+        warm: &mut Warm,
+    ) -> f64 {
+        if let (Some(v), false, false) = (warm.dir, self.plane, other.plane) {
+            let hi = self.parts.iter().try_fold(f64::NEG_INFINITY, |hi, p| {
+                Some(hi.max(extent(&p.place(ia), &v)?))
+            });
+            let lo = other.parts.iter().try_fold(f64::INFINITY, |lo, p| {
+                Some(lo.min(-extent(&p.place(ib), &-v)?))
+            });
+            if let (Some(hi), Some(lo)) = (hi, lo) {
+                if warm.serves(lo - hi, margin) {
+                    return lo - hi;
+                }
+            }
+        }
+        let (b, dir) = self.bound(ia, other, ib, limit);
+        warm.measured(b, dir);
+        b
     }
 
     fn pair(
@@ -531,6 +658,7 @@ pub struct Coherence {
     rate: Vec<f64>,
     bound: Vec<f64>,
     at: Vec<f64>,
+    warm: Vec<Warm>,
 }
 
 /// How far beyond the margin a pair's distance is measured exactly (m): a pair farther than
@@ -632,6 +760,7 @@ impl Scene {
             rate,
             bound: vec![f64::NEG_INFINITY; n],
             at: vec![0.0; n],
+            warm: vec![Warm::NONE; n],
         }
     }
 
@@ -649,19 +778,19 @@ impl Scene {
     ) -> Option<Contact> {
         let poses = Poses::new(q, frames, &self.passive);
         // Measure up to the distance that keeps a pair clear for the whole motion.
-        let mut check = |k: usize, measure: &dyn Fn(f64) -> f64| -> bool {
+        let mut check = |k: usize, measure: &dyn Fn(f64, &mut Warm) -> f64| -> bool {
             if co.bound[k] - co.rate[k] * (s - co.at[k]).abs() > margin {
                 return false;
             }
             let limit = margin + co.rate[k].min(LOOKAHEAD) + BOUND_SLACK;
-            co.bound[k] = measure(limit) - BOUND_SLACK;
+            co.bound[k] = measure(limit, &mut co.warm[k]) - BOUND_SLACK;
             co.at[k] = s;
             co.bound[k] <= margin + 2.0 * BOUND_SLACK
         };
         for (k, &(a, b)) in self.pairs.iter().enumerate() {
             let (ba, bb) = (&self.bodies[a], &self.bodies[b]);
-            let near = check(k, &|limit| {
-                ba.bound(&poses.of(ba), bb, &poses.of(bb), limit)
+            let near = check(k, &|limit, warm| {
+                ba.bound_along(&poses.of(ba), bb, &poses.of(bb), limit, margin, warm)
             });
             // Near the margin the filter itself decides, so the verdict and the contact are
             // exactly those of `violation`.
@@ -680,8 +809,8 @@ impl Scene {
         let bar = Placed::bar(&cap, r);
         for (k, &b) in self.bar_pairs.iter().enumerate() {
             let bb = &self.bodies[b];
-            let near = check(np + k, &|limit| {
-                bb.bound_against(&poses.of(bb), &bar, limit)
+            let near = check(np + k, &|limit, warm| {
+                bb.bound_against_along(&poses.of(bb), &bar, limit, margin, warm)
             });
             if near {
                 if let Some(d) = bb.against(&poses.of(bb), &bar, margin, Mode::Filter) {

@@ -1375,6 +1375,26 @@ pub(crate) fn score(st: &Stats, sel: &[usize]) -> (f64, usize, f64, f64) {
     (rss, rank, bic, cv)
 }
 
+/// The held-out sum of squares that white noise of unit variance gives a right model on the
+/// folds of `st` (columns `sel`): per fold, its rows plus the variance of its prediction by
+/// the model fitted to the others, tr(N_f · (N − N_f)⁺). Held-out residuals exceed the
+/// in-sample ones by this much without any model error: by little on a long recording, by
+/// a large factor on a few dozen static readings with nearly as many parameters.
+pub(crate) fn heldout_noise(st: &Stats, sel: &[usize]) -> f64 {
+    let (nt, _, _, _) = st.total();
+    let k = sel.len();
+    let mut e = 0.0;
+    for f in 0..st.n.len() {
+        if st.rows[f] == 0 {
+            continue;
+        }
+        let nf = DMatrix::from_fn(k, k, |a, c| st.n[f][(sel[a], sel[c])]);
+        let rest = DMatrix::from_fn(k, k, |a, c| nt[(sel[a], sel[c])]) - &nf;
+        e += st.rows[f] as f64 + (nf * inverse(&rest)).trace().max(0.0);
+    }
+    e
+}
+
 /// A converged fit: the model's columns (free geometry, then the effects' coefficients), its
 /// normal matrix N = JᵀWJ at the estimate, and the residual measured − model per row.
 pub struct Fitted {

@@ -56,6 +56,10 @@ pub struct Dialect {
     pub axis_names: [String; 6],
     pub axis_names_configurable: bool,
     pub j3_coupling: Coupling,
+    /// The coupling on a parallel-arm robot when the cell states none (see
+    /// [`crate::controller::parallel_arm`]); absent: `j3_coupling`, with a warning.
+    #[serde(default)]
+    pub j3_coupling_parallel_arm: Option<Coupling>,
     /// Program names: at most this many characters (letters, digits, `_`, a letter first).
     pub name_max: usize,
     /// The program name must equal the file name (KRL's DEF, FANUC's /PROG, ...).
@@ -135,6 +139,7 @@ impl Dialect {
             axis_names: self.axis_names.clone(),
             axis_names_configurable: self.axis_names_configurable,
             j3_coupling: self.j3_coupling,
+            j3_coupling_parallel_arm: self.j3_coupling_parallel_arm,
         }
     }
 

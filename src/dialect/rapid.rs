@@ -9,7 +9,8 @@
 //!   move without it runs at speed data that verify cannot turn into joint speeds: only the
 //!   approach may); zone `fine` (exact stop), a built-in `zN` or a declared zonedata
 //!   (`pzone_tcp`, mm at the tool's TCP); the tool a declared tooldata or `tool0`;
-//! - `TPWrite "…";` (at most 80 characters), `Stop;` (pause), `WaitTime t;` (dwell),
+//! - `TPWrite "…";` (at most 80 characters), `Stop;` (pause), `WaitTime [\InPos,] t;`
+//!   (dwell; `\InPos` starts it once the robot stands still),
 //!   `ConfJ`/`ConfL`.
 
 use super::{number, perr, push_header, Line, ParseError, Parsed, Step, Timing};
@@ -360,7 +361,15 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                 comment,
             }),
             "WAITTIME" => {
-                let t = number(line, "WaitTime", args)?;
+                // `\InPos`: the time starts once the robot stands still (a dwell after a stop).
+                let a = args.trim();
+                let a = match a.get(..6) {
+                    Some(w) if w.eq_ignore_ascii_case("\\InPos") => {
+                        a[6..].trim_start().strip_prefix(',').unwrap_or(&a[6..])
+                    }
+                    _ => a,
+                };
+                let t = number(line, "WaitTime", a)?;
                 if t < 0.0 {
                     return Err(perr(line, "WaitTime needs a time >= 0"));
                 }

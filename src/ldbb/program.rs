@@ -236,6 +236,7 @@ pub fn compile(
             mount_after: true,
             axes: [0.0; 6],
             speed_pct: 0.0,
+            dwell_s: 0.0,
         });
         for s in 1..=per_load {
             let k = start + s as i64;
@@ -293,6 +294,7 @@ pub fn compile(
                 mount_after: false,
                 axes: [0.0; 6],
                 speed_pct: 0.0,
+                dwell_s: 0.0,
             });
         }
         start += per_load as i64;
@@ -396,6 +398,10 @@ pub fn compile(
         axis_names: Vec::new(),
         axis_units: String::new(),
         axis_decimals: 0,
+        dwell_s: 0.0,
+        measure_mm: Vec::new(),
+        plateau_samples: 0,
+        predicted_continuous_std_um: 0.0,
     };
     let base = Program { header, moves };
     let cmap = crate::controller::ControllerMap::resolve(

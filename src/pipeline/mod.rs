@@ -55,6 +55,11 @@ pub struct CompileOptions {
     /// calibration uncertainty assumes.
     pub bar_noise: f64,
     pub bar_rate: f64,
+    /// Stop-and-measure (`--dwell S`): an exact stop and a dwell of S seconds at every
+    /// measurement pose. None: a continuous program (absent from the input hash, so continuous
+    /// programs keep theirs).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub dwell: Option<f64>,
     /// A short check program: the poses are chosen for these parameters only (Eq. 6 indices;
     /// those the pool cannot identify are left out), e.g. the ones that drifted last time and
     /// the joint zeros (`--focus`). None: every identifiable parameter.
@@ -94,6 +99,7 @@ impl CompileOptions {
             start: [0.0; 6],
             bar_noise: DEFAULT_BAR_NOISE_UM * 1e-6,
             bar_rate: DEFAULT_BAR_RATE_HZ,
+            dwell: None,
             focus: None,
             program_name: DEFAULT_PROGRAM_NAME.to_string(),
             tour_cost: TourCost::default(),
@@ -182,6 +188,9 @@ pub enum PipelineError {
     Controller(#[from] crate::controller::ControllerError),
     #[error("refusing to write an unsafe program: {0}")]
     Unsafe(String),
+    /// The compiler's own invariants caught a bug in it (never bad input): nothing is written.
+    #[error("internal error, a bug in edbbgen (please report it with the command line; nothing was written): {0}")]
+    Bug(String),
     #[error("--focus: {0}")]
     Focus(String),
 }
@@ -204,7 +213,7 @@ impl PipelineError {
     /// Exit code: 1 when the compiler's own safety check failed, 2 for bad input.
     pub fn exit_code(&self) -> i32 {
         match self {
-            PipelineError::Unsafe(_) => 1,
+            PipelineError::Unsafe(_) | PipelineError::Bug(_) => 1,
             _ => 2,
         }
     }
@@ -409,6 +418,13 @@ pub struct Predicted {
     pub workspace_p95: f64,
     pub bar_noise_um: f64,
     pub bar_rate_hz: f64,
+    /// Stop-and-measure programs: `workspace_*` are from one reading per measurement pose (the
+    /// plateau means of `plateau_samples` bar samples each); `continuous_workspace_rms` is the
+    /// same program recorded continuously with a synchronous joint log (moves and dwells).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub plateau_samples: Option<usize>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub continuous_workspace_rms: Option<f64>,
 }
 
 /// Every stage's result, for reports and `--emit STAGE`.
@@ -485,6 +501,7 @@ pub fn compile(
         Template::from_source(template).map_err(|e| PipelineError::Template(e.to_string()))?;
     let axes = controller_map(robot, opts, &template)?;
     let (map, mut warnings) = resolve_map(robot, opts.cell.map);
+    warnings.extend(coupling_note(robot, opts, &template));
     warnings.extend(robot.notes.iter().cloned());
     let cell = make_cell(robot, opts.fixture, map, &opts.cell)?;
     let model = MeasurementModel::new(robot, opts.fixture, map);
@@ -508,6 +525,13 @@ pub fn compile(
         warnings.extend(focus_on(&mut identifiability, focus)?);
     }
     let mut planned = select_order_plan(&ck, &sections, &identifiability, opts, progress)?;
+    if let Some(k) = planned.plan.repeated_pose() {
+        return Err(PipelineError::Bug(format!(
+            "the planner put the same pose twice in a row (waypoints {} and {}: a zero-length move)",
+            k,
+            k + 1
+        )));
+    }
     progress.stage("blend");
     blend(&ck, &mut planned.plan, opts, template.dialect, &axes);
     warnings.extend(planned.warnings());
@@ -562,8 +586,8 @@ pub fn compile(
         ],
         max_socket_angle_deg: to_deg(verified.extremes.max_socket_angle),
         max_cup_angle_deg: to_deg(verified.extremes.max_cup_angle),
-        estimated_time_s: path.time_sorted,
-        time_unsorted_s: path.time_unsorted,
+        estimated_time_s: path.time_sorted + dwell_time(opts, &planned.plan),
+        time_unsorted_s: path.time_unsorted + dwell_time(opts, &planned.plan),
         collision_pairs_checked: scene_report.pairs_checked,
         excluded_pairs: scene_report.excluded,
         warnings: warnings.clone(),
@@ -821,6 +845,11 @@ fn blend(
             map,
         },
     );
+    // After the blends: a stop-and-measure program stops exactly at every measurement pose,
+    // whatever the dialect's corner model would allow there.
+    if opts.dwell.is_some() {
+        stop_at_poses(plan);
+    }
 }
 
 /// The path on exactly the joint values the program carries (the 0.001° grid every dialect
@@ -854,8 +883,27 @@ pub fn timed_path(plan: &Plan, time_unsorted: f64, lim: &Limits, dialect: &Diale
     }
 }
 
+/// Stop-and-measure: every measurement pose ends in an exact stop (its dwell follows); the
+/// support poses keep their blends. An exact stop only removes a corner's blend, so every
+/// checked move stays as checked (`verify` re-checks the text anyway).
+fn stop_at_poses(plan: &mut Plan) {
+    for w in plan.waypoints.iter_mut().filter(|w| !w.support) {
+        w.blend = 0.0;
+    }
+}
+
+/// The dwells' share of the program's time (s): one dwell per measurement pose.
+fn dwell_time(opts: &CompileOptions, plan: &Plan) -> f64 {
+    let poses = plan.waypoints.iter().filter(|w| !w.support).count();
+    opts.dwell.unwrap_or(0.0) * poses as f64
+}
+
 /// What the program buys: the MAP position uncertainty after calibrating from its recording
-/// (every move made with the bar, at the bar's rate), over the whole joint space.
+/// (every move made with the bar, at the bar's rate), over the whole joint space. A
+/// stop-and-measure program (`--dwell`) is calibrated from one reading per measurement pose,
+/// the mean of a plateau's core ([`crate::logs::plateau_core_samples`] samples, so the noise
+/// falls by its square root); the same program recorded continuously (moves and dwells, with
+/// a synchronous joint log) is predicted alongside.
 fn predict(
     ck: &Checker,
     id: &Identifiability,
@@ -864,14 +912,53 @@ fn predict(
     opts: &CompileOptions,
 ) -> Predicted {
     use crate::calibrate::predict as p;
-    let segments = recorded_segments(path, plan);
+    let mut segments = recorded_segments(path, plan);
     let space = p::workspace(ck.robot, PREDICTION_POSES, opts.seed);
-    let spread = p::spread(&p::after_recording(
+    let continuous = |segments: &[([f64; 6], [f64; 6], f64)]| {
+        p::spread(&p::after_recording(
+            ck.model,
+            segments,
+            &id.identifiable,
+            opts.bar_noise,
+            opts.bar_rate,
+            &space,
+        ))
+    };
+    let Some(dwell) = opts.dwell else {
+        let spread = continuous(&segments);
+        return Predicted {
+            workspace_rms: spread.rms * 1e6,
+            workspace_p95: spread.p95 * 1e6,
+            bar_noise_um: opts.bar_noise * 1e6,
+            bar_rate_hz: opts.bar_rate,
+            plateau_samples: None,
+            continuous_workspace_rms: None,
+        };
+    };
+    let poses: Vec<[f64; 6]> = path
+        .poses
+        .iter()
+        .zip(&plan.waypoints)
+        .filter(|(_, w)| !w.support)
+        .map(|(q, _)| *q)
+        .collect();
+    // The continuous recording of the same run also holds every dwell: S seconds at the pose.
+    segments.extend(poses.iter().map(|q| (*q, *q, dwell)));
+    let recorded = continuous(&segments);
+    let n = crate::logs::plateau_core_samples(dwell, opts.bar_rate).max(1);
+    let rows: Vec<[f64; N_PARAMS]> = poses
+        .iter()
+        .map(|q| {
+            let mut row = [0.0; N_PARAMS];
+            ck.model.jacobian_row(&ck.model.nominal, q, &mut row);
+            row
+        })
+        .collect();
+    let spread = p::spread(&p::after_readings(
         ck.model,
-        &segments,
+        &rows,
         &id.identifiable,
-        opts.bar_noise,
-        opts.bar_rate,
+        opts.bar_noise / (n as f64).sqrt(),
         &space,
     ));
     Predicted {
@@ -879,6 +966,8 @@ fn predict(
         workspace_p95: spread.p95 * 1e6,
         bar_noise_um: opts.bar_noise * 1e6,
         bar_rate_hz: opts.bar_rate,
+        plateau_samples: Some(n),
+        continuous_workspace_rms: Some(recorded.rms * 1e6),
     }
 }
 
@@ -910,9 +999,20 @@ pub fn controller_map(
     )?)
 }
 
+/// How [`coupling_note`]s begin (a program's header notes are otherwise the program kind's).
+const COUPLING_NOTE_PREFIX: &str = "J3: ";
+
+/// What the user must know about the controller's axis 3 on a parallel-arm robot when the
+/// cell does not state the J2/J3 coupling ([`ControllerMap::coupling_note`]).
+pub fn coupling_note(robot: &Robot, opts: &CompileOptions, template: &Template) -> Option<String> {
+    let d = template.dialect;
+    ControllerMap::coupling_note(opts.cell.controller.as_ref(), &d.defaults(), &d.name, robot)
+}
+
 /// Writes the planned `base` program for one controller: fills the dialect's fields, renders
 /// the template and checks the text with `verify` (the compiler refuses to hand out a program
-/// that fails). Returns the program, its text and the verify summary.
+/// that fails). Returns the program, its text and the verify summary. The header carries the
+/// controller's J2/J3 note where the axis mapping is ambiguous.
 pub fn finish(
     ck: &Checker,
     robot: &Robot,
@@ -922,7 +1022,15 @@ pub fn finish(
     map: &ControllerMap,
 ) -> Result<(Program, String, verify::Summary), PipelineError> {
     let hash = inputs_hash(robot, opts, &template.source);
-    emit_checked(ck, robot, base, template, map, DEFAULT_PROGRAM_NAME, &hash)
+    let mut base = base.clone();
+    // A program written for another dialect (`retarget`) carries that dialect's note.
+    base.header
+        .notes
+        .retain(|n| !n.starts_with(COUPLING_NOTE_PREFIX));
+    base.header
+        .notes
+        .extend(coupling_note(robot, opts, template));
+    emit_checked(ck, robot, &base, template, map, DEFAULT_PROGRAM_NAME, &hash)
 }
 
 /// Any program kind's last step (the compiler's, the LDBB circle's): fills the dialect's fields
@@ -951,6 +1059,20 @@ pub fn emit_checked(
         );
     }
     h.inputs_sha256 = inputs_sha256.to_string();
+    // A timed move must take time: one that does not repeats the pose before it, and the
+    // controllers read it as a move without speed (inverse-time F0, a zero \T, t=0). Only a
+    // planner bug makes one, so it is named as such rather than left to the reader's "F0 must
+    // be positive".
+    if let Some((k, m)) = program.moves.iter().enumerate().skip(1).find(|(_, m)| {
+        !m.transit && m.time_s.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater)
+    }) {
+        return Err(PipelineError::Bug(format!(
+            "move {} of the program (to {} deg) takes {} s: the planner put the same pose twice in a row",
+            k + 1,
+            m.q_deg.map(|v| fmt_fixed(v, 3)).join(", "),
+            fmt_fixed(m.time_s, 3)
+        )));
+    }
     let text = emit::render(template, &program).map_err(PipelineError::Template)?;
     let verified = verify::check_text(ck, robot, &text, template.dialect, map)
         .map_err(|f| PipelineError::Unsafe(f.to_string()))?;

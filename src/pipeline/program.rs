@@ -19,10 +19,24 @@ pub fn base(
     path: &Path,
     predicted: &super::Predicted,
 ) -> Program {
-    Program {
-        header: header(ck, opts, id, planned, path, predicted),
-        moves: moves(ck, planned, path),
+    let moves = moves(ck, planned, path, opts.dwell.unwrap_or(0.0));
+    let mut header = header(ck, opts, id, planned, path, predicted);
+    if let Some(dwell) = opts.dwell {
+        // The key of a stop-and-measure run: the poses it dwells at, in order, and their
+        // nominal lengths; the estimated time includes the dwells.
+        header.dwell_s = dwell;
+        header.measure_mm = moves
+            .iter()
+            .filter(|m| m.dwell_s > 0.0)
+            .map(|m| m.length_mm)
+            .collect();
+        let total = dwell * header.measure_mm.len() as f64;
+        header.time_s += total;
+        header.time_unsorted_s += total;
+        header.plateau_samples = predicted.plateau_samples.unwrap_or(0);
+        header.predicted_continuous_std_um = predicted.continuous_workspace_rms.unwrap_or(0.0);
     }
+    Program { header, moves }
 }
 
 fn header(
@@ -72,10 +86,16 @@ fn header(
         axis_names: Vec::new(),
         axis_units: String::new(),
         axis_decimals: 0,
+        dwell_s: 0.0,
+        measure_mm: Vec::new(),
+        plateau_samples: 0,
+        predicted_continuous_std_um: 0.0,
     }
 }
 
-fn moves(ck: &Checker, planned: &Planned, path: &Path) -> Vec<Move> {
+/// One move per waypoint; with a dwell, every measurement pose (all are made with the bar in
+/// place: a section's first pose dwells after its mount pause) carries it.
+fn moves(ck: &Checker, planned: &Planned, path: &Path, dwell: f64) -> Vec<Move> {
     let model = ck.model;
     let wps = &planned.plan.waypoints;
     let (mut pose_no, mut section) = (0, 0);
@@ -111,6 +131,7 @@ fn moves(ck: &Checker, planned: &Planned, path: &Path) -> Vec<Move> {
                 mount_after,
                 axes: [0.0; 6],
                 speed_pct: 0.0,
+                dwell_s: if w.support { 0.0 } else { dwell },
             }
         })
         .collect()

@@ -374,7 +374,7 @@ impl<'a> Checker<'a> {
     /// and the violation of the first failure.
     pub fn curve(
         &self,
-        q: &dyn Fn(f64) -> [f64; 6],
+        q: &Curve,
         lipschitz: &[f64; 6],
         ext: &mut Extremes,
     ) -> Result<(), (f64, Violation)> {
@@ -386,33 +386,62 @@ impl<'a> Checker<'a> {
             1e-3
         };
         let n = ((motion / step).ceil() as usize).clamp(1, 1_000_000);
-        let mut co = self.scene.coherence(lipschitz);
-        let mut prev_s = 0.0;
+        let walk = Walk {
+            q,
+            lipschitz,
+            n,
+            m: motion / n as f64,
+            w: rotation / n as f64,
+            parallel: rayon::current_num_threads() > 1,
+        };
+        self.samples(&walk, 0, n, ext)
+    }
+
+    /// Samples `k0..=k1` of a walk along a curve: the pose at each, and between consecutive
+    /// ones the proof of the bar range and cones. A long stretch is cut in two halves checked
+    /// at once (`rayon::join`, when there is more than one thread): each sample's verdict is
+    /// the full check's whatever the motion's memory ([`Coherence`]), so the halves find the
+    /// same first failure, the same samples and the same extremes as one walk; the second
+    /// half only starts its memory afresh. Sample `k0` counts in the extremes only at the
+    /// curve's start (elsewhere it ends the stretch before).
+    fn samples(
+        &self,
+        walk: &Walk,
+        k0: usize,
+        k1: usize,
+        ext: &mut Extremes,
+    ) -> Result<(), (f64, Violation)> {
+        if walk.parallel && k1 - k0 >= 2 * CHUNK_SAMPLES {
+            let mid = (k0 + k1) / 2;
+            let (mut e0, mut e1) = (Extremes::default(), Extremes::default());
+            let (r0, r1) = rayon::join(
+                || self.samples(walk, k0, mid, &mut e0),
+                || self.samples(walk, mid, k1, &mut e1),
+            );
+            ext.merge(&e0);
+            r0?;
+            ext.merge(&e1);
+            return r1;
+        }
+        let at = |k: usize| k as f64 / walk.n as f64;
+        let mut co = self.scene.coherence(walk.lipschitz);
+        let mut prev_s = at(k0);
         let mut prev = self
-            .pose_along(&q(0.0), Some((0.0, &mut co)))
-            .map_err(|v| (0.0, v))?;
-        if self.mounted {
+            .pose_along(&(walk.q)(prev_s), Some((prev_s, &mut co)))
+            .map_err(|v| (prev_s, v))?;
+        if self.mounted && k0 == 0 {
             ext.add(&prev);
         }
-        for k in 1..=n {
-            let s = k as f64 / n as f64;
+        for k in k0 + 1..=k1 {
+            let s = at(k);
             let cur = self
-                .pose_along(&q(s), Some((s, &mut co)))
+                .pose_along(&(walk.q)(s), Some((s, &mut co)))
                 .map_err(|v| (s, v))?;
             if self.mounted {
                 ext.add(&cur);
             }
             self.refine(
-                q,
-                prev_s,
-                prev,
-                s,
-                cur,
-                motion / n as f64,
-                rotation / n as f64,
-                0,
-                &mut co,
-                ext,
+                walk.q, prev_s, prev, s, cur, walk.m, walk.w, 0, &mut co, ext,
             )?;
             prev_s = s;
             prev = cur;
@@ -426,7 +455,7 @@ impl<'a> Checker<'a> {
     #[allow(clippy::too_many_arguments)]
     fn refine(
         &self,
-        q: &dyn Fn(f64) -> [f64; 6],
+        q: &Curve,
         s0: f64,
         a: PoseInfo,
         s1: f64,
@@ -690,6 +719,25 @@ impl<'a> Checker<'a> {
     }
 }
 
+/// A motion q(s), s ∈ [0, 1], as the continuous checks take it.
+pub type Curve<'c> = dyn Fn(f64) -> [f64; 6] + Sync + 'c;
+
+/// One continuous check's fixed quantities: the curve, its joints' Lipschitz bounds, the number
+/// of samples, and the bounds on the MAP's motion and the flange's rotation between two.
+struct Walk<'w> {
+    q: &'w Curve<'w>,
+    lipschitz: &'w [f64; 6],
+    n: usize,
+    m: f64,
+    w: f64,
+    parallel: bool,
+}
+
+/// A continuous check's stretch of at least twice this many samples is cut in two and checked
+/// on two threads: long enough that the second half's fresh memory (every collision pair
+/// measured once at its start) costs little next to it.
+const CHUNK_SAMPLES: usize = 256;
+
 /// A cell of a [`Checker::patch`] grid: [u0, u0 + du] × [w0, w0 + dw].
 struct GridCell {
     u0: f64,
@@ -725,5 +773,79 @@ pub fn describe_contact(c: &Contact, margin: f64) -> String {
             fmt_fixed(to_mm(c.distance), 2),
             fmt_fixed(to_mm(margin), 1)
         )
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::pipeline;
+    use rand::{Rng, SeedableRng};
+
+    #[test]
+    fn a_long_check_cut_in_halves_on_two_threads_is_the_one_walk() {
+        // The same verdicts, first failures and extremes (sample counts included) on one
+        // thread (one walk) and on two (stretches checked at once), for moves short and long,
+        // passing and failing, with the bar and without.
+        let root = env!("CARGO_MANIFEST_DIR");
+        let robot = crate::robot::load(
+            std::path::Path::new(&format!("{root}/robots/comau_nj130/robot.dh.toml")),
+            &Default::default(),
+        )
+        .unwrap();
+        let spec = crate::cell::load(std::path::Path::new(&format!(
+            "{root}/robots/comau_nj130/cell.toml"
+        )))
+        .unwrap();
+        let fixture = spec.fixture.unwrap();
+        let (map, _) = pipeline::resolve_map(&robot, spec.map);
+        let cell = pipeline::make_cell(&robot, fixture, map, &spec).unwrap();
+        let model = MeasurementModel::new(&robot, fixture, map);
+        let (scene, _) = pipeline::build_scene(&robot, &spec, &fixture, &map).unwrap();
+        let ck = Checker::new(&robot, &model, &cell, &scene, spec.margin);
+        let (lo, hi) = ck.limits();
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+        let pool = |n| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(n)
+                .build()
+                .unwrap()
+        };
+        let (one, two) = (pool(1), pool(2));
+        let (mut long, mut failed, mut passed) = (0, 0, 0);
+        for _ in 0..40 {
+            let a: [f64; 6] = std::array::from_fn(|i| rng.random_range(lo[i]..hi[i]));
+            let scale = [0.05, 0.5, 1.0][rng.random_range(0..3)];
+            let b: [f64; 6] = std::array::from_fn(|i| {
+                (a[i] + scale * rng.random_range(-2.0..2.0)).clamp(lo[i], hi[i])
+            });
+            for c in [ck.unmounted(), Checker { ..ck }] {
+                let run = || {
+                    let mut e = Extremes::default();
+                    let r = c.line(&a, &b, &mut e);
+                    (r, e)
+                };
+                let (r1, e1) = one.install(run);
+                let (r2, e2) = two.install(run);
+                assert_eq!(r1, r2, "{a:?} -> {b:?}");
+                assert_eq!(e1, e2, "{a:?} -> {b:?}");
+                let n = (0..6)
+                    .map(|i| c.sweep[i] * (b[i] - a[i]).abs())
+                    .sum::<f64>()
+                    / (c.margin / 4.0);
+                if n > 4.0 * CHUNK_SAMPLES as f64 {
+                    long += 1;
+                    if r1.is_ok() {
+                        passed += 1;
+                    } else {
+                        failed += 1;
+                    }
+                }
+            }
+        }
+        assert!(
+            long > 10 && passed > 2 && failed > 2,
+            "{long} long: {passed} passed, {failed} failed"
+        );
     }
 }

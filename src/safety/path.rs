@@ -51,6 +51,13 @@ pub struct Plan {
 }
 
 impl Plan {
+    /// The first waypoint that repeats the pose before it (a move of zero length), if any.
+    /// The planner never makes one: a controller reads it as a move without speed (`F0`, a
+    /// zero `\T`), and it measures nothing. The pipeline refuses a plan that has one.
+    pub fn repeated_pose(&self) -> Option<usize> {
+        (1..self.waypoints.len()).find(|&k| self.waypoints[k].q == self.waypoints[k - 1].q)
+    }
+
     /// Sections of the program: a section starts at a transit's target that is not a support
     /// pose (the bar goes in there).
     pub fn sections(&self) -> usize {
@@ -160,7 +167,18 @@ pub fn plan(
     // Pass 2: insert each deferred pose where both moves around it pass, cheapest place first.
     for (idx, violation) in deferred {
         let q = tour[idx];
+        // The roadmap's poses are the pool's, measurement poses included: a chain of support
+        // poses may already pass through this pose. It is measured there; inserted next to its
+        // twin it would be a zero-length move (the cheapest place by far: it adds nothing).
+        if let Some(w) = wps.iter_mut().find(|w| w.support && w.q == q) {
+            w.support = false;
+            supports -= 1;
+            continue;
+        }
         let mut places: Vec<(f64, usize)> = (0..wps.len())
+            // Never next to a waypoint at the same pose (none is left, but a move of zero
+            // length must not be made whatever the plan holds).
+            .filter(|&i| wps[i].q != q && wps.get(i + 1).is_none_or(|b| b.q != q))
             .map(|i| {
                 let a = &wps[i].q;
                 let added = match wps.get(i + 1) {
@@ -233,13 +251,15 @@ pub fn plan(
         supports -= 1;
     }
     let exact_stops = 0;
-    Plan {
+    let plan = Plan {
         waypoints: wps,
         supports,
         dropped,
         exact_stops,
         extremes: ext,
-    }
+    };
+    debug_assert_eq!(plan.repeated_pose(), None, "a zero-length move in the plan");
+    plan
 }
 
 /// A leg of the tour: its support poses (none for a direct move) and the extremes met, or why

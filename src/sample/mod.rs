@@ -36,6 +36,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::collections::BinaryHeap;
 use std::f64::consts::{PI, TAU};
+use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct SampleConfig {
@@ -229,17 +230,18 @@ pub fn run(
     let n3 = grids[2].len();
     let units = n2 * n3;
     progress.start(units);
+    let shared = AtomicU64::new(u64::MAX);
     let acc = (0..units)
         .into_par_iter()
         .fold(
-            || Acc::new(cfg.max_candidates),
+            || Acc::new(cfg.max_candidates, &shared),
             |mut acc, u| {
                 ctx.unit(u / n3, u % n3, cfg, &mut acc);
                 progress.inc(1);
                 acc
             },
         )
-        .reduce(|| Acc::new(cfg.max_candidates), Acc::merge);
+        .reduce(|| Acc::new(cfg.max_candidates, &shared), Acc::merge);
     progress.finish();
 
     let mut kept: Vec<Entry> = acc.heap.into_vec();
@@ -674,20 +676,26 @@ impl Ord for Entry {
 }
 
 /// Per-thread accumulator: counts and the bottom-K (by hash key) of the valid poses.
-struct Acc {
+struct Acc<'s> {
     cap: usize,
     heap: BinaryHeap<Entry>,
+    /// The smallest key any full accumulator's largest entry had: every accumulator that far
+    /// holds `cap` poses with keys at most this, so a pose with a larger key is in no
+    /// accumulator's bottom-K at the end (rayon's fold makes many accumulators, each of which
+    /// would otherwise take every pose until it is full).
+    shared: &'s AtomicU64,
     evaluated: u64,
     valid: u64,
     rejected: [u64; Reason::ALL.len()],
     range: [[f64; 2]; 6],
 }
 
-impl Acc {
-    fn new(cap: usize) -> Self {
+impl<'s> Acc<'s> {
+    fn new(cap: usize, shared: &'s AtomicU64) -> Self {
         Acc {
             cap,
             heap: BinaryHeap::new(),
+            shared,
             evaluated: 0,
             valid: 0,
             rejected: [0; Reason::ALL.len()],
@@ -698,11 +706,12 @@ impl Acc {
     /// Would a pose with this key enter the bottom-K? (Cheap: no entry is built otherwise.)
     #[inline]
     fn takes(&self, key: u64, grid: u64) -> bool {
-        self.heap.len() < self.cap
-            || self
-                .heap
-                .peek()
-                .is_some_and(|top| (key, grid) < (top.key, top.cand.grid))
+        key <= self.shared.load(Relaxed)
+            && (self.heap.len() < self.cap
+                || self
+                    .heap
+                    .peek()
+                    .is_some_and(|top| (key, grid) < (top.key, top.cand.grid)))
     }
 
     #[inline]
@@ -715,9 +724,14 @@ impl Acc {
                 *top = e;
             }
         }
+        if self.heap.len() == self.cap {
+            if let Some(top) = self.heap.peek() {
+                self.shared.fetch_min(top.key, Relaxed);
+            }
+        }
     }
 
-    fn merge(mut self, mut other: Acc) -> Acc {
+    fn merge(mut self, mut other: Acc<'s>) -> Acc<'s> {
         if other.heap.len() > self.heap.len() {
             std::mem::swap(&mut self.heap, &mut other.heap);
         }

@@ -9,13 +9,14 @@
 
 pub mod circle;
 pub mod effects;
+pub mod logsim;
 pub mod measured;
 pub mod trajectory;
 pub mod truth;
 
 pub use effects::{gravity_torques, Effect};
 pub use measured::{parse_csv, CsvError, Measured};
-pub use trajectory::Trajectory;
+pub use trajectory::{Dwell, Trajectory};
 pub use truth::Truth;
 
 use crate::dialect::Parsed;
@@ -75,17 +76,7 @@ pub fn simulate(
         ));
     }
     let n = times.len();
-    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(opts.seed);
-    let nominal = model.nominal.to_array();
-    let mut truep = nominal;
-    for k in 0..N_PARAMS {
-        truep[k] += truth.geometric[k];
-    }
-    let masses = truth.compliance_masses(robot);
-    // Backlash: the load side rests against the flank of its joint's first motion, then
-    // follows the motor through a play operator.
-    let mut load_b: Option<f64> = None;
-    let mut prev_ts: Option<f64> = None;
+    let mut sampler = Sampler::new(robot, model, &traj, truth, t0, opts.seed);
     let mut out = Measured {
         t: Vec::with_capacity(n),
         q: Vec::with_capacity(n),
@@ -99,43 +90,110 @@ pub fn simulate(
     };
     for &ts in &times {
         let t = ts - t0;
-        let setpoint = traj.position(ts);
+        let (q, l) = sampler.sample(ts, t);
+        out.t.push(t);
+        out.q.push(q);
+        out.length.push(l);
+        if let Some(temps) = out.temp.as_mut() {
+            temps.push(sampler.temperature(t));
+        }
+    }
+    Ok(out)
+}
+
+/// The real robot sampled along a trajectory, one bar reading after another: the state the
+/// effects carry between samples (the backlash's load side, which follows the motor through a
+/// play operator along the motion between samples) and the noise stream.
+pub struct Sampler<'a> {
+    model: &'a MeasurementModel,
+    traj: &'a Trajectory,
+    truth: &'a Truth,
+    truep: [f64; N_PARAMS],
+    masses: Vec<crate::robot::PointMass>,
+    t0: f64,
+    /// The backlash joint's load-side angle at the previous sample.
+    load_b: Option<f64>,
+    /// Program time of the previous sample.
+    prev_ts: Option<f64>,
+    rng: rand_chacha::ChaCha8Rng,
+}
+
+impl<'a> Sampler<'a> {
+    /// A sampler whose first reading is at program time `t0` (backlash rests against the flank
+    /// of the joint's first motion after it); noise from `seed`.
+    pub fn new(
+        robot: &Robot,
+        model: &'a MeasurementModel,
+        traj: &'a Trajectory,
+        truth: &'a Truth,
+        t0: f64,
+        seed: u64,
+    ) -> Self {
+        let nominal = model.nominal.to_array();
+        let mut truep = nominal;
+        for k in 0..N_PARAMS {
+            truep[k] += truth.geometric[k];
+        }
+        Sampler {
+            model,
+            traj,
+            truth,
+            truep,
+            masses: truth.compliance_masses(robot),
+            t0,
+            load_b: None,
+            prev_ts: None,
+            rng: rand_chacha::ChaCha8Rng::seed_from_u64(seed),
+        }
+    }
+
+    /// The bar's reading and the logged joints at program time `ts`; `t` is the time since
+    /// the recording started (thermal drift, fixture slip).
+    pub fn sample(&mut self, ts: f64, t: f64) -> ([f64; 6], f64) {
+        let truth = self.truth;
+        let setpoint = self.traj.position(ts);
         // Servo lag: the axes follow the logged setpoints with a delay.
         let motor = match truth.servo_lag {
-            Some(tau) => traj.position(ts - tau),
+            Some(tau) => self.traj.position(ts - tau),
             None => setpoint,
         };
         let mut load = motor;
         if let Some(b) = &truth.backlash {
             let x = motor[b.joint];
-            let y = match (load_b, prev_ts) {
+            let y = match (self.load_b, self.prev_ts) {
                 // The play follows the motor through the motion since the last sample (it
                 // may have turned between samples): 8 steps along the trajectory.
                 (Some(mut y), Some(tp)) => {
                     for i in 1..=8 {
                         let ti = tp + (ts - tp) * i as f64 / 8.0;
-                        let xi = traj.position(ti - truth.servo_lag.unwrap_or(0.0))[b.joint];
+                        let xi = self.traj.position(ti - truth.servo_lag.unwrap_or(0.0))[b.joint];
                         y = effects::play(y, xi, b.play);
                     }
                     y
                 }
                 (Some(y), None) => effects::play(y, x, b.play),
-                (None, _) => x - 0.5 * b.play * traj.first_direction(b.joint, t0),
+                // The load rests against the flank of the joint's first motion.
+                (None, _) => x - 0.5 * b.play * self.traj.first_direction(b.joint, self.t0),
             };
-            load_b = Some(y);
+            self.load_b = Some(y);
             load[b.joint] = y;
         }
-        prev_ts = Some(ts);
+        self.prev_ts = Some(ts);
         if let Some(c) = &truth.cyclic {
             load[c.joint] += effects::cyclic(c, motor[c.joint]);
         }
         if let Some(c) = &truth.compliance {
-            let tau = gravity_torques(model, &Params::from_array(&truep), &motor, &masses);
+            let tau = gravity_torques(
+                self.model,
+                &Params::from_array(&self.truep),
+                &motor,
+                &self.masses,
+            );
             for j in 0..6 {
                 load[j] += tau[j] / c.stiffness[j];
             }
         }
-        let mut p = truep;
+        let mut p = self.truep;
         if let Some(th) = &truth.thermal {
             let s = 1.0 + th.alpha * th.delta(t);
             for i in 0..6 {
@@ -150,25 +208,29 @@ pub fn simulate(
                 }
             }
         }
-        let l = model.length(&Params::from_array(&p), &load) + truth.noise * gauss(&mut rng);
+        let l =
+            self.model.length(&Params::from_array(&p), &load) + truth.noise * gauss(&mut self.rng);
         let l = if truth.resolution > 0.0 {
             (l / truth.resolution).round() * truth.resolution
         } else {
             l
         };
-        out.t.push(t);
         // Encoders see the motor side; with servo lag the controller logs its setpoints.
-        out.q.push(if truth.servo_lag.is_some() {
+        let logged = if truth.servo_lag.is_some() {
             setpoint
         } else {
             motor
-        });
-        out.length.push(l);
-        if let (Some(temps), Some(th)) = (out.temp.as_mut(), &truth.thermal) {
-            temps.push(truth::AMBIENT_C + th.delta(t));
-        }
+        };
+        (logged, l)
     }
-    Ok(out)
+
+    /// The temperature the log's `temp_c` column holds at time t (°C).
+    pub fn temperature(&self, t: f64) -> f64 {
+        self.truth
+            .thermal
+            .as_ref()
+            .map_or(truth::AMBIENT_C, |th| truth::AMBIENT_C + th.delta(t))
+    }
 }
 
 /// A standard normal sample (Box-Muller): the crate has no rand_distr.

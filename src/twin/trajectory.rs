@@ -39,6 +39,20 @@ pub struct Trajectory {
     ends: Vec<f64>,
     /// Recording windows [start, end] (s, program time): the intervals with the bar in place.
     pub windows: Vec<(f64, f64)>,
+    /// Program times of the pauses (M0), in order; a pause takes no program time.
+    pub pauses: Vec<f64>,
+    /// The dwells (G4 and its kin), in order: where the robot stands still for a set time.
+    pub dwells: Vec<Dwell>,
+}
+
+/// A dwell of the program: program times [from, to], the pose it stands at (rad), and the
+/// program line.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Dwell {
+    pub from: f64,
+    pub to: f64,
+    pub q: [f64; 6],
+    pub line: usize,
 }
 
 fn profile(u: f64) -> f64 {
@@ -68,6 +82,7 @@ impl Trajectory {
         // Blend distance (m) of the corner at the end of the last segment, if it may blend.
         let mut pending_blend: Option<f64> = None;
         let mut pauses: Vec<f64> = Vec::new();
+        let mut dwells: Vec<Dwell> = Vec::new();
         for l in &program.lines {
             match &l.step {
                 step @ Step::Move {
@@ -117,8 +132,17 @@ impl Trajectory {
                     pending_blend = blend.filter(|b| *b > 0.0).map(|b| b * 1e-3);
                 }
                 Step::Dwell(s) => {
+                    let from = t_end;
                     t_end += s.max(0.0);
                     pending_blend = None;
+                    if start.is_some() {
+                        dwells.push(Dwell {
+                            from,
+                            to: t_end,
+                            q: cur,
+                            line: l.line,
+                        });
+                    }
                 }
                 Step::Pause => {
                     pauses.push(t_end);
@@ -159,6 +183,8 @@ impl Trajectory {
             prefix,
             ends,
             windows,
+            pauses,
+            dwells,
         })
     }
 
@@ -201,6 +227,21 @@ impl Trajectory {
     /// The start configuration (rad).
     pub fn start(&self) -> [f64; 6] {
         self.start
+    }
+
+    /// The program's end (s): the last move or dwell.
+    pub fn end(&self) -> f64 {
+        let moves = self.ends.last().copied().unwrap_or(0.0);
+        let dwells = self.dwells.last().map_or(0.0, |d| d.to);
+        let pauses = self.pauses.last().copied().unwrap_or(0.0);
+        moves.max(dwells).max(pauses)
+    }
+
+    /// The recording window (index into `windows`) that holds program time t, if any.
+    pub fn window_at(&self, t: f64) -> Option<usize> {
+        self.windows
+            .iter()
+            .position(|&(a, b)| t >= a - 1e-9 && t <= b + 1e-9)
     }
 }
 

@@ -35,6 +35,129 @@ use crate::timing::{self, Limits};
 use crate::units::{fmt_fixed, DEG};
 use serde::{Deserialize, Serialize};
 
+/// The limits a program's header states it was compiled to (the line `bar range: 300.0..520.0
+/// mm; corner blend: 10.0 mm; safety margin: 10.0 mm; joint margin: 1.0 deg`, in every
+/// dialect; FANUC separates the facts with commas), each None where the header does not state
+/// it. Millimetres and degrees, as printed (0.1 mm and 0.1°). Also the line `joint
+/// accelerations: a1, .., a6 deg/s^2` (or `rad/s^2`): the accelerations the program's times
+/// assume, per controller axis in its units.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct HeaderLimits {
+    pub bar_mm: Option<[f64; 2]>,
+    pub blend_mm: Option<f64>,
+    pub margin_mm: Option<f64>,
+    pub joint_margin_deg: Option<f64>,
+    /// The joint accelerations the header states, in deg/s² (converted from rad/s² where the
+    /// program counts in radians), with the resolution they were printed at (deg/s²).
+    pub accelerations_deg: Option<([f64; 6], f64)>,
+}
+
+impl HeaderLimits {
+    /// Reads the limits from a parsed program's header comments. A stated limit that does not
+    /// read as a number is an error naming it (a header edited by hand must not be taken for
+    /// one that states nothing).
+    pub fn read(parsed: &Parsed) -> Result<HeaderLimits, String> {
+        let bar = header_fact(&parsed.header, "bar range", "mm")?
+            .map(|v| {
+                let bad = || format!("program header: bar range '{v}' is not MIN..MAX mm");
+                let (a, b) = v.split_once("..").ok_or_else(bad)?;
+                let (a, b) = (number(a).ok_or_else(bad)?, number(b).ok_or_else(bad)?);
+                if a > 0.0 && b > a {
+                    Ok([a, b])
+                } else {
+                    Err(bad())
+                }
+            })
+            .transpose()?;
+        let scalar = |key: &str, unit: &str| -> Result<Option<f64>, String> {
+            header_fact(&parsed.header, key, unit)?
+                .map(|v| {
+                    number(v).filter(|x| *x >= 0.0).ok_or_else(|| {
+                        format!("program header: {key} '{v}' is not a number of {unit}")
+                    })
+                })
+                .transpose()
+        };
+        Ok(HeaderLimits {
+            bar_mm: bar,
+            blend_mm: scalar("corner blend", "mm")?,
+            margin_mm: scalar("safety margin", "mm")?,
+            joint_margin_deg: scalar("joint margin", "deg")?,
+            accelerations_deg: header_accelerations(&parsed.header)?,
+        })
+    }
+}
+
+/// The header's `joint accelerations: a1, .., a6 UNIT/s^2` in deg/s², and half the step of its
+/// last printed digit (deg/s²): how far a value may lie from the printed one.
+fn header_accelerations(header: &[String]) -> Result<Option<([f64; 6], f64)>, String> {
+    for (unit, scale) in [("deg/s^2", 1.0), ("rad/s^2", 1.0 / DEG)] {
+        let Some(v) = header_fact(header, "joint accelerations", unit)
+            .ok()
+            .flatten()
+        else {
+            continue;
+        };
+        let bad = || {
+            format!(
+                "program header: joint accelerations '{v}' are not six positive numbers of {unit}"
+            )
+        };
+        let parts: Vec<&str> = v.split(',').map(str::trim).collect();
+        let values: Vec<f64> = parts
+            .iter()
+            .filter_map(|p| number(p))
+            .filter(|a| *a > 0.0)
+            .collect();
+        let a: [f64; 6] = values.try_into().map_err(|_| bad())?;
+        let decimals = parts
+            .iter()
+            .map(|p| p.split_once('.').map_or(0, |(_, f)| f.len()))
+            .max()
+            .unwrap_or(0);
+        let half = 0.5 * 10f64.powi(-(decimals as i32)) * scale;
+        return Ok(Some((a.map(|x| x * scale), half)));
+    }
+    // Stated without a known unit: an error naming it, not a header that states nothing.
+    if header
+        .iter()
+        .any(|h| h.trim_start().starts_with("joint accelerations:"))
+    {
+        return Err("program header: joint accelerations have no unit deg/s^2 or rad/s^2".into());
+    }
+    Ok(None)
+}
+
+fn number(s: &str) -> Option<f64> {
+    s.trim().parse::<f64>().ok().filter(|v| v.is_finite())
+}
+
+/// The value of `key: VALUE UNIT` within a header comment: the key starts the comment or
+/// follows a `;` or `,` separator, and the value runs to the unit. None when no comment has
+/// the key; an error when the unit does not follow.
+fn header_fact<'h>(header: &'h [String], key: &str, unit: &str) -> Result<Option<&'h str>, String> {
+    for h in header {
+        let mut from = 0;
+        while let Some(at) = h[from..].find(key).map(|i| i + from) {
+            let before = h[..at].trim_end();
+            let starts = before.is_empty() || before.ends_with(';') || before.ends_with(',');
+            if let Some(rest) = h[at + key.len()..].strip_prefix(':').filter(|_| starts) {
+                let rest = rest.trim_start();
+                let end = rest
+                    .find(&format!(" {unit}"))
+                    .filter(|&e| {
+                        let after = &rest[e + 1 + unit.len()..];
+                        after.is_empty() || after.starts_with([';', ',', ' '])
+                    })
+                    .ok_or_else(|| format!("program header: {key} '{rest}' has no unit {unit}"))?;
+                return Ok(Some(rest[..end].trim()));
+            }
+            from = at + key.len();
+        }
+    }
+    Ok(None)
+}
+
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Summary {
     /// Motion lines (including the approach).
@@ -45,7 +168,12 @@ pub struct Summary {
     /// Bar-mounted sections.
     pub sections: usize,
     pub blends: usize,
-    /// Program duration from the first move on (s), pauses excluded.
+    /// Dwells (G4 and its kin) and their total (s): a stop-and-measure program's standstills.
+    #[serde(default)]
+    pub dwells: usize,
+    #[serde(default)]
+    pub dwell_s: f64,
+    /// Program duration from the first move on (s), dwells included, pauses excluded.
     pub duration: f64,
     pub extremes: Extremes,
     /// Smallest clearance measured at the program's poses and blend midpoints.
@@ -97,6 +225,8 @@ struct Motion {
     flows_on: bool,
     /// Followed by a pause.
     pause_after: bool,
+    /// The dwells (s) that follow it before the next motion: the robot stands at its target.
+    dwell_after: f64,
     /// The bar is in place during this move.
     mounted: bool,
 }
@@ -219,6 +349,7 @@ pub fn rebuild(
             end: time,
             pause_after: m.pause_after,
         });
+        time += m.dwell_after;
         // Where the bar goes in, the pose must hold it.
         if mount_at.contains(&(j + 1)) {
             ck.pose(&m.target).map_err(|v| Failure {
@@ -299,6 +430,8 @@ pub fn rebuild(
             supports: motions.iter().filter(|m| m.support).count(),
             sections: mount_at.len(),
             blends,
+            dwells: motions.iter().filter(|m| m.dwell_after > 0.0).count(),
+            dwell_s: motions.iter().map(|m| m.dwell_after).sum(),
             duration: total,
             extremes: ext,
             min_clearance: min_clear,
@@ -322,6 +455,11 @@ fn timed_motions(
     parsed: &Parsed,
     dialect: &Dialect,
 ) -> Result<(Vec<Motion>, Vec<usize>, Vec<bool>, f64), Failure> {
+    // The header's corner blend is the most the program may blend at any corner: a corner
+    // blended more than the program states was not made by the compiler that wrote it.
+    let stated_blend = HeaderLimits::read(parsed)
+        .map_err(|e| fail(0, 0.0, Reason::Program, e))?
+        .blend_mm;
     let speeds = robot.max_speeds();
     let lim = Limits::of(robot);
     // Collect the motions; the bar is mounted at the first pause, removed at the next, and so
@@ -406,6 +544,31 @@ fn timed_motions(
                     Step::Move { corner, .. } => *corner,
                     _ => None,
                 };
+                // Only a TCP distance is the header's kind of blend (mm at the MAP); the other
+                // corner models' values are in their own units and bound other things.
+                let tcp = corner.unwrap_or(dialect.corner.kind) == CornerKind::TcpDistance;
+                if let (Some(b), Some(stated), true) = (blend, stated_blend, tcp) {
+                    // The header prints 0.1 mm; the program text the blend itself. A TCP blend
+                    // that overrides the dialect's own corner model (FANUC `CR` in a `CNT`
+                    // dialect) is written in whole millimetres: the stated blend rounded up.
+                    let allowed = if corner.is_some() {
+                        (stated - 1e-9).ceil()
+                    } else {
+                        stated + 0.05
+                    };
+                    if *b > allowed + 1e-9 {
+                        return Err(fail(
+                            l.line,
+                            0.0,
+                            Reason::Program,
+                            format!(
+                                "the move blends its corner by {} mm, more than the {} mm corner blend the program header states",
+                                fmt_fixed(*b, 3),
+                                fmt_fixed(stated, 1)
+                            ),
+                        ));
+                    }
+                }
                 motions.push(Motion {
                     line: l.line,
                     target: q,
@@ -421,6 +584,7 @@ fn timed_motions(
                         Some(Step::Pause)
                     ),
                     mounted,
+                    dwell_after: 0.0,
                 });
                 prev = Some((q, *axes));
             }
@@ -430,7 +594,14 @@ fn timed_motions(
                     mount_at.push(motions.len());
                 }
             }
-            Step::Dwell(_) | Step::End => {}
+            Step::Dwell(s) => {
+                // The robot stands at the last motion's target; a dwell before the first motion
+                // is before the program's time starts (from the first move).
+                if let Some(m) = motions.last_mut() {
+                    m.dwell_after += s;
+                }
+            }
+            Step::End => {}
         }
     }
     if motions.is_empty() {
@@ -473,6 +644,8 @@ fn timed_motions(
     for (m, d) in motions.iter_mut().zip(&durations) {
         m.duration = *d;
     }
+    // The dwells: standstills at the moves' targets, on top of the moves.
+    let total = total + motions.iter().map(|m| m.dwell_after).sum::<f64>();
     Ok((motions, mount_at, blended, total))
 }
 

@@ -102,9 +102,11 @@ MIN_FERROR = 100000.0
 HOME_SEQUENCE = 0
 """
 
+# The sampler FIFO holds 200 s at 1 ms (11 MB): a whole run, startup included, so a halsampler
+# starved on a loaded machine (the servo threads run at realtime priority) loses nothing.
 HAL = """loadrt [KINS]KINEMATICS
 loadrt [EMCMOT]EMCMOT servo_period_nsec=[EMCMOT]SERVO_PERIOD num_joints=[KINS]JOINTS
-loadrt sampler cfg=ffffff depth=60000
+loadrt sampler cfg=ffffff depth=200000
 addf motion-command-handler servo-thread
 addf motion-controller servo-thread
 addf sampler.0 servo-thread
@@ -138,7 +140,7 @@ def drive(program):
     """LinuxCNC's DISPLAY: run the program, resume every M0, exit when it ends."""
     import linuxcnc
     s, c = linuxcnc.stat(), linuxcnc.command()
-    deadline = time.time() + 30
+    deadline = time.time() + 180  # generous: several machines start at once on a loaded 2-core host
     while True:
         try:
             s.poll()
@@ -148,7 +150,7 @@ def drive(program):
                 sys.exit("sim.py: task did not come up")
             time.sleep(0.1)
 
-    def wait(cond, what, secs=30):
+    def wait(cond, what, secs=180):
         end = time.time() + secs
         while True:
             s.poll()
@@ -230,6 +232,11 @@ def main():
                 if len(v) != 7:
                     continue
                 # halsampler numbers the samples: a gap is a FIFO overrun (samples lost).
+                # The FIFO overwrites its oldest samples when halsampler falls behind (a loaded
+                # machine starves it while the servo threads run at realtime priority): the
+                # first sample must be number 0, or the trace's start is gone.
+                if not rows and int(v[0]) != 0:
+                    sys.exit(f"sim.py: the sampler lost the first {v[0]} samples")
                 if rows and int(v[0]) != last + 1:
                     sys.exit(f"sim.py: the sampler lost samples after {last}")
                 last = int(v[0])

@@ -1,0 +1,327 @@
+//! Instrument and controller logs (no synchronous joint log): in = a bar log (`t_s,length_mm`
+//! on the instrument's own clock), a joint log (`t_s,q1_deg..q6_deg` on the controller's), and
+//! the program they recorded; out = pose readings with their plateaus and the clock relation.
+//! Pure functions: no file I/O, no printing.
+
+/// The plateau core: the samples a plateau's mean uses, `trim` seconds in from either end
+/// (the last creep of the arrival and the first of the departure stay out).
+pub fn core_trim(duration: f64, rate: f64) -> f64 {
+    (2.0 / rate).max(0.05 * duration)
+}
+
+/// Bar samples a dwell of `dwell` seconds at `rate` Hz leaves in its plateau's core: what one
+/// stop-and-measure reading averages (the compiler's prediction assumes it).
+pub fn plateau_core_samples(dwell: f64, rate: f64) -> usize {
+    let core = dwell - 2.0 * core_trim(dwell, rate);
+    if core <= 0.0 {
+        return 0;
+    }
+    (core * rate).floor() as usize
+}
+
+/// A plateau shorter than this many core samples is no reading (its mean is not a standstill
+/// the bar can vouch for).
+pub const MIN_PLATEAU_SAMPLES: usize = 5;
+
+pub mod align;
+pub mod format;
+pub mod plateau;
+pub mod sync;
+
+pub use align::{Alignment, Observed, Slot, Template, Timeline};
+pub use format::{parse_bar_log, parse_joint_log, BarLog, JointLog, LogError};
+pub use plateau::Plateau;
+
+use crate::units::{fmt_fixed, to_mm};
+use serde::Serialize;
+
+/// Why a log cannot be turned into readings: one line, naming what is wrong.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum LogsError {
+    #[error("{0}")]
+    Bad(String),
+}
+
+fn bad(msg: impl Into<String>) -> LogsError {
+    LogsError::Bad(msg.into())
+}
+
+/// One plateau in the report (DESIGN.md: `plateaus[]`): the pose it is (1-based, None when
+/// unmatched), its span on the bar clock, the log rows it covers, the core's mean and spread
+/// and the mean's standard uncertainty.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct PlateauReport {
+    pub pose: Option<usize>,
+    pub t_from_s: f64,
+    pub t_to_s: f64,
+    /// Log rows (1-based data rows, inclusive) and the core samples averaged.
+    pub rows: [usize; 2],
+    pub samples: usize,
+    pub mean_mm: f64,
+    pub spread_um: f64,
+    pub std_um: f64,
+}
+
+/// The clock relation (DESIGN.md: `clock`): t_bar = offset + (1 + drift·1e-6)·t_ref.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct ClockReport {
+    /// What t_ref is: "program" (the program's time, pauses as zero: each section has its own
+    /// offset) or "joint_log".
+    pub reference: &'static str,
+    pub offset_s: f64,
+    pub offset_std_s: Option<f64>,
+    pub drift_ppm: f64,
+    pub drift_std_ppm: Option<f64>,
+    /// Stop-and-measure: the offset of every section (null where none of its poses matched).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub section_offsets_s: Option<Vec<Option<f64>>>,
+    /// RMS of the residual the clock was fitted to: plateau edges (s) or lengths (µm).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub timeline_rms_s: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub length_rms_um: Option<f64>,
+    /// How it was obtained, for people.
+    pub method: String,
+}
+
+/// A stop-and-measure run read from a bar log: the matched readings (in pose order) and
+/// everything the report says about how they were found.
+#[derive(Clone, Debug, PartialEq)]
+pub struct StopAndMeasure {
+    /// Per matched pose: (slot index into the template, plateau index).
+    pub readings: Vec<(usize, usize)>,
+    pub plateaus: Vec<Plateau>,
+    pub alignment: Alignment,
+    /// The bar clock's first sample (s): readings' times count from it.
+    pub t0: f64,
+    pub report: Vec<PlateauReport>,
+    /// Poses without a plateau (1-based).
+    pub missing: Vec<usize>,
+    pub clock: ClockReport,
+    /// The bar's zero: mean of reading − nominal length (m), its spread over the poses and its
+    /// standard uncertainty.
+    pub zero: f64,
+    pub zero_std: f64,
+}
+
+/// The header's list of measurement poses of a stop-and-measure program (`measure a-b of N:
+/// L v, v, ... mm`, written by every dialect's template), in order (m); None when the program
+/// has none. Every dialect's reader hands the header comments over as `key: value` lines
+/// (FANUC's 32-character remarks joined back).
+pub fn measure_list(parsed: &crate::dialect::Parsed) -> Result<Option<Vec<f64>>, String> {
+    let mut out: Vec<f64> = Vec::new();
+    let mut total: Option<usize> = None;
+    for h in &parsed.header {
+        let Some(rest) = h.strip_prefix("measure ") else {
+            continue;
+        };
+        let bad = || format!("header line '{h}' is not 'measure A-B of N: L v, ... mm'");
+        let (range, values) = rest.split_once(':').ok_or_else(bad)?;
+        let (ab, n) = range.split_once(" of ").ok_or_else(bad)?;
+        let (a, b) = ab.split_once('-').ok_or_else(bad)?;
+        let (a, b, n): (usize, usize, usize) = (
+            a.trim().parse().map_err(|_| bad())?,
+            b.trim().parse().map_err(|_| bad())?,
+            n.trim().parse().map_err(|_| bad())?,
+        );
+        let v = values
+            .trim()
+            .strip_prefix('L')
+            .and_then(|r| r.trim().strip_suffix("mm"))
+            .ok_or_else(bad)?;
+        let v: Vec<f64> = v
+            .split(',')
+            .map(|x| x.trim().parse::<f64>().map(|x| x * crate::units::MM))
+            .collect::<Result<_, _>>()
+            .map_err(|_| bad())?;
+        if a != out.len() + 1 || b + 1 != a + v.len() || total.is_some_and(|t| t != n) {
+            return Err(format!("header line '{h}': poses out of order"));
+        }
+        total = Some(n);
+        out.extend(v);
+    }
+    match total {
+        None => Ok(None),
+        Some(n) if n == out.len() => Ok(Some(out)),
+        Some(n) => Err(format!(
+            "the header lists {} of its {n} measurement poses",
+            out.len()
+        )),
+    }
+}
+
+/// The shortest time (s) a run of the template can take: its dwells and its moves, pauses
+/// of no length. A log that covers less cannot hold the run.
+pub fn program_time(tpl: &Template) -> f64 {
+    let mut t = 0.0;
+    let mut section = usize::MAX;
+    let mut start = 0.0;
+    let mut last = 0.0;
+    for s in &tpl.slots {
+        if s.section != section {
+            t += last - start;
+            section = s.section;
+            start = s.start;
+        }
+        last = s.end;
+    }
+    t + last - start
+}
+
+/// Reads a stop-and-measure run: the plateaus of `bar`, matched to `tpl`'s poses.
+pub fn stop_and_measure(tpl: &Template, bar: &BarLog) -> Result<StopAndMeasure, LogsError> {
+    let dwell = tpl.dwell;
+    let span = bar.t.last().copied().unwrap_or(0.0) - bar.t.first().copied().unwrap_or(0.0);
+    let need = program_time(tpl);
+    if span < 0.9 * need {
+        return Err(bad(format!(
+            "t_s: the log covers {} s, the program's {} dwells and moves take at least {} s: the log is shorter than the program",
+            fmt_fixed(span, 1),
+            tpl.slots.len(),
+            fmt_fixed(need, 1)
+        )));
+    }
+    let (plateaus, stats) = match plateau::detect(&bar.t, &bar.length, dwell, 0.5 * dwell) {
+        Ok(x) => x,
+        Err(e) if span > 100.0 * need => {
+            return Err(bad(format!(
+                "t_s: the log spans {} s for a program of {} s: is the time in another unit (milliseconds)? ({e})",
+                fmt_fixed(span, 0),
+                fmt_fixed(need, 1)
+            )))
+        }
+        Err(e) => return Err(bad(e.to_string())),
+    };
+    if plateaus.is_empty() {
+        return Err(bad(format!(
+            "no plateau: the reading never stands still for {} s (half the program's {} s dwell); is this the log of a stop-and-measure run?",
+            fmt_fixed(0.5 * dwell, 2),
+            fmt_fixed(dwell, 2)
+        )));
+    }
+    let obs: Vec<Observed> = plateaus
+        .iter()
+        .map(|p| Observed {
+            from: p.from,
+            to: p.to,
+            mean: p.mean,
+            cut_before: p.cut_before,
+            cut_after: p.cut_after,
+        })
+        .collect();
+    let gap = (3.0 * stats.interval).max(0.05);
+    let gaps: Vec<(f64, f64)> = bar
+        .t
+        .windows(2)
+        .filter(|w| w[1] - w[0] > gap)
+        .map(|w| (w[0], w[1]))
+        .collect();
+    let alignment = match align::align(tpl, &obs, &gaps, stats.interval) {
+        Ok(a) => a,
+        Err(e) => return Err(bad(explain(tpl, bar, &plateaus, span, e))),
+    };
+    let matched = alignment.matched.iter().filter(|m| m.is_some()).count();
+    if 2 * matched < tpl.slots.len() {
+        return Err(bad(explain(
+            tpl,
+            bar,
+            &plateaus,
+            span,
+            align::AlignError::NoMatch(format!(
+                "only {matched} of {} poses matched a plateau",
+                tpl.slots.len()
+            )),
+        )));
+    }
+    let t0 = bar.t.first().copied().unwrap_or(0.0);
+    let mut pose_of = vec![None; plateaus.len()];
+    let mut readings = Vec::new();
+    let mut missing = Vec::new();
+    for (k, m) in alignment.matched.iter().enumerate() {
+        match m {
+            Some(j) => {
+                pose_of[*j] = Some(tpl.slots[k].pose);
+                readings.push((k, *j));
+            }
+            None => missing.push(tpl.slots[k].pose),
+        }
+    }
+    let report = plateaus
+        .iter()
+        .zip(&pose_of)
+        .map(|(p, pose)| PlateauReport {
+            pose: *pose,
+            t_from_s: p.from,
+            t_to_s: p.to,
+            rows: [p.first_row + 1, p.last_row + 1],
+            samples: p.samples,
+            mean_mm: to_mm(p.mean),
+            spread_um: p.spread * 1e6,
+            std_um: p.std * 1e6,
+        })
+        .collect();
+    let tl = &alignment.timeline;
+    let first = tl.offsets.iter().position(Option::is_some).unwrap_or(0);
+    let clock = ClockReport {
+        reference: "program",
+        offset_s: tl.offsets[first].unwrap_or(0.0),
+        offset_std_s: tl.offset_std[first],
+        drift_ppm: tl.drift * 1e6,
+        drift_std_ppm: tl.drift_std.map(|s| s * 1e6),
+        section_offsets_s: Some(tl.offsets.clone()),
+        timeline_rms_s: Some(tl.rms),
+        length_rms_um: None,
+        method: "plateau edges against the program's dwell and move times (pauses as zero: one offset per section), robust least squares; the drift includes any difference between the controller's and the program's move times".into(),
+    };
+    Ok(StopAndMeasure {
+        readings,
+        zero: alignment.zero,
+        zero_std: alignment.zero_std,
+        plateaus,
+        alignment,
+        t0,
+        report,
+        missing,
+        clock,
+    })
+}
+
+/// A failed match, with the likeliest reason when the log itself looks wrong: lengths in
+/// another unit, times in another unit.
+fn explain(
+    tpl: &Template,
+    bar: &BarLog,
+    plateaus: &[Plateau],
+    span: f64,
+    e: align::AlignError,
+) -> String {
+    let spread = |mut v: Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        let n = v.len();
+        if n < 4 {
+            return 0.0;
+        }
+        v[(9 * n) / 10 - 1] - v[n / 10]
+    };
+    // The readings as a whole (plateaus may be few when the unit hides every motion).
+    let a = spread(bar.length.clone());
+    let b = spread(tpl.slots.iter().map(|s| s.length).collect());
+    if b > 0.0 && a > 0.0 && !(0.2..=5.0).contains(&(a / b)) {
+        return format!(
+            "length_mm: the readings span {} mm where the program's poses span {} mm: is the length in another unit? ({e})",
+            fmt_fixed(to_mm(a), 4),
+            fmt_fixed(to_mm(b), 3)
+        );
+    }
+    let mut durations: Vec<f64> = plateaus.iter().map(|p| p.to - p.from).collect();
+    durations.sort_by(f64::total_cmp);
+    let typical = durations.get(durations.len() / 2).copied().unwrap_or(0.0);
+    if typical > 20.0 * tpl.dwell && span > 100.0 * program_time(tpl) {
+        return format!(
+            "t_s: the plateaus last {} s where the program dwells {} s: is the time in another unit? ({e})",
+            fmt_fixed(typical, 1),
+            fmt_fixed(tpl.dwell, 2)
+        );
+    }
+    e.to_string()
+}
