@@ -7,6 +7,7 @@ mod common;
 
 mod architecture;
 mod calibrate;
+mod calibrate_real;
 mod catalogue;
 mod cli;
 mod cli_errors;
@@ -24,6 +25,7 @@ mod ldbb;
 mod linuxcnc;
 mod logs;
 mod model_cmd;
+mod othersim;
 mod passive;
 mod place;
 mod report;

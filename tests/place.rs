@@ -298,7 +298,9 @@ fn a_three_fixture_campaign_beats_the_best_single_fixture_and_calibrate_confirms
         }
         let out = dir.path().join(format!("cal{r}.dh.toml"));
         let json = dir.path().join(format!("cal{r}.json"));
+        // place predicts for fixtures known in the robot's frame (they are, here): held.
         args.extend([
+            "--fixture-known".into(),
             "--effects".into(),
             "none".into(),
             "-o".into(),

@@ -1,49 +1,64 @@
 //! Calibration: in = the measurement model, a campaign of recorded runs (each with its own
 //! fixture) and options; out = the calibrated geometry (only what the data determine moves,
-//! the rest stays nominal), its covariance, the predicted MAP position uncertainty and the
-//! `edbbgen.calibrate/1` report (DESIGN.md). No file I/O.
+//! the rest stays nominal), its covariance, the predicted MAP position uncertainty, a held-out
+//! validation, the verdict (calibrated or not, and why) and the `edbbgen.calibrate/1` report
+//! (DESIGN.md). No file I/O.
 //!
-//! Method, in four steps, on the diagnosis's own machinery ([`crate::diagnose::fit`]):
-//! 1. **Structure.** Which parameters the recorded poses can separate at all (Section 2.1.2:
-//!    Gram–Schmidt in Eq. 6's preference order): d3 against d2, θ6 against α6, a6, d6, the MAP
-//!    against link 6, a free fixture against d1 and θ1.
-//! 2. **Effects.** `auto` runs the diagnosis and takes the effects it names; the geometry and
-//!    the effects are then fitted jointly (Levenberg-Marquardt), so an effect does not bias
-//!    the geometry.
-//! 3. **Determined or not.** Columns scaled by a tolerance (the deviation a parameter could
-//!    plausibly have: 1 mm, 0.05°) are taken by pivoted Cholesky on the normal matrix (the
-//!    effects' columns eliminated first) while the next one's conditional standard uncertainty
-//!    stays below tolerance/κ; then any parameter whose marginal uncertainty exceeds
-//!    tolerance/κ is dropped, worst first. The noise is the residual's, inflated by
-//!    (1 + ρ)/(1 − ρ) for a lag-1 correlation ρ. Only determined parameters move; the rest are
-//!    held at nominal and the geometry refitted, until the set is stable. A weakly seen
-//!    parameter is thus never "fitted" to a value its uncertainty makes meaningless.
-//! 4. **Uncertainty** (GUM, Type A): the covariance σ²_eff (JᵀJ)⁻¹ of the determined
-//!    parameters and the effects, propagated to the MAP position after a best rigid
+//! Method, on the diagnosis's own machinery ([`crate::diagnose::fit`]):
+//! 1. **Set-up.** The tool point (MAP), each run's fixture and, with `--length-offset free`,
+//!    its length zero are estimated wherever the data determine them; the given values are a
+//!    prior (they keep what the data do not determine, and the report says how far the
+//!    estimate moved). They start from the better of the given values and an algebraic
+//!    solution that needs no start ([`crate::diagnose::start`]): a tool point tens of
+//!    millimetres off is found, not linearised around.
+//! 2. **Structure.** Which parameters the recorded poses can separate at all (Section 2.1.2:
+//!    Gram–Schmidt, the least known first): the MAP takes link 6's place, the first fixture's
+//!    height and azimuth d1's and θ1's (the base frame's), d3 goes with d2.
+//! 3. **Robust fit, faults and effects.** Levenberg-Marquardt on the geometry and the set-up;
+//!    rows that leave their neighbours' level by far (outliers) are dropped (a redescending
+//!    loss) and reported. Then one move at a time, each adopted only when it lowers the
+//!    residual on held-out blocks of rows (blocked cross-validation over time, or over the
+//!    order the poses were taken): an effect of the library (`auto`), or a step — a fixture
+//!    that moved, a length zero that changed — which splits the run into segments with their
+//!    own fixture or zero ([`crate::diagnose::steps`]). Every candidate is listed with its
+//!    held-out score.
+//! 4. **Determined or not.** Columns scaled by their prior (1 mm, 0.05°; the set-up's 1 mm
+//!    unless given) are taken by pivoted Cholesky on the normal matrix (the effects' columns
+//!    eliminated first) while the next one's conditional standard uncertainty stays below
+//!    prior/κ; then any parameter whose marginal uncertainty exceeds prior/κ is dropped, worst
+//!    first. Only determined parameters move; the rest are held and the fit repeated.
+//! 5. **Validation and verdict.** Held out block by block, the calibrated model must predict
+//!    the readings better than the nominal robot with the same set-up fitted; otherwise, or
+//!    when no robot parameter is determined, the calibration says so and is not to be written.
+//! 6. **Uncertainty** (GUM). Type A: the covariance of the determined parameters and the
+//!    effects from the residual, inflated by its integrated autocorrelation time and by the
+//!    held-out residual's excess over the in-sample one (what the held-out data say about
+//!    model error); Type B: the parameters held at nominal at their prior; the ambiguity of
+//!    an effect's form (a cyclic error's harmonic orders the data cannot reject); all propagated to the MAP position after a best rigid
 //!    registration ([`predict`]) over the recorded poses and over the whole joint space.
 //!
-//! The fit starts at nominal and takes only descending steps, so the calibrated model never
-//! explains the recorded data worse than the nominal one.
+//! The fit starts at the given values and takes only descending steps, so the calibrated model
+//! never explains the recorded data worse than the nominal one.
 
 pub mod plot;
 pub mod predict;
 
-use crate::diagnose::fit::{self, accumulate, model_cols, score, structural};
+use crate::diagnose::fit::{self, accumulate, model_cols, score, structural, Known};
 use crate::diagnose::{
-    self, effects_report, geometry_report, noise_variance, Basis, DiagnoseOptions, EffectReport,
-    Estimate, Fitted, Param, Problem, Run,
+    self, effects_report, geometry_report, noise_variance, start, Basis, DiagnoseOptions,
+    EffectReport, Estimate, Fitted, Param, Problem, Run,
 };
-use crate::model::{MeasurementModel, Params, Status, N_PARAMS};
+use crate::model::{MeasurementModel, Params, Status, MAP, N_PARAMS};
 use crate::robot::Robot;
 use crate::twin::effects::Effect;
 use crate::units::{fmt_fixed, DEG, MM};
-use nalgebra::DMatrix;
+use nalgebra::{DMatrix, Vector3};
 use serde::Serialize;
 
 /// Which effects the calibration fits together with the geometry.
 #[derive(Clone, Debug, PartialEq)]
 pub enum Effects {
-    /// Those the diagnosis names on the same data.
+    /// Those that lower the residual on held-out data.
     Auto,
     /// None: geometry only.
     None,
@@ -51,19 +66,37 @@ pub enum Effects {
     List(Vec<Effect>),
 }
 
+/// The bar's zero: the reading minus the ball-centre distance.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum LengthOffset {
+    /// Known (m): 0 for a bar that reads the ball-centre distance.
+    Known(f64),
+    /// Unknown: estimated per run (a draw-wire, a bar zeroed anywhere).
+    Free,
+}
+
 #[derive(Clone, Debug)]
 pub struct CalibrateOptions {
     pub effects: Effects,
-    /// Estimate each run's fixture where the campaign determines it (else held as given).
-    pub fixture_free: bool,
-    /// The standard uncertainty of a length (m) and an angle (rad) before calibration: the
-    /// scale that makes parameters comparable, the yardstick of "determined", and the Type B
-    /// uncertainty a parameter held at nominal keeps.
+    /// Hold each run's fixture at its given position (else it is estimated where the data
+    /// determine it, the given position a prior).
+    pub fixture_known: bool,
+    /// Hold the tool point (MAP) at its given position (else estimated likewise).
+    pub tool_known: bool,
+    pub length_offset: LengthOffset,
+    /// The standard uncertainty of a length (m) and an angle (rad) of the robot before
+    /// calibration: the scale that makes parameters comparable, the yardstick of
+    /// "determined", and the Type B uncertainty a parameter held at nominal keeps.
     pub prior_length: f64,
     pub prior_angle: f64,
+    /// The standard uncertainty of the given set-up (m): the fixture, the tool point (MAP)
+    /// and a given length zero.
+    pub prior_setup: f64,
     /// A parameter is determined when the data bring its standard uncertainty to at most
     /// prior / κ.
     pub kappa: f64,
+    /// Steps (a moved fixture, a changed length zero) split off at most, per run.
+    pub max_steps: usize,
     /// Random joint poses of the workspace prediction, and their seed.
     pub workspace_poses: usize,
     pub seed: u64,
@@ -71,21 +104,37 @@ pub struct CalibrateOptions {
 
 pub const DEFAULT_PRIOR_MM: f64 = 1.0;
 pub const DEFAULT_PRIOR_DEG: f64 = 0.05;
+/// The given fixture, tool point and length zero: like the robot's lengths unless told (a
+/// draw-wire's anchor and attachment point may be tens of millimetres off: `--prior 1,0.05,100`).
+/// It is also the yardstick of "determined": a tool point known to a millimetre only is not.
+pub const DEFAULT_PRIOR_SETUP_MM: f64 = 1.0;
 pub const DEFAULT_KAPPA: f64 = 3.0;
 pub const WORKSPACE_POSES: usize = 2000;
 /// Poses of the measured region the prediction is evaluated on (evenly spaced rows).
 const REGION_POSES: usize = 2000;
-/// Fewest rows a run must have.
+/// Fewest rows a campaign must have in all (one run may have fewer when the others carry the
+/// robot).
 pub const MIN_ROWS: usize = N_PARAMS + 2;
+/// Held-out blocks of the validation.
+const FOLDS: usize = 8;
+/// A row is an outlier when it leaves the median of its neighbours by more than this many
+/// robust standard deviations.
+const OUTLIER_SIGMAS: f64 = 8.0;
+/// A determined parameter that moved by more than this many prior sigmas is flagged.
+const FLAG_SIGMAS: f64 = 3.0;
 
 impl Default for CalibrateOptions {
     fn default() -> Self {
         CalibrateOptions {
             effects: Effects::Auto,
-            fixture_free: false,
+            fixture_known: false,
+            tool_known: false,
+            length_offset: LengthOffset::Known(0.0),
             prior_length: DEFAULT_PRIOR_MM * MM,
             prior_angle: DEFAULT_PRIOR_DEG * DEG,
+            prior_setup: DEFAULT_PRIOR_SETUP_MM * MM,
             kappa: DEFAULT_KAPPA,
+            max_steps: 12,
             workspace_poses: WORKSPACE_POSES,
             seed: 1,
         }
@@ -106,10 +155,22 @@ pub struct RunReport {
     pub rows: usize,
     pub rms_before_um: f64,
     pub rms_after_um: f64,
-    /// The estimated fixture position (mm), with `--fixture-free`.
+    /// The estimated fixture position (mm; the run's first segment), in the calibrated
+    /// robot's base frame; a coordinate the data do not determine keeps the given value.
     pub fixture_fitted_mm: Option<[f64; 3]>,
     /// Its standard uncertainty per coordinate (mm); null for a coordinate not determined.
     pub fixture_std_mm: Option<[Option<f64>; 3]>,
+    /// How far the estimated fixture is from the given one (mm).
+    pub fixture_moved_mm: Option<f64>,
+    /// The run's length zero (mm): the reading minus the ball-centre distance (first
+    /// segment); the given value unless `--length-offset free`.
+    pub length_offset_mm: f64,
+    /// Its standard uncertainty (mm); null when given.
+    pub length_offset_std_mm: Option<f64>,
+    /// `continuous`, `static` (one reading per pose, no times) or `static, timed`.
+    pub form: &'static str,
+    /// Rows used (outliers dropped).
+    pub rows_used: usize,
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -127,11 +188,25 @@ pub struct Predicted {
     /// RMS and 95th percentile over random poses of the whole joint space.
     pub workspace_rms: f64,
     pub workspace_p95: f64,
-    /// Type A: the determined parameters' covariance from the residual noise.
+    /// Type A: the determined parameters' covariance from the residual (model error
+    /// included, see `model_error_factor`).
     pub from_noise: Component,
     /// Type B: the parameters held at nominal, each with its prior uncertainty, including
     /// how much of them the determined ones absorb.
     pub from_held: Component,
+    /// What the data cannot say about an effect's form: the geometry's extra variance were a
+    /// cyclic error fitted with harmonic orders 1..H to take one or two orders more (which
+    /// the data do not reject): a bound on the error of the fitted form.
+    pub from_effect_model: Component,
+    /// What the priors say of the nominal robot: every parameter of the robot (and the tool
+    /// point) off by its prior, after registration, RMS over the joint space. The calibrated
+    /// robot must predict better than this to be written.
+    pub nominal_workspace_rms: f64,
+    /// The variance factor Type A carries beyond the white-noise one: the larger of the
+    /// residual's integrated autocorrelation time and the held-out residual's mean square
+    /// over the one noise alone gives held out (what the held-out data say about model
+    /// error).
+    pub model_error_factor: f64,
 }
 
 #[derive(Clone, Copy, Debug, Serialize)]
@@ -144,7 +219,72 @@ pub struct Component {
 pub struct Prior {
     pub length_mm: f64,
     pub angle_deg: f64,
+    pub setup_mm: f64,
     pub kappa: f64,
+}
+
+/// The tool point (MAP, flange frame): given, estimated, its uncertainty, how far it moved.
+#[derive(Clone, Copy, Debug, Serialize)]
+pub struct ToolReport {
+    pub given_mm: [f64; 3],
+    pub fitted_mm: [f64; 3],
+    /// Null per coordinate not determined (held at the given value).
+    pub std_mm: [Option<f64>; 3],
+    pub moved_mm: f64,
+}
+
+/// A run split at a detected step: one entry per segment of a split run.
+#[derive(Clone, Debug, Serialize)]
+pub struct SegmentReport {
+    /// 1-based.
+    pub run: usize,
+    /// The run file's data rows, 1-based, inclusive.
+    pub from_row: usize,
+    pub to_row: usize,
+    /// Times of those rows (null for a run without times).
+    pub t_from_s: Option<f64>,
+    pub t_to_s: Option<f64>,
+    /// What starts the segment: `run start`, `fixture moved`, `length zero changed`.
+    pub cause: &'static str,
+    pub fixture_fitted_mm: [f64; 3],
+    pub length_offset_mm: f64,
+}
+
+/// A row dropped as an outlier.
+#[derive(Clone, Debug, Serialize)]
+pub struct OutlierReport {
+    pub run: usize,
+    /// The run file's data row, 1-based.
+    pub row: usize,
+    pub t_s: Option<f64>,
+    /// Measured − model at the calibrated estimate (µm).
+    pub residual_um: f64,
+}
+
+/// An effect considered, with the held-out RMS of the model with it.
+#[derive(Clone, Debug, Serialize)]
+pub struct CandidateReport {
+    pub effect: &'static str,
+    pub joint: Option<usize>,
+    pub heldout_rms_um: f64,
+    pub adopted: bool,
+    pub form: String,
+}
+
+/// Held-out residual RMS (µm) of the nominal robot and of the calibrated one.
+#[derive(Clone, Copy, Debug, Serialize)]
+pub struct HeldOut {
+    pub nominal: f64,
+    pub calibrated: f64,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct Validation {
+    pub heldout_rms_um: HeldOut,
+    /// How the data were split.
+    pub split: String,
+    /// Rows scored (outliers excluded).
+    pub rows: usize,
 }
 
 /// The `edbbgen.calibrate/1` report (DESIGN.md); keys after `predicted_position_std_um` are
@@ -155,7 +295,8 @@ pub struct Report {
     pub runs: Vec<RunReport>,
     pub determined: Vec<String>,
     pub undetermined: Vec<Undetermined>,
-    /// Deviations from nominal of the determined parameters: {"a2": {"value", "std"}}, mm/deg.
+    /// Deviations from nominal (the set-up: from the given values) of the determined
+    /// parameters: {"a2": {"value", "std"}}, mm/deg.
     pub params: serde_json::Map<String, serde_json::Value>,
     pub effects: Vec<EffectReport>,
     /// The bar noise: the high-frequency part of the final residual (its second differences).
@@ -163,13 +304,19 @@ pub struct Report {
     pub rms_before_um: f64,
     pub rms_after_um: f64,
     pub predicted_position_std_um: Predicted,
+    /// True when the calibrated robot may be written: some robot parameter is determined and
+    /// the held-out validation is better than nominal.
+    pub calibrated: bool,
+    /// Why (not), in one line, with what to try.
+    pub verdict: String,
     /// How the effects were chosen: "auto", "none" or "list".
     pub effects_mode: &'static str,
-    /// Parameters held at their given values by assumption (the fixture without
-    /// `--fixture-free`).
+    /// Parameters held at their given values by assumption (`--fixture-known`, a given
+    /// length zero).
     pub held: Vec<String>,
-    /// The residual's standard deviation per row (rᵀr / (n − p)), which the uncertainties
-    /// use, its lag-1 autocorrelation, and the variance inflation that implies.
+    /// The residual's standard deviation per row (rᵀWr / (n − p)), which the uncertainties
+    /// use, its lag-1 autocorrelation, and the variance inflation for its correlation (the
+    /// integrated autocorrelation time).
     pub residual_sigma_um: f64,
     pub residual_lag1: f64,
     pub noise_inflation: f64,
@@ -178,6 +325,14 @@ pub struct Report {
     pub prior: Prior,
     pub rows: usize,
     pub warnings: Vec<String>,
+    pub tool: ToolReport,
+    /// The length zero (mm) when every run shares one (a given value, or one run's estimate);
+    /// null otherwise (see `runs`).
+    pub length_offset_mm: Option<f64>,
+    pub segments: Vec<SegmentReport>,
+    pub outliers: Vec<OutlierReport>,
+    pub candidates: Vec<CandidateReport>,
+    pub validation: Validation,
 }
 
 /// A calibration: the report, the calibrated estimate and what the plots need.
@@ -189,7 +344,7 @@ pub struct Calibration {
     pub determined: Vec<Param>,
     /// Rows of each run in the residuals below.
     pub ranges: Vec<std::ops::Range<usize>>,
-    /// Time of every row (each run from its own 0).
+    /// Time of every row (each run from its own start; the row order for untimed runs).
     pub t: Vec<f64>,
     pub residual_nominal: Vec<f64>,
     pub residual: Vec<f64>,
@@ -206,13 +361,13 @@ impl Calibration {
 }
 
 /// The robot's own parameters among the free ones: (column in the fit, Eq. 6 index). Fixtures
-/// do not move the MAP.
+/// and length zeros do not move the MAP.
 fn shared_columns(free: &[Param]) -> Vec<(usize, usize)> {
     free.iter()
         .enumerate()
         .filter_map(|(a, q)| match q {
             Param::Shared(i) => Some((a, *i)),
-            Param::Fixture { .. } => None,
+            _ => None,
         })
         .collect()
 }
@@ -228,15 +383,17 @@ fn round(v: f64, d: i32) -> f64 {
 }
 
 fn prior(opts: &CalibrateOptions, q: Param) -> f64 {
-    if q.is_angle() {
+    if q.is_setup() {
+        opts.prior_setup
+    } else if q.is_angle() {
         opts.prior_angle
     } else {
         opts.prior_length
     }
 }
 
-/// Step 3: of the free geometry of a converged fit, the parameters the data determine, and
-/// the others with the standard uncertainty they would have (SI).
+/// Step 4: of the free parameters of a converged fit, the ones the data determine, and the
+/// others with the standard uncertainty they would have (SI).
 fn determine(
     fitted: &Fitted,
     sigma: f64,
@@ -331,6 +488,95 @@ pub fn determined_columns(
     (chosen, weak)
 }
 
+/// The form an effect named in `--effects` takes: cyclic errors with harmonic orders 1-3, a
+/// thermal drift linear in a logged temperature or a first-order lag, a servo delay.
+fn list_basis(e: Effect, problem: &Problem) -> Basis {
+    match e {
+        Effect::CyclicError(_) => Basis::Harmonics(0b111),
+        Effect::ThermalDrift if problem.has_temperature() => Basis::Temperature,
+        Effect::ThermalDrift => Basis::Lag,
+        _ => Basis::Standard,
+    }
+}
+
+/// Robust weights: rows whose residual leaves the median of its neighbours (7 rows, in the
+/// order taken) by more than [`OUTLIER_SIGMAS`] robust standard deviations are dropped (weight
+/// 0: a redescending loss), and in a campaign each run's rows are scaled by its own noise so
+/// that a noisy run does not outweigh a quiet one. Returns true when the set of dropped rows
+/// changed.
+fn reweight(problem: &mut Problem, residual: &[f64]) -> bool {
+    let n = problem.rows();
+    let mut dropped = vec![false; n];
+    let mut noise = vec![0.0; problem.runs()];
+    let median = |v: &mut Vec<f64>| -> f64 {
+        if v.is_empty() {
+            return 0.0;
+        }
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    for (r, range) in problem.ranges.iter().enumerate() {
+        let idx: Vec<usize> = range
+            .clone()
+            .filter(|&k| problem.base_weight[k] > 0.0)
+            .collect();
+        if idx.len() < 8 {
+            continue;
+        }
+        let e: Vec<f64> = (0..idx.len())
+            .map(|i| {
+                let (lo, hi) = (i.saturating_sub(3), (i + 4).min(idx.len()));
+                let mut w: Vec<f64> = idx[lo..hi].iter().map(|&k| residual[k]).collect();
+                residual[idx[i]] - median(&mut w)
+            })
+            .collect();
+        let mut a: Vec<f64> = e.iter().map(|v| v.abs()).collect();
+        let sigma = 1.4826 * median(&mut a);
+        noise[r] = sigma;
+        if sigma <= 0.0 {
+            continue;
+        }
+        for (i, &k) in idx.iter().enumerate() {
+            dropped[k] = e[i].abs() > OUTLIER_SIGMAS * sigma;
+        }
+    }
+    // One yardstick for the runs: the median of their noise levels.
+    let mut levels: Vec<f64> = noise.iter().copied().filter(|v| *v > 0.0).collect();
+    let reference = median(&mut levels);
+    let mut changed = false;
+    for (r, range) in problem.ranges.iter().enumerate() {
+        let scale = if problem.runs() > 1 && noise[r] > 0.0 && reference > 0.0 {
+            (reference / noise[r]).clamp(0.01, 100.0)
+        } else {
+            1.0
+        };
+        for k in range.clone() {
+            let was = problem.weight[k] <= 0.0 && problem.base_weight[k] > 0.0;
+            changed |= was != dropped[k];
+            problem.weight[k] = if dropped[k] {
+                0.0
+            } else {
+                problem.base_weight[k] * scale
+            };
+        }
+    }
+    changed
+}
+
+/// The value a parameter the data do not determine is held at: nominal (the given value) for
+/// the robot and a run's own set-up; a segment's fixture or zero keeps its run's first one.
+fn held_value(problem: &Problem, nominal: &Estimate, est: &Estimate, q: Param) -> f64 {
+    match q {
+        Param::Fixture { group, axis } if !problem.fix_groups[group].given => {
+            est.fixtures[problem.fix_groups[group].run][axis]
+        }
+        Param::Offset { group } if !problem.off_groups[group].given => {
+            est.offsets[problem.off_groups[group].run]
+        }
+        _ => nominal.get(q),
+    }
+}
+
 /// Calibrates the robot of `model` on a campaign of runs (`labels` name them in the report).
 pub fn run(
     model: &MeasurementModel,
@@ -342,94 +588,153 @@ pub fn run(
     if runs.is_empty() {
         return Err(CalibrateError::Data("no run to calibrate from".into()));
     }
-    for (k, r) in runs.iter().enumerate() {
-        if r.measured.len() < MIN_ROWS {
-            return Err(CalibrateError::Data(format!(
-                "run {} ({}): {} rows, at least {MIN_ROWS} are needed",
-                k + 1,
-                labels.get(k).map_or("", |s| s.as_str()),
-                r.measured.len()
-            )));
+    let total: usize = runs.iter().map(|r| r.measured.len()).sum();
+    if total < MIN_ROWS {
+        return Err(CalibrateError::Data(if runs.len() == 1 {
+            format!(
+                "run 1 ({}): {total} rows, at least {MIN_ROWS} are needed",
+                labels.first().map_or("", |s| s.as_str())
+            )
+        } else {
+            format!(
+                "the campaign has {total} rows in all, at least {MIN_ROWS} are needed (one run may be short when the others carry the robot)"
+            )
+        }));
+    }
+    let given_offset = match opts.length_offset {
+        LengthOffset::Known(v) => v,
+        LengthOffset::Free => 0.0,
+    };
+    let mut problem = Problem::new(model, runs)
+        .with_masses(&robot.masses)
+        .with_offset(given_offset);
+
+    if let Effects::List(v) = &opts.effects {
+        for e in v {
+            if *e == Effect::ThermalDrift && !problem.timed() && !problem.has_temperature() {
+                return Err(CalibrateError::Data(
+                    "--effects thermal_drift: a run has no times (the static form, one reading per pose) and no temp_c column: no time-dependent effect can be fitted to it".into(),
+                ));
+            }
+            if *e == Effect::ServoLag && !problem.moving() {
+                return Err(CalibrateError::Data(
+                    "--effects servo_lag: no run was recorded in motion (static readings have no velocities)".into(),
+                ));
+            }
         }
     }
-    let problem = Problem::new(model, runs).with_masses(&robot.masses);
+    let known = Known {
+        fixture: opts.fixture_known,
+        map: opts.tool_known,
+        offset: matches!(opts.length_offset, LengthOffset::Known(_)),
+    };
+    let nominal = Estimate::nominal(&problem);
     let nruns = problem.runs();
-    let (status, structural_free) = structural(&problem, opts.fixture_free, true);
     let mut warnings = Vec::new();
 
-    // Step 2: the effects, then the joint fit.
-    let (effects, effects_mode, diagnosis, diagnosis_estimate) = match &opts.effects {
-        Effects::Auto => {
-            let sel = diagnose::select(&problem, &structural_free, &DiagnoseOptions::default());
-            let e: Vec<(Effect, Basis)> = sel
-                .estimate
-                .effects
-                .iter()
-                .map(|t| (t.effect, t.basis))
-                .collect();
-            (e, "auto", Some(sel.diagnosis), Some(sel.estimate))
-        }
-        Effects::None => (Vec::new(), "none", None, None),
-        Effects::List(v) => (
-            v.iter().map(|e| (*e, Basis::Standard)).collect(),
-            "list",
-            None,
-            None,
-        ),
-    };
-    if let Some(d) = &diagnosis {
-        if d.report.unexplained {
-            warnings.push(
-                "the diagnosis found structure that no effect of the library explains; the geometry may absorb part of it (see `edbbgen diagnose`)".to_string(),
-            );
-        }
-    }
-    let nominal = Estimate::nominal(&problem);
-    let mut free = structural_free.clone();
-    // The joint fit, from where the diagnosis left it (auto), or like the diagnosis: the
-    // geometry first, then the effects added and everything refitted together (a large
-    // effect basis started at a geometry millimetres off converges badly).
-    let mut est = match diagnosis_estimate {
-        Some(e) => e,
-        None => {
-            let mut est = nominal.clone();
-            if !effects.is_empty() {
-                fit::refit(&problem, &mut est, &free);
-            }
-            for (e, basis) in &effects {
-                est.add_effect(*e, *basis, problem.thermal_terms);
-            }
-            est
-        }
-    };
-    let mut fitted = fit::refit(&problem, &mut est, &free);
+    // Step 1: the set-up from a start that needs none, the robot held nominal.
+    let mut est = nominal.clone();
+    let (_, at_given) = structural(&problem, &known, &est);
+    let setup: Vec<Param> = at_given.iter().copied().filter(Param::is_setup).collect();
+    start::setup(&problem, &mut est, &setup);
+    // Which parameters the poses separate, judged where the set-up really is.
+    let (_, structural_free) = structural(&problem, &known, &est);
 
-    // Step 3: only what the data determine moves.
+    // Steps 2-3: the robust geometric fit, then effects and steps on held-out data.
+    let mut free = structural_free.clone();
+    let mut fitted = fit::refit(&problem, &mut est, &free);
+    for _ in 0..3 {
+        if !reweight(&mut problem, &fitted.residual) {
+            break;
+        }
+        fitted = fit::refit(&problem, &mut est, &free);
+    }
+    let (effects_mode, max_effects) = match &opts.effects {
+        Effects::Auto => ("auto", 3),
+        Effects::None => ("none", 0),
+        Effects::List(v) => {
+            for e in v {
+                est.add_effect(*e, list_basis(*e, &problem), 0.5 * problem.span());
+            }
+            fit::refit(&problem, &mut est, &free);
+            ("list", 0)
+        }
+    };
+    let sel_opts = DiagnoseOptions {
+        folds: FOLDS,
+        max_effects,
+        masses: robot.masses.clone(),
+        max_steps: opts.max_steps * nruns,
+        min_explained: 0.3,
+    };
+    let sel = diagnose::select(&mut problem, &free, est, &sel_opts);
+    if max_effects > 0 && sel.diagnosis.report.unexplained {
+        warnings.push(
+            "structure remains that no effect of the library explains; the geometry may absorb part of it (see `edbbgen diagnose`)".to_string(),
+        );
+    }
+    let mut est = sel.estimate.clone();
+    free = sel.free.clone();
+    // The segments opened at steps start from their run's given set-up.
+    let nominal = Estimate::nominal(&problem);
+    fitted = sel.fitted;
+    if reweight(&mut problem, &fitted.residual) {
+        fitted = fit::refit(&problem, &mut est, &free);
+    }
+
+    // Step 4: only what the data determine moves.
     let mut weak: Vec<(Param, f64)> = Vec::new();
-    let mut sigma_eff;
     let mut noise;
     loop {
-        noise = noise_variance(&fitted.residual, fitted.coefficients());
-        sigma_eff = noise.0 * noise.2.sqrt();
+        noise = noise_variance(&fitted, &problem.weight);
+        let sigma_eff = noise.0 * noise.2.sqrt();
         let (kept, dropped) = determine(&fitted, sigma_eff, opts);
         if dropped.is_empty() {
             break;
         }
         for (q, _) in &dropped {
-            match *q {
-                Param::Shared(i) => est.p[i] = nominal.p[i],
-                Param::Fixture { run, axis } => {
-                    est.fixtures[run][axis] = nominal.fixtures[run][axis]
-                }
-            }
+            let v = held_value(&problem, &nominal, &est, *q);
+            est.set(*q, v);
         }
         weak.extend(dropped);
         free = kept;
         fitted = fit::refit(&problem, &mut est, &free);
     }
     let (sigma, rho, inflate) = noise;
+    let kept_rows = problem.kept().max(1);
 
-    // Step 4: uncertainty.
+    // Step 5: held out, block by block: the calibrated model against the nominal robot with
+    // the same set-up fitted.
+    let folds = FOLDS.min(kept_rows / 8).max(2);
+    let cols = model_cols(&est, &free);
+    let all: Vec<usize> = (0..cols.len()).collect();
+    let st = accumulate(&problem, &est, &cols, folds);
+    let cv_cal = score(&st, &all).3;
+    let heldout_cal = (cv_cal / kept_rows as f64).sqrt();
+    let cv_noise = fit::heldout_noise(&st, &all);
+    let heldout_nom = {
+        let mut e = est.clone();
+        e.p[crate::model::ALPHA..MAP].copy_from_slice(&nominal.p[crate::model::ALPHA..MAP]);
+        e.effects.clear();
+        let f: Vec<Param> = free.iter().copied().filter(Param::is_setup).collect();
+        fit::refit(&problem, &mut e, &f);
+        let c = model_cols(&e, &f);
+        let s = accumulate(&problem, &e, &c, folds);
+        let sel: Vec<usize> = (0..c.len()).collect();
+        (score(&s, &sel).3 / kept_rows as f64).sqrt()
+    };
+
+    // Step 6: uncertainty. Type A from the residual, with what the held-out residual says
+    // about model error: its mean square over what the noise alone gives held out (the
+    // noise plus the variance of predicting a block from the others, which on a few static
+    // readings is no model error).
+    let model_factor = if sigma > 0.0 && cv_noise > 0.0 {
+        (cv_cal / (sigma * sigma * cv_noise)).max(1.0)
+    } else {
+        1.0
+    };
+    let factor = inflate.max(model_factor);
+    let sigma_eff = sigma * factor.sqrt();
     let cov = fit::inverse(&fitted.normal) * (sigma_eff * sigma_eff);
     let g = free.len();
     let var: Vec<f64> = (0..cov.nrows()).map(|k| cov[(k, k)]).collect();
@@ -441,11 +746,18 @@ pub fn run(
         e.insert("std".into(), stds[name].clone());
         params.insert(name.clone(), e.into());
     }
-    let effect_reports = effects_report(&problem, &est, &var[g..]);
-    // Type A: the determined parameters (fixtures do not move the MAP), from the noise.
+    let effect_reports = effects_report(&est, &var[g..]);
     let calibrated = est.params(0);
-    let stride = problem.rows().div_ceil(REGION_POSES).max(1);
-    let region: Vec<[f64; 6]> = problem.m.q.iter().step_by(stride).copied().collect();
+    let region: Vec<[f64; 6]> = {
+        let rows: Vec<usize> = (0..problem.rows())
+            .filter(|&k| problem.weight[k] > 0.0)
+            .collect();
+        let stride = rows.len().div_ceil(REGION_POSES).max(1);
+        rows.iter()
+            .step_by(stride)
+            .map(|&k| problem.m.q[k])
+            .collect()
+    };
     let space = predict::workspace(robot, opts.workspace_poses, opts.seed);
     let shared = shared_columns(&free);
     let idx: Vec<usize> = shared.iter().map(|s| s.1).collect();
@@ -456,6 +768,7 @@ pub fn run(
     // Type B: every parameter held at nominal (not by assumption) keeps its prior; through
     // the fit the determined ones absorb K = N_aa⁻¹ N_ah of it, so the MAP moves by
     // (e_h − Σ_d e_d K_dh) per unit of held deviation.
+    let (status, _) = structural(&problem, &known, &est);
     let held_params: Vec<Param> = status
         .iter()
         .filter(|(q, st)| !free.contains(q) && *st != Status::Known)
@@ -463,16 +776,41 @@ pub fn run(
         .collect();
     let (w_b, cov_b) = held_map(&problem, &est, &free, &held_params, opts);
     let a_region = predict::position_std(model, &calibrated, &region, &w_a, &cov_a);
-    let b_region = predict::position_std(model, &calibrated, &region, &w_b, &cov_b);
     let a_space = predict::position_std(model, &calibrated, &space, &w_a, &cov_a);
+    let b_region = predict::position_std(model, &calibrated, &region, &w_b, &cov_b);
     let b_space = predict::position_std(model, &calibrated, &space, &w_b, &cov_b);
-    let combine = |a: &[f64], b: &[f64]| -> Vec<f64> {
-        a.iter().zip(b).map(|(x, y)| x.hypot(*y) * 1e6).collect()
+    let [m_region, m_space] =
+        effect_model_spread(&problem, &est, &fitted, sigma_eff, &[&region, &space]);
+    let combine = |a: &[f64], b: &[f64], m: &[f64]| -> Vec<f64> {
+        a.iter()
+            .zip(b)
+            .zip(m)
+            .map(|((x, y), z)| x.hypot(*y).hypot(*z) * 1e6)
+            .collect()
     };
     let um = |v: &[f64]| -> Vec<f64> { v.iter().map(|x| x * 1e6).collect() };
-    let region_std = predict::spread(&combine(&a_region, &b_region));
-    let space_std = combine(&a_space, &b_space);
+    let region_std = predict::spread(&combine(&a_region, &b_region, &m_region));
+    let space_std = combine(&a_space, &b_space, &m_space);
     let space_spread = predict::spread(&space_std);
+    // The nominal robot as the priors see it: every robot parameter off by its prior.
+    let nominal_prior_rms = {
+        let all: Vec<usize> = (crate::model::ALPHA..N_PARAMS).collect();
+        let cov = DMatrix::from_fn(all.len(), all.len(), |a, b| {
+            if a == b {
+                prior(opts, Param::Shared(all[a])).powi(2)
+            } else {
+                0.0
+            }
+        });
+        predict::spread(&predict::position_std(
+            model,
+            &model.nominal,
+            &space,
+            &predict::selection(&all),
+            &cov,
+        ))
+        .rms
+    };
     let predicted = Predicted {
         measured_region_rms: round(region_std.rms, 3),
         workspace_rms: round(space_spread.rms, 3),
@@ -485,6 +823,12 @@ pub fn run(
             measured_region_rms: round(predict::spread(&um(&b_region)).rms, 3),
             workspace_rms: round(predict::spread(&um(&b_space)).rms, 3),
         },
+        from_effect_model: Component {
+            measured_region_rms: round(predict::spread(&um(&m_region)).rms, 3),
+            workspace_rms: round(predict::spread(&um(&m_space)).rms, 3),
+        },
+        nominal_workspace_rms: round(nominal_prior_rms * 1e6, 3),
+        model_error_factor: round(factor, 3),
     };
 
     // An effect the data cannot tell from the geometry makes the geometry uncertain: say which.
@@ -493,13 +837,19 @@ pub fn run(
     }
 
     // Residuals, per run.
-    let residual_nominal = accumulate(&problem, &nominal, &[], 1).residual;
+    let residual_nominal = problem.residual(&nominal);
     let residual = fitted.residual.clone();
-    let noise_hf = fit::noise_estimate(&residual);
-    let rms_after = fit::rms(&residual);
+    let live: Vec<f64> = residual
+        .iter()
+        .zip(&problem.weight)
+        .filter(|(_, w)| **w > 0.0)
+        .map(|(r, _)| *r)
+        .collect();
+    let noise_hf = fit::noise_estimate(&live);
+    let rms_after = fit::rms(&live);
     // Structure above the noise: the residual clearly larger than its high-frequency part, or
     // a lag-1 correlation white noise of this length would not show (5 standard errors).
-    let rho_limit = (5.0 / (problem.rows() as f64).sqrt()).max(0.1);
+    let rho_limit = (5.0 / (kept_rows as f64).sqrt()).max(0.1);
     let residual_structure = rms_after > 1.25 * noise_hf || rho > rho_limit;
     if residual_structure {
         let hint = match opts.effects {
@@ -513,31 +863,76 @@ pub fn run(
             fmt_fixed(rho, 2)
         ));
     }
-    if !opts.fixture_free {
-        if let Some(w) = fixture_check(&problem, &est, &free, &structural_free) {
+    if opts.fixture_known {
+        if let Some(w) = fixture_check(&problem, &est, &free) {
             warnings.push(w);
         }
     }
+    // A parameter that moved by several prior sigmas: the prior (or the given value) was off.
+    // A segment's own fixture or zero is a step (reported as one); a free length zero has no
+    // given value.
+    for q in &free {
+        let flagged = match *q {
+            Param::Fixture { group, .. } => problem.fix_groups[group].given,
+            Param::Offset { group } => problem.off_groups[group].given && known.offset,
+            Param::Shared(_) => true,
+        };
+        let dev = est.get(*q) - nominal.get(*q);
+        let p = prior(opts, *q);
+        if flagged && dev.abs() > FLAG_SIGMAS * p {
+            let (u, unit) = if q.is_angle() {
+                (DEG, "deg")
+            } else {
+                (MM, "mm")
+            };
+            let check = match q {
+                Param::Shared(i) if crate::model::is_map(*i) => "check --tool",
+                Param::Fixture { .. } => "check --fixture",
+                Param::Offset { .. } => "check the bar's zero (--length-offset)",
+                _ => "check the robot file, or widen --prior if such deviations are expected",
+            };
+            warnings.push(format!(
+                "{} moved by {} {unit} from its {} value, more than {} prior sigmas ({} {unit}): {check}",
+                problem.param_name(*q),
+                fmt_fixed(dev / u, 4),
+                if q.is_setup() { "given" } else { "nominal" },
+                fmt_fixed(FLAG_SIGMAS, 0),
+                fmt_fixed(p / u, 4)
+            ));
+        }
+    }
 
+    let std_of = |q: Param| -> Option<f64> {
+        free.iter()
+            .position(|x| *x == q)
+            .map(|a| round(var[a].max(0.0).sqrt() / MM, 6))
+    };
     let mut run_reports = Vec::with_capacity(nruns);
     for (r, range) in problem.ranges.iter().enumerate() {
         let fixture_fitted = free
             .iter()
-            .any(|q| matches!(q, Param::Fixture { run, .. } if *run == r));
-        let std_of = |axis: usize| {
-            free.iter()
-                .position(|q| *q == Param::Fixture { run: r, axis })
-                .map(|a| round(var[a].max(0.0).sqrt() / MM, 6))
+            .any(|q| matches!(q, Param::Fixture { group, .. } if *group == r));
+        let kept_r: Vec<usize> = range.clone().filter(|&k| problem.weight[k] > 0.0).collect();
+        let rms_kept = |v: &[f64]| -> f64 {
+            (kept_r.iter().map(|&k| v[k] * v[k]).sum::<f64>() / kept_r.len().max(1) as f64).sqrt()
         };
+        let fixture_mm: [f64; 3] = problem.fixtures[r].map(|v| round(v / MM, 6)).into();
         run_reports.push(RunReport {
             measured: labels.get(r).cloned().unwrap_or_default(),
-            fixture_mm: problem.fixtures[r].map(|v| round(v / MM, 6)).into(),
+            fixture_mm,
             rows: range.len(),
-            rms_before_um: round(fit::rms(&residual_nominal[range.clone()]) * 1e6, 3),
-            rms_after_um: round(fit::rms(&residual[range.clone()]) * 1e6, 3),
+            rms_before_um: round(rms_kept(&residual_nominal) * 1e6, 3),
+            rms_after_um: round(rms_kept(&residual) * 1e6, 3),
             fixture_fitted_mm: fixture_fitted
                 .then(|| est.fixtures[r].map(|v| round(v / MM, 6)).into()),
-            fixture_std_mm: fixture_fitted.then(|| [std_of(0), std_of(1), std_of(2)]),
+            fixture_std_mm: fixture_fitted
+                .then(|| [0, 1, 2].map(|axis| std_of(Param::Fixture { group: r, axis }))),
+            fixture_moved_mm: fixture_fitted
+                .then(|| round((est.fixtures[r] - problem.fixtures[r]).norm() / MM, 6)),
+            length_offset_mm: round(est.offsets[r] / MM, 6),
+            length_offset_std_mm: std_of(Param::Offset { group: r }),
+            form: problem.forms[r].name(),
+            rows_used: kept_r.len(),
         });
     }
 
@@ -547,7 +942,7 @@ pub fn run(
         if free.contains(q) {
             continue;
         }
-        let name = q.name(nruns);
+        let name = problem.param_name(*q);
         let unit = |q: &Param| {
             if q.is_angle() {
                 (DEG, "deg")
@@ -565,7 +960,7 @@ pub fn run(
                 "no influence on the bar length at the recorded poses".to_string()
             }
             Status::Identifiable => match weak.iter().find(|(w, _)| w == q) {
-                Some((_, sd)) => {
+                Some((_, sd)) if *sd < 1e3 * prior(opts, *q) => {
                     let (u, name) = unit(q);
                     format!(
                         "not determined by these data: its standard uncertainty would be {} {name}, more than the prior {} {name} / {}",
@@ -574,23 +969,187 @@ pub fn run(
                         fmt_fixed(opts.kappa, 1)
                     )
                 }
+                Some(_) => {
+                    "not determined by these data: they do not constrain it (its uncertainty would exceed a thousand priors)".to_string()
+                }
                 None => "not determined by these data".to_string(),
             },
         };
         undetermined.push(Undetermined { param: name, why });
     }
 
+    // The segments of every split run.
+    let mut segments = Vec::new();
+    for (r, range) in problem.ranges.iter().enumerate() {
+        let mut cuts: Vec<usize> = problem
+            .fix_groups
+            .iter()
+            .chain(&problem.off_groups)
+            .filter(|g| g.run == r && !g.given && !g.rows.is_empty())
+            .map(|g| g.rows.start)
+            .collect();
+        if cuts.is_empty() {
+            continue;
+        }
+        cuts.push(range.start);
+        cuts.push(range.end);
+        cuts.sort_unstable();
+        cuts.dedup();
+        let timed = problem.forms[r].timed();
+        for w in cuts.windows(2) {
+            let (a, b) = (w[0], w[1]);
+            if a >= b {
+                continue;
+            }
+            let starts =
+                |groups: &[fit::Group]| groups.iter().any(|g| g.rows.start == a && !g.given);
+            let cause = match (
+                a == range.start,
+                starts(&problem.fix_groups),
+                starts(&problem.off_groups),
+            ) {
+                (true, _, _) => "run start",
+                (false, true, true) => "fixture moved and length zero changed",
+                (false, true, false) => "fixture moved",
+                _ => "length zero changed",
+            };
+            segments.push(SegmentReport {
+                run: r + 1,
+                from_row: a - range.start + 1,
+                to_row: b - range.start,
+                t_from_s: timed.then(|| round(problem.m.t[a], 3)),
+                t_to_s: timed.then(|| round(problem.m.t[b - 1], 3)),
+                cause,
+                fixture_fitted_mm: est.fixtures[problem.fixture_group_of(a)]
+                    .map(|v| round(v / MM, 6))
+                    .into(),
+                length_offset_mm: round(est.offsets[problem.offset_group_of(a)] / MM, 6),
+            });
+        }
+    }
+    let outliers: Vec<OutlierReport> = (0..problem.rows())
+        .filter(|&k| problem.weight[k] <= 0.0 && problem.base_weight[k] > 0.0)
+        .map(|k| {
+            let r = problem.run_of(k);
+            OutlierReport {
+                run: r + 1,
+                row: k - problem.ranges[r].start + 1,
+                t_s: problem.forms[r].timed().then(|| round(problem.m.t[k], 3)),
+                residual_um: round(residual[k] * 1e6, 3),
+            }
+        })
+        .collect();
+    let mut candidates: Vec<CandidateReport> = sel
+        .candidates
+        .iter()
+        .map(|c| CandidateReport {
+            effect: c.effect.name(),
+            joint: c.effect.joint(),
+            heldout_rms_um: round(c.heldout_rms * 1e6, 3),
+            adopted: c.adopted && est.effects.iter().any(|t| t.effect == c.effect)
+                || c.effect == Effect::Geometric,
+            form: if c.effect == Effect::Geometric {
+                "geometry".into()
+            } else {
+                diagnose::form_name(c.effect, c.basis)
+            },
+        })
+        .collect();
+    if let Effects::List(v) = &opts.effects {
+        for e in v {
+            let b = est
+                .effects
+                .iter()
+                .find(|t| t.effect == *e)
+                .map_or(Basis::Standard, |t| t.basis);
+            candidates.push(CandidateReport {
+                effect: e.name(),
+                joint: e.joint(),
+                heldout_rms_um: round(heldout_cal * 1e6, 3),
+                adopted: true,
+                form: diagnose::form_name(*e, b),
+            });
+        }
+    }
+
+    // The verdict: something of the robot determined, and better than nominal held out.
+    let robot_determined = free.iter().any(|q| !q.is_setup());
+    let (is_calibrated, verdict) = if !robot_determined {
+        let closest = weak
+            .iter()
+            .filter(|(q, _)| !q.is_setup())
+            .min_by(|a, b| (a.1 / prior(opts, a.0)).total_cmp(&(b.1 / prior(opts, b.0))));
+        let detail = match closest {
+            Some((q, sd)) if sd.is_finite() && *sd < 1e3 * prior(opts, *q) => format!(
+                " (the best seen, {}, would have {} prior sigmas of uncertainty)",
+                problem.param_name(*q),
+                fmt_fixed(sd / prior(opts, *q), 2)
+            ),
+            _ => String::new(),
+        };
+        (
+            false,
+            format!(
+                "not calibrated: no parameter of the robot is determined by these data{detail}; measure more poses over a wider range of every joint, or check the set-up (--tool, --fixture, --length-offset)"
+            ),
+        )
+    } else if heldout_cal >= heldout_nom {
+        let effects_hint = match (&opts.effects, residual_structure) {
+            (Effects::Auto, _) | (_, false) => "",
+            _ => ", fit the effects (--effects auto)",
+        };
+        (
+            false,
+            format!(
+                "not calibrated: held out, the calibrated robot predicts the readings no better than the nominal one ({} um against {} um RMS); the data show no deviation the geometry explains: check the set-up (--tool, --fixture, --length-offset){effects_hint} or measure over a wider range",
+                fmt_fixed(heldout_cal * 1e6, 3),
+                fmt_fixed(heldout_nom * 1e6, 3)
+            ),
+        )
+    } else if space_spread.rms >= nominal_prior_rms * 1e6 {
+        (
+            false,
+            format!(
+                "not calibrated: its predicted position uncertainty over the joint space ({} um RMS, mostly from the parameters these data cannot determine) is no better than what the priors say of the nominal robot ({} um); measure over a wider range of every joint",
+                fmt_fixed(space_spread.rms, 2),
+                fmt_fixed(nominal_prior_rms * 1e6, 2)
+            ),
+        )
+    } else {
+        (
+            true,
+            format!(
+                "calibrated: held out, the calibrated robot predicts the readings to {} um RMS against {} um for the nominal one",
+                fmt_fixed(heldout_cal * 1e6, 3),
+                fmt_fixed(heldout_nom * 1e6, 3)
+            ),
+        )
+    };
+    let tool_std = [0, 1, 2].map(|a| std_of(Param::Shared(MAP + a)));
+    let map_given = Vector3::new(nominal.p[MAP], nominal.p[MAP + 1], nominal.p[MAP + 2]);
+    let map_fitted = Vector3::new(est.p[MAP], est.p[MAP + 1], est.p[MAP + 2]);
+    let tool = ToolReport {
+        given_mm: map_given.map(|v| round(v / MM, 6)).into(),
+        fitted_mm: map_fitted.map(|v| round(v / MM, 6)).into(),
+        std_mm: tool_std,
+        moved_mm: round((map_fitted - map_given).norm() / MM, 6),
+    };
+    let shared_offset = (nruns == 1 || matches!(opts.length_offset, LengthOffset::Known(_)))
+        .then(|| round(est.offsets[0] / MM, 6));
+
     let report = Report {
         schema: "edbbgen.calibrate/1",
         runs: run_reports,
-        determined: free.iter().map(|q| q.name(nruns)).collect(),
+        determined: free.iter().map(|q| problem.param_name(*q)).collect(),
         undetermined,
         params,
         effects: effect_reports,
         noise_um: round(noise_hf * 1e6, 3),
-        rms_before_um: round(fit::rms(&residual_nominal) * 1e6, 3),
+        rms_before_um: round(fit::kept_rms(&residual_nominal, &problem.weight) * 1e6, 3),
         rms_after_um: round(rms_after * 1e6, 3),
         predicted_position_std_um: predicted,
+        calibrated: is_calibrated,
+        verdict,
         effects_mode,
         held,
         residual_sigma_um: round(sigma * 1e6, 3),
@@ -600,10 +1159,26 @@ pub fn run(
         prior: Prior {
             length_mm: opts.prior_length / MM,
             angle_deg: opts.prior_angle / DEG,
+            setup_mm: opts.prior_setup / MM,
             kappa: opts.kappa,
         },
         rows: problem.rows(),
         warnings,
+        tool,
+        length_offset_mm: shared_offset,
+        segments,
+        outliers,
+        candidates,
+        validation: Validation {
+            heldout_rms_um: HeldOut {
+                nominal: round(heldout_nom * 1e6, 3),
+                calibrated: round(heldout_cal * 1e6, 3),
+            },
+            split: format!(
+                "{folds} contiguous blocks of the rows in the order taken (time order; the campaign's runs one after the other), each predicted by the model fitted to the others (linearised at the fit to all rows); nominal: the nominal robot with the set-up (tool point, fixtures, length zeros) fitted"
+            ),
+            rows: kept_rows,
+        },
     };
     let summary = summary(&report);
     Ok(Calibration {
@@ -617,6 +1192,65 @@ pub fn run(
         workspace_std_um: space_std,
         summary,
     })
+}
+
+/// What the data cannot say about the effects' form: for every cyclic error fitted with
+/// harmonic orders 1..H, the geometry's covariance with orders up to H + 1 and H + 2 as well,
+/// less the fitted model's. For nested least-squares models the two estimates differ by a
+/// vector whose covariance is that difference (Hausman), so while the data do not reject the
+/// smaller model its error is bounded by the larger model's covariance: this is the extra
+/// variance, propagated to the MAP after registration; per pose of each set, the largest over
+/// the alternatives, root-sum-squared over the cyclic errors (m).
+fn effect_model_spread<const N: usize>(
+    problem: &Problem,
+    est: &Estimate,
+    fitted: &Fitted,
+    sigma: f64,
+    poses: &[&[[f64; 6]]; N],
+) -> [Vec<f64>; N] {
+    let mut out: [Vec<f64>; N] = std::array::from_fn(|i| vec![0.0; poses[i].len()]);
+    let free = &fitted.free;
+    let base = model_cols(est, free);
+    let shared = shared_columns(free);
+    let idx: Vec<usize> = shared.iter().map(|s| s.1).collect();
+    let w = predict::selection(&idx);
+    let p = est.params(0);
+    let small = fit::inverse(&fitted.normal);
+    for t in &est.effects {
+        let Effect::CyclicError(j) = t.effect else {
+            continue;
+        };
+        let h = t.basis.orders().into_iter().max().unwrap_or(0);
+        let mut worst: [Vec<f64>; N] = std::array::from_fn(|i| vec![0.0; poses[i].len()]);
+        for extra in 1..=2 {
+            if h + extra > fit::MAX_HARMONIC {
+                break;
+            }
+            let mut cols = base.clone();
+            for o in h + 1..=h + extra {
+                cols.push(fit::Col::Cyc(j, o, false));
+                cols.push(fit::Col::Cyc(j, o, true));
+            }
+            let (n, _, _, _) = accumulate(problem, est, &cols, 1).total();
+            let big = fit::inverse(&n);
+            let diff = DMatrix::from_fn(shared.len(), shared.len(), |a, b| {
+                let (x, y) = (shared[a].0, shared[b].0);
+                (big[(x, y)] - small[(x, y)]) * sigma * sigma
+            });
+            for (i, set) in poses.iter().enumerate() {
+                let v = predict::position_std(&problem.model, &p, set, &w, &diff);
+                for (m, x) in worst[i].iter_mut().zip(v) {
+                    *m = m.max(x);
+                }
+            }
+        }
+        for i in 0..N {
+            for (o, x) in out[i].iter_mut().zip(&worst[i]) {
+                *o = o.hypot(*x);
+            }
+        }
+    }
+    out
 }
 
 /// Type B of the held parameters: W (30 × h) and their prior covariance (h × h). A held
@@ -634,13 +1268,13 @@ fn held_map(
     if h == 0 {
         return (DMatrix::zeros(N_PARAMS, 0), DMatrix::zeros(0, 0));
     }
-    let mut cols = model_cols(problem, est, free);
+    let mut cols = model_cols(est, free);
     let c = cols.len();
     cols.extend(held.iter().map(|&q| fit::Col::Geo(q)));
     let (n, _, _, _) = accumulate(problem, est, &cols, 1).total();
     let shared = |q: &Param| match q {
         Param::Shared(i) => Some(*i),
-        Param::Fixture { .. } => None,
+        _ => None,
     };
     // Fitted columns: the free parameters, then the effects' coefficients (no MAP motion).
     let fitted: Vec<Option<usize>> = (0..c).map(|a| free.get(a).and_then(shared)).collect();
@@ -716,24 +1350,20 @@ fn confounding(
     })
 }
 
-/// With the fixture held: does freeing it explain clearly more (BIC, and a tenth of the
-/// residual)? Then the given position is probably off, and the geometry absorbs it.
-fn fixture_check(
-    problem: &Problem,
-    est: &Estimate,
-    free: &[Param],
-    structural_free: &[Param],
-) -> Option<String> {
-    let (_, with_fixture) = structural(problem, true, true);
+/// With the fixture held (`--fixture-known`): does estimating it explain clearly more (BIC,
+/// and a tenth of the residual)? Then the given position is probably off, and the geometry
+/// absorbs it.
+fn fixture_check(problem: &Problem, est: &Estimate, free: &[Param]) -> Option<String> {
+    let (_, with_fixture) = structural(problem, &Known::default(), est);
     let extra: Vec<Param> = with_fixture
         .iter()
-        .filter(|q| matches!(q, Param::Fixture { .. }) && !structural_free.contains(q))
+        .filter(|q| matches!(q, Param::Fixture { .. }) && !free.contains(q))
         .copied()
         .collect();
     if extra.is_empty() {
         return None;
     }
-    let mut cols = model_cols(problem, est, free);
+    let mut cols = model_cols(est, free);
     let base = cols.len();
     cols.extend(extra.iter().map(|&q| fit::Col::Geo(q)));
     let st = accumulate(problem, est, &cols, 1);
@@ -741,10 +1371,10 @@ fn fixture_check(
     let sel1: Vec<usize> = (0..cols.len()).collect();
     let (rss0, _, bic0, _) = score(&st, &sel0);
     let (rss1, _, bic1, _) = score(&st, &sel1);
-    let n = problem.rows() as f64;
+    let n = problem.kept().max(1) as f64;
     (bic1 < bic0 - 10.0 && rss1 < 0.9 * rss0).then(|| {
         format!(
-            "the fixture position looks off: estimating it lowers the residual from {} um to {} um RMS; check --fixture, or estimate it with --fixture-free",
+            "the fixture position looks off: estimating it lowers the residual from {} um to {} um RMS; check --fixture, or leave out --fixture-known",
             fmt_fixed((rss0 / n).sqrt() * 1e6, 3),
             fmt_fixed((rss1 / n).sqrt() * 1e6, 3)
         )
@@ -754,11 +1384,19 @@ fn fixture_check(
 /// The printed summary of a report (also rebuilt when a report is restated, see
 /// `compensate::drift`).
 pub fn summary(r: &Report) -> String {
+    let forms: Vec<&str> = r.runs.iter().map(|x| x.form).collect();
+    let static_only = forms.iter().all(|f| *f != "continuous");
     let mut s = format!(
-        "{} run{}, {} rows; bar noise {} um (lag-1 autocorrelation {})\n",
+        "{} run{}, {} rows{}; {} noise {} um (lag-1 autocorrelation {})\n",
         r.runs.len(),
         if r.runs.len() == 1 { "" } else { "s" },
         r.rows,
+        if static_only {
+            " (static readings)"
+        } else {
+            ""
+        },
+        if static_only { "reading" } else { "bar" },
         fmt_fixed(r.noise_um, 3),
         fmt_fixed(r.residual_lag1, 2)
     );
@@ -797,19 +1435,54 @@ pub fn summary(r: &Report) -> String {
                 .join(", ")
         }
     );
+    let t = &r.tool;
+    if t.moved_mm > 0.0 {
+        s += &format!(
+            "tool point (MAP): {}, {}, {} mm (given {}, {}, {}; moved {} mm)\n",
+            fmt_fixed(t.fitted_mm[0], 3),
+            fmt_fixed(t.fitted_mm[1], 3),
+            fmt_fixed(t.fitted_mm[2], 3),
+            fmt_fixed(t.given_mm[0], 3),
+            fmt_fixed(t.given_mm[1], 3),
+            fmt_fixed(t.given_mm[2], 3),
+            fmt_fixed(t.moved_mm, 3)
+        );
+    }
     for run in &r.runs {
         if let Some(f) = run.fixture_fitted_mm {
             s += &format!(
-                "fixture of {}: {}, {}, {} mm (given {}, {}, {})\n",
+                "fixture of {}: {}, {}, {} mm (given {}, {}, {}; moved {} mm)\n",
                 run.measured,
                 fmt_fixed(f[0], 3),
                 fmt_fixed(f[1], 3),
                 fmt_fixed(f[2], 3),
                 fmt_fixed(run.fixture_mm[0], 3),
                 fmt_fixed(run.fixture_mm[1], 3),
-                fmt_fixed(run.fixture_mm[2], 3)
+                fmt_fixed(run.fixture_mm[2], 3),
+                fmt_fixed(run.fixture_moved_mm.unwrap_or(0.0), 4)
             );
         }
+        if run.length_offset_std_mm.is_some() {
+            s += &format!(
+                "length zero of {}: {} mm (reading minus ball-centre distance)\n",
+                run.measured,
+                fmt_fixed(run.length_offset_mm, 4)
+            );
+        }
+    }
+    for g in r.segments.iter().filter(|g| g.cause != "run start") {
+        let when = match g.t_from_s {
+            Some(t) => format!("row {} (t {} s)", g.from_row, fmt_fixed(t, 2)),
+            None => format!("row {}", g.from_row),
+        };
+        s += &format!("step in run {} at {when}: {}\n", g.run, g.cause);
+    }
+    if !r.outliers.is_empty() {
+        s += &format!(
+            "outliers dropped: {} row{}\n",
+            r.outliers.len(),
+            if r.outliers.len() == 1 { "" } else { "s" }
+        );
     }
     let p = &r.predicted_position_std_um;
     s += &format!(
@@ -818,8 +1491,15 @@ pub fn summary(r: &Report) -> String {
         fmt_fixed(p.workspace_rms, 2),
         fmt_fixed(p.workspace_p95, 2)
     );
+    s += &format!(
+        "validation (held out): {} um RMS nominal, {} um RMS calibrated\n",
+        fmt_fixed(r.validation.heldout_rms_um.nominal, 3),
+        fmt_fixed(r.validation.heldout_rms_um.calibrated, 3)
+    );
     for w in &r.warnings {
         s += &format!("warning: {w}\n");
     }
+    s += &r.verdict;
+    s.push('\n');
     s
 }

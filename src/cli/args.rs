@@ -587,12 +587,26 @@ pub struct CalibrateArgs {
     /// a list such as cyclic_error:2,servo_lag (joint numbers 1-based).
     #[arg(long, value_name = "auto|none|LIST", default_value = "auto")]
     pub effects: String,
-    /// Estimate each run's fixture position too, where the campaign determines it.
-    #[arg(long)]
+    /// Estimate each run's fixture position where the data determine it (the default; the
+    /// given position is a prior).
+    #[arg(long, conflicts_with = "fixture_known")]
     pub fixture_free: bool,
-    /// Standard uncertainty of a length and an angle before calibration, mm,deg: what a
-    /// parameter's calibrated uncertainty is judged against [default: 1,0.05].
-    #[arg(long, value_name = "MM,DEG", allow_hyphen_values = true)]
+    /// Hold each run's fixture at the given position (known in the robot's frame to a
+    /// micrometre).
+    #[arg(long)]
+    pub fixture_known: bool,
+    /// Hold the tool point (MAP) at the given position (--tool or the robot file's) instead of
+    /// estimating it.
+    #[arg(long)]
+    pub tool_known: bool,
+    /// The bar's zero: the reading minus the ball-centre distance, mm, or `free` (unknown:
+    /// estimated per run, e.g. a draw-wire or a bar zeroed anywhere) [default: 0].
+    #[arg(long, value_name = "MM|free", allow_hyphen_values = true)]
+    pub length_offset: Option<String>,
+    /// Standard uncertainty of a length and an angle of the robot before calibration, mm,deg,
+    /// and optionally of the given set-up (fixture, tool point, length zero), mm: what a
+    /// parameter's calibrated uncertainty is judged against [default: 1,0.05,10].
+    #[arg(long, value_name = "MM,DEG[,SETUP_MM]", allow_hyphen_values = true)]
     pub prior: Option<String>,
     /// A previous calibration report (calibrate --json) of the same nominal robot: the fit
     /// starts from it (what these data do not determine keeps its values), and the report

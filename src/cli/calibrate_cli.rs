@@ -3,7 +3,7 @@
 
 use super::args::CalibrateArgs;
 use super::{usage, write_all_atomic, xyz_mm, Error};
-use crate::calibrate::{self, CalibrateOptions, Calibration, Effects};
+use crate::calibrate::{self, CalibrateOptions, Calibration, Effects, LengthOffset};
 use crate::compensate::drift;
 use crate::diagnose::Run;
 use crate::model::MeasurementModel;
@@ -67,6 +67,20 @@ pub(super) fn parse_effects(s: &str) -> Result<Effects, Error> {
         list.push(e);
     }
     Ok(Effects::List(list))
+}
+
+/// `--length-offset`: a length in mm (the reading minus the ball-centre distance), or `free`.
+pub(super) fn parse_length_offset(s: Option<&str>) -> Result<LengthOffset, Error> {
+    match s.map(str::trim) {
+        None => Ok(LengthOffset::Known(0.0)),
+        Some("free") => Ok(LengthOffset::Free),
+        Some(v) => match v.parse::<f64>() {
+            Ok(x) if x.is_finite() => Ok(LengthOffset::Known(x * MM)),
+            _ => Err(usage(format!(
+                "--length-offset: '{v}' is neither a length in mm nor 'free'"
+            ))),
+        },
+    }
 }
 
 fn joint_given(item: &str) -> bool {
@@ -174,18 +188,23 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
     let effects = parse_effects(&a.effects)?;
     let mut opts = CalibrateOptions {
         effects,
-        fixture_free: a.fixture_free,
+        fixture_known: a.fixture_known,
+        tool_known: a.tool_known,
+        length_offset: parse_length_offset(a.length_offset.as_deref())?,
         ..CalibrateOptions::default()
     };
     if let Some(p) = &a.prior {
-        let v = super::numbers("--prior", p, Some(2))?;
-        if !(v[0] > 0.0 && v[1] > 0.0) {
+        let v = super::numbers("--prior", p, None)?;
+        if !(v.len() == 2 || v.len() == 3) || v.iter().any(|x| *x <= 0.0) {
             return Err(usage(format!(
-                "--prior: '{p}' needs a positive length (mm) and angle (deg)"
+                "--prior: '{p}' needs a positive length (mm) and angle (deg) of the robot, and optionally of the set-up (mm)"
             )));
         }
         opts.prior_length = v[0] * MM;
         opts.prior_angle = v[1] * DEG;
+        if let Some(s) = v.get(2) {
+            opts.prior_setup = s * MM;
+        }
     }
 
     // --baseline: the previous report is read before any work.
@@ -236,7 +255,10 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
     let mut sources: Vec<&Path> = Vec::with_capacity(runs_n);
     for (k, path) in a.measured.iter().enumerate() {
         let text = super::read_input(path, "measured data", crate::files::Kind::Measured)?;
-        let m = twin::parse_csv(&text, calibrate::MIN_ROWS).map_err(|e| file_err(path, e))?;
+        // A run of a campaign may be short when the others carry the robot; one run alone
+        // must carry it.
+        let min = if runs_n == 1 { calibrate::MIN_ROWS } else { 1 };
+        let m = twin::parse_csv(&text, min).map_err(|e| file_err(path, e))?;
         data.push((m, robot::sha256_hex(text.as_bytes())));
         run_fixtures.push(fixture_flag(k).unwrap_or_else(Vector3::zeros));
         labels.push(name(path));
@@ -256,13 +278,20 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
             fixture_flag(k),
             map,
         )?;
-        if run.measured.len() < calibrate::MIN_ROWS {
+        // As for a measured file: one run alone must carry the robot, a campaign's run may
+        // be short.
+        let min = if runs_n == 1 { calibrate::MIN_ROWS } else { 1 };
+        if run.measured.len() < min {
             return Err(file_err(
                 bar,
                 format!(
-                    "{} readings, fewer than the {} the fit needs (one per parameter at least)",
+                    "{} readings, fewer than the {min} the fit needs{}",
                     run.measured.len(),
-                    calibrate::MIN_ROWS
+                    if runs_n == 1 {
+                        " (one per parameter at least)"
+                    } else {
+                        ""
+                    }
                 ),
             ));
         }
@@ -323,25 +352,7 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
     }
     let fixtures = run_fixtures;
 
-    // Everything is rendered before the first file is written: a failure leaves no file.
-    let mut header = header_lines(&robot, &cal, &data, &labels);
-    if let (Some(d), Some(p)) = (&drift, &a.baseline) {
-        header.push(format!("since {}: {}", name(p), d.verdict));
-    }
-    let p = cal.params();
-    let calibrated = if urdf {
-        robot::urdf::calibrated(
-            &robot_text,
-            &a.robot,
-            &load_opts,
-            &robot,
-            &p.dh,
-            &p.map,
-            &header,
-        )?
-    } else {
-        robot::dh::calibrated(&robot_text, &a.robot, &p.dh, &p.map, &header)?
-    };
+    // The report's keys, then `drift` (also when nothing is written as calibrated).
     #[derive(serde::Serialize)]
     struct WithDrift<'a> {
         #[serde(flatten)]
@@ -372,6 +383,36 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
     }
     .unwrap_or_default()
         + "\n";
+    // Not calibrated (nothing of the robot determined, or no better than nominal held out):
+    // no robot file is written; the report says why, and so does one line on stderr.
+    if !cal.report.calibrated {
+        if let Some(p) = &a.json {
+            write_all_atomic(&[(p.as_path(), json.as_str())])?;
+        }
+        print!("{}", cal.summary);
+        eprintln!("calibrate: {}", cal.report.verdict);
+        return Ok(1);
+    }
+
+    // Everything is rendered before the first file is written: a failure leaves no file.
+    let mut header = header_lines(&robot, &cal, &data, &labels);
+    if let (Some(d), Some(p)) = (&drift, &a.baseline) {
+        header.push(format!("since {}: {}", name(p), d.verdict));
+    }
+    let p = cal.params();
+    let calibrated = if urdf {
+        robot::urdf::calibrated(
+            &robot_text,
+            &a.robot,
+            &load_opts,
+            &robot,
+            &p.dh,
+            &p.map,
+            &header,
+        )?
+    } else {
+        robot::dh::calibrated(&robot_text, &a.robot, &p.dh, &p.map, &header)?
+    };
     let svg = match &a.plot {
         Some(_) => Some(crate::calibrate::plot::svg(&cal)?),
         None => None,
@@ -479,6 +520,21 @@ fn header_lines(
         r.determined.len(),
         r.determined.join(", ")
     ));
+    h.push(format!(
+        "validation, held out: {} um RMS nominal -> {} um calibrated ({} rows)",
+        fmt_fixed(r.validation.heldout_rms_um.nominal, 3),
+        fmt_fixed(r.validation.heldout_rms_um.calibrated, 3),
+        r.validation.rows
+    ));
+    for g in r.segments.iter().filter(|g| g.cause != "run start") {
+        h.push(format!(
+            "step in run {} at data row {}: {}",
+            g.run, g.from_row, g.cause
+        ));
+    }
+    if !r.outliers.is_empty() {
+        h.push(format!("outliers dropped: {}", r.outliers.len()));
+    }
     for u in &r.undetermined {
         h.push(format!("held at nominal: {}: {}", u.param, u.why));
     }

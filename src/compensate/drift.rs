@@ -400,6 +400,24 @@ pub fn calibrate_against(
                 .collect::<Vec<_>>()
         })
         .collect();
+    // Held out, the refit was judged against the robot it started from, the baseline. When it
+    // is no better, nothing measurable moved: the baseline stands and is written again (the
+    // drift verdict says "unchanged"), rather than refused as if it were the nominal robot.
+    let robot_determined = cal.report.determined.iter().any(|n| {
+        PARAM_NAMES
+            .iter()
+            .position(|p| p == n)
+            .is_some_and(|i| i >= FIX + 3)
+    });
+    let h = cal.report.validation.heldout_rms_um;
+    if !cal.report.calibrated && robot_determined && h.calibrated >= h.nominal {
+        cal.report.calibrated = true;
+        cal.report.verdict = format!(
+            "calibrated: the baseline stands; held out, the refit predicts the readings to {} um RMS against {} um with the baseline robot",
+            fmt_fixed(h.calibrated, 3),
+            fmt_fixed(h.nominal, 3)
+        );
+    }
     cal.summary = calibrate::summary(&cal.report);
     if !drift.held_at_baseline.is_empty() {
         cal.summary += &format!(

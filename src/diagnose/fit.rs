@@ -5,18 +5,25 @@
 //! Every effect of the library enters as regressors that are linear in its few parameters
 //! around the current estimate (joint effects: ∂L/∂θ_j · basis; thermal drift:
 //! Σ(a ∂L/∂a + d ∂L/∂d) · f(t); servo lag: −Σ ∂L/∂θ_j q̇_j). One parallel pass over the rows
-//! (fixed 256-row chunks, summed in order: deterministic) builds the normal equations of any set
-//! of columns per contiguous time block, so candidate models and their cross-validation are
-//! solved from those sums without touching the rows again. [`refit`] is Levenberg-Marquardt
-//! with the effects applied exactly (e.g. the recorded angles re-interpolated at t − τ).
+//! (chunks of at most 256 rows inside contiguous blocks, summed in order: deterministic) builds
+//! the normal equations of any set of columns per block, so candidate models and their blocked
+//! cross-validation are solved from those sums without touching the rows again. [`refit`] is
+//! Levenberg-Marquardt with the effects applied exactly: the recorded angles re-interpolated at
+//! t − τ for a servo lag, a play (hysteresis) operator run along the rows for backlash, a
+//! first-order lag 1 − exp(−t/τ) with its own time constant for a thermal drift.
 //!
-//! A campaign of runs shares the robot (DH, MAP, effects); each run has its own fixture, so
-//! the fixture coordinates are parameters per run ([`Param::Fixture`]).
+//! A campaign of runs shares the robot (DH, MAP, effects). Each run has its own fixture and
+//! length zero (the bar's reading minus the ball-centre distance), and a run split at a
+//! detected step has one per segment ([`Group`]): those are parameters per group
+//! ([`Param::Fixture`], [`Param::Offset`]). Rows carry a weight: the reading's stated
+//! uncertainty (`std_um`, a plateau's standard error) relative to the run's, times the robust
+//! loss's (0 drops an outlier).
 
-use crate::model::{self, MeasurementModel, Params, A, D, FIX, N_PARAMS, THETA};
+use crate::model::{self, MeasurementModel, Params, A, D, FIX, MAP, N_PARAMS, THETA};
 use crate::robot::kinematics::chain_frames;
 use crate::robot::PointMass;
-use crate::twin::effects::{gravity_torques, Effect, G, MOTION_DEADBAND};
+use crate::twin::effects::{gravity_torques, play, Effect, G, MOTION_DEADBAND};
+use crate::twin::measured::Form;
 use crate::twin::Measured;
 use nalgebra::{DMatrix, DVector, SymmetricEigen, Vector3};
 use rayon::prelude::*;
@@ -29,50 +36,69 @@ pub struct Run<'a> {
     pub fixture: Vector3<f64>,
 }
 
-/// A geometric parameter a fit can move.
+/// A parameter a fit can move.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
 pub enum Param {
     /// A parameter of the robot shared by every run: Eq. 6 index ≥ 3 (DH, MAP).
     Shared(usize),
-    /// Coordinate `axis` (0 = x) of run `run`'s fixture.
-    Fixture { run: usize, axis: usize },
+    /// Coordinate `axis` (0 = x) of fixture group `group` (a run, or a segment of one).
+    Fixture { group: usize, axis: usize },
+    /// The length zero of offset group `group`: the bar's reading minus the ball-centre
+    /// distance.
+    Offset { group: usize },
 }
 
 impl Param {
-    /// The report name: Eq. 6's (`a2`, `x_map`); a fixture coordinate is `x_fix`, or
-    /// `x_fix[k]` (run k, 1-based) in a campaign of several runs.
-    pub fn name(&self, runs: usize) -> String {
-        match *self {
-            Param::Shared(i) => model::PARAM_NAMES[i].to_string(),
-            Param::Fixture { run, axis } => {
-                let base = model::PARAM_NAMES[FIX + axis];
-                if runs > 1 {
-                    format!("{base}[{}]", run + 1)
-                } else {
-                    base.to_string()
-                }
-            }
-        }
-    }
-
     /// True for angles (rad), false for lengths (m).
     pub fn is_angle(&self) -> bool {
         match *self {
             Param::Shared(i) => model::is_angle(i),
-            Param::Fixture { .. } => false,
+            _ => false,
+        }
+    }
+
+    /// True for the parameters of the set-up rather than the robot: the fixture, the MAP (the
+    /// tool ball), the length zero.
+    pub fn is_setup(&self) -> bool {
+        match *self {
+            Param::Shared(i) => model::is_map(i),
+            _ => true,
         }
     }
 }
 
-/// How an effect enters the fit. Joint compliance has two forms: with the link masses known
-/// (the robot file's inertials) the gravity torque of each joint is known and one compliance
-/// per joint remains; without, a general basis (mass and first moments of every link after
-/// the joint) times each joint's compliance. The selection tries both; BIC prefers the small
-/// one when the masses are right.
+/// How an effect enters the fit.
+///
+/// Joint compliance has two forms: with the link masses known (the robot file's inertials) the
+/// gravity torque of each joint is known and one compliance per joint remains; without, a
+/// general basis (mass and first moments of every link after the joint) times each joint's
+/// compliance. A cyclic error takes the harmonic orders the data support (bit h − 1 of the mask
+/// for order h). A thermal drift is a first-order lag with its own time constant, or linear in
+/// a logged temperature. A servo lag is a delay, or a delay with a second-order term (a
+/// first-order servo loop lags by τ·q̇ − τ²·q̈, a pure delay by τ·q̇ − τ²/2·q̈).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Basis {
     Standard,
     KnownMasses,
+    Harmonics(u8),
+    Lag,
+    Temperature,
+    SecondOrder,
+}
+
+/// Highest harmonic order of a cyclic error the fit considers.
+pub const MAX_HARMONIC: usize = 6;
+
+impl Basis {
+    /// The harmonic orders of a cyclic error's mask, ascending.
+    pub fn orders(&self) -> Vec<usize> {
+        match *self {
+            Basis::Harmonics(mask) => (1..=MAX_HARMONIC)
+                .filter(|h| mask & (1 << (h - 1)) != 0)
+                .collect(),
+            _ => Vec::new(),
+        }
+    }
 }
 
 /// One effect of the model and its coefficients.
@@ -83,31 +109,63 @@ pub struct Term {
     pub coef: Vec<f64>,
 }
 
-/// The current estimate: shared geometry, one fixture per run, and the coefficients of the
-/// effects in the model.
+/// A stretch of one run's rows that shares a fixture position (or a length zero): the whole
+/// run, or a segment of it after a detected step.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Group {
+    pub run: usize,
+    /// Rows (of the concatenated problem), contiguous.
+    pub rows: Range<usize>,
+    /// True for a run's own group (its given fixture / length zero), false for a segment
+    /// opened at a step.
+    pub given: bool,
+}
+
+/// The current estimate: shared geometry, one fixture and one length zero per group, and the
+/// coefficients of the effects in the model.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Estimate {
     /// Eq. 6 vector; its fixture entries are run 1's (see `fixtures`).
     pub p: [f64; N_PARAMS],
+    /// Per fixture group.
     pub fixtures: Vec<Vector3<f64>>,
+    /// Per offset group (m).
+    pub offsets: Vec<f64>,
     pub effects: Vec<Term>,
 }
 
+/// Thermal time constants are kept within these bounds (s): a lag faster than 10 ms or slower
+/// than a year is no thermal drift.
+const TAU_RANGE: (f64, f64) = (1e-2, 3e7);
+
 impl Estimate {
-    /// Nominal geometry, the runs' given fixtures, no effects.
+    /// Nominal geometry, the runs' given fixtures and length zeros, no effects.
     pub fn nominal(problem: &Problem) -> Self {
         Estimate {
             p: problem.model.nominal.to_array(),
-            fixtures: problem.fixtures.clone(),
+            fixtures: problem
+                .fix_groups
+                .iter()
+                .map(|g| problem.fixtures[g.run])
+                .collect(),
+            offsets: problem
+                .off_groups
+                .iter()
+                .map(|g| problem.offsets_given[g.run])
+                .collect(),
             effects: Vec::new(),
         }
     }
 
-    /// The parameters of run `run` (its own fixture).
+    /// The parameters of run `run` (its first fixture group).
     pub fn params(&self, run: usize) -> Params {
+        self.params_group(run)
+    }
+
+    fn params_group(&self, group: usize) -> Params {
         let mut p = self.p;
         for a in 0..3 {
-            p[FIX + a] = self.fixtures[run][a];
+            p[FIX + a] = self.fixtures[group][a];
         }
         Params::from_array(&p)
     }
@@ -115,25 +173,57 @@ impl Estimate {
     pub fn get(&self, q: Param) -> f64 {
         match q {
             Param::Shared(i) => self.p[i],
-            Param::Fixture { run, axis } => self.fixtures[run][axis],
+            Param::Fixture { group, axis } => self.fixtures[group][axis],
+            Param::Offset { group } => self.offsets[group],
         }
     }
 
-    pub fn add_effect(&mut self, effect: Effect, basis: Basis, thermal_terms: usize) {
-        let n = effect_cols(effect, basis, thermal_terms).len();
+    pub fn set(&mut self, q: Param, v: f64) {
+        match q {
+            Param::Shared(i) => self.p[i] = v,
+            Param::Fixture { group, axis } => self.fixtures[group][axis] = v,
+            Param::Offset { group } => self.offsets[group] = v,
+        }
+    }
+
+    /// Adds an effect with zero coefficients (a lag starts at time constant `tau0`).
+    pub fn add_effect(&mut self, effect: Effect, basis: Basis, tau0: f64) {
+        let n = effect_cols(effect, basis).len();
+        let mut coef = vec![0.0; n];
+        if effect == Effect::ThermalDrift && basis == Basis::Lag {
+            coef[1] = tau0.clamp(TAU_RANGE.0, TAU_RANGE.1);
+        }
         self.effects.push(Term {
             effect,
             basis,
-            coef: vec![0.0; n],
+            coef,
         });
     }
 
-    fn tau(&self) -> f64 {
+    /// The servo lag's delay τ (s) and second-order term (s²).
+    fn servo(&self) -> (f64, f64) {
         self.effects
             .iter()
             .find(|t| t.effect == Effect::ServoLag)
-            .map_or(0.0, |t| t.coef[0])
+            .map_or((0.0, 0.0), |t| {
+                (t.coef[0], t.coef.get(1).copied().unwrap_or(0.0))
+            })
     }
+
+    /// The thermal lag's amplitude and time constant, when the model has one.
+    fn lag(&self) -> Option<(f64, f64)> {
+        self.effects
+            .iter()
+            .find(|t| t.effect == Effect::ThermalDrift && t.basis == Basis::Lag)
+            .map(|t| (t.coef[0], t.coef[1]))
+    }
+}
+
+/// The first-order thermal lag at time t since the start of the run: 1 − exp(−t/τ), and its
+/// derivative with respect to τ.
+fn lag(t: f64, tau: f64) -> (f64, f64) {
+    let e = (-t.max(0.0) / tau).exp();
+    (1.0 - e, -(t.max(0.0) / (tau * tau)) * e)
 }
 
 // ---- regressors ---------------------------------------------------------------------------
@@ -141,29 +231,52 @@ impl Estimate {
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub(crate) enum Col {
     Geo(Param),
-    /// joint, harmonic 1..3, sine?
+    /// joint, harmonic order, sine?
     Cyc(usize, usize, bool),
     Back(usize),
+    /// Servo lag: the delay, and the second-order term.
     Servo,
-    Thermal(usize),
+    Servo2,
+    /// A thermal lag's amplitude at a fixed time constant (screening candidates).
+    ThermAt(f64),
+    /// The estimate's thermal lag: amplitude, time constant.
+    ThermAmp,
+    ThermTau,
+    /// Linear in the logged temperature rise.
+    ThermTemp,
     /// joint j, frame i, component 0 = mass at the origin, 1..3 = first moment along x, y, z.
     Comp(usize, usize, usize),
     /// joint j's compliance times its gravity torque from the known masses.
     CompKnown(usize),
+    /// A step candidate: a new fixture coordinate for rows `from..to`.
+    StepFix {
+        from: usize,
+        to: usize,
+        axis: usize,
+    },
+    /// A step candidate: a new length zero for rows `from..to`.
+    StepOff {
+        from: usize,
+        to: usize,
+    },
 }
 
-pub(crate) fn effect_cols(e: Effect, basis: Basis, thermal_terms: usize) -> Vec<Col> {
+pub(crate) fn effect_cols(e: Effect, basis: Basis) -> Vec<Col> {
     match e {
         Effect::JointCompliance if basis == Basis::KnownMasses => {
             (0..6).map(Col::CompKnown).collect()
         }
         Effect::Geometric => Vec::new(),
-        Effect::CyclicError(j) => (1..=3)
+        Effect::CyclicError(j) => basis
+            .orders()
+            .into_iter()
             .flat_map(|h| [Col::Cyc(j, h, false), Col::Cyc(j, h, true)])
             .collect(),
         Effect::Backlash(j) => vec![Col::Back(j)],
+        Effect::ServoLag if basis == Basis::SecondOrder => vec![Col::Servo, Col::Servo2],
         Effect::ServoLag => vec![Col::Servo],
-        Effect::ThermalDrift => (1..=thermal_terms).map(Col::Thermal).collect(),
+        Effect::ThermalDrift if basis == Basis::Temperature => vec![Col::ThermTemp],
+        Effect::ThermalDrift => vec![Col::ThermAmp, Col::ThermTau],
         Effect::JointCompliance => (0..6)
             .flat_map(|j| (j + 1..=6).flat_map(move |i| (0..4).map(move |c| Col::Comp(j, i, c))))
             .collect(),
@@ -171,10 +284,10 @@ pub(crate) fn effect_cols(e: Effect, basis: Basis, thermal_terms: usize) -> Vec<
 }
 
 /// The columns of a model: the free geometry, then every effect's coefficients in order.
-pub(crate) fn model_cols(problem: &Problem, est: &Estimate, free: &[Param]) -> Vec<Col> {
+pub(crate) fn model_cols(est: &Estimate, free: &[Param]) -> Vec<Col> {
     let mut cols: Vec<Col> = free.iter().map(|&q| Col::Geo(q)).collect();
     for t in &est.effects {
-        cols.extend(effect_cols(t.effect, t.basis, problem.thermal_terms));
+        cols.extend(effect_cols(t.effect, t.basis));
     }
     cols
 }
@@ -183,7 +296,7 @@ pub(crate) fn model_cols(problem: &Problem, est: &Estimate, free: &[Param]) -> V
 /// estimate.
 pub struct Problem {
     pub model: MeasurementModel,
-    /// The runs' rows, concatenated (each run's times start at its own 0).
+    /// The runs' rows, concatenated.
     pub m: Measured,
     /// Rows of each run.
     pub ranges: Vec<Range<usize>>,
@@ -191,13 +304,42 @@ pub struct Problem {
     run: Vec<usize>,
     /// The fixtures the runs were given.
     pub fixtures: Vec<Vector3<f64>>,
+    /// The length zero each run was given (m; 0 unless `--length-offset` says otherwise).
+    pub offsets_given: Vec<f64>,
+    /// How each run's readings were taken.
+    pub forms: Vec<Form>,
+    /// Time since the run's first row (s), or the row's order in an untimed run.
+    since: Vec<f64>,
     qdot: Vec<[f64; 6]>,
+    qddot: Vec<[f64; 6]>,
     dir: Vec<[f64; 6]>,
-    /// Thermal time functions per row (temp rise, or t, t², t³ normalised per run).
-    therm: Vec<[f64; 3]>,
-    pub thermal_terms: usize,
+    /// True for a row after a gap in a continuous recording (more than three sample periods,
+    /// e.g. between the sections of a program): the robot moved unrecorded.
+    gap: Vec<bool>,
+    /// At a run's first row (and after a gap): the direction of each joint's next motion (the
+    /// flank a backlash's load is taken to rest on at the start).
+    next_dir: Vec<[f64; 6]>,
+    /// Temperature above the run's first reading, when every run logs it.
+    temp_rise: Option<Vec<f64>>,
     /// The robot's link masses (its file's inertials), when it has them.
     pub masses: Vec<PointMass>,
+    /// Per joint and harmonic order h: the means of sin(h·q) and cos(h·q) over the range the
+    /// joint was measured in (uniformly). A cyclic error's harmonics are taken free of them,
+    /// so that the joint's zero offset holds the error's constant part: over a joint that
+    /// turns far less than a turn, the data tell a zero offset from a harmonic's constant part
+    /// only by the harmonic's form, while the zero plus the error's mean over the measured
+    /// range is what they determine (and the best constant a DH table can hold there).
+    harmonic_means: [[(f64, f64); MAX_HARMONIC]; 6],
+    /// √weight of each row from its stated uncertainty (1 without one).
+    pub base_weight: Vec<f64>,
+    /// √weight in use: the stated one times the robust loss's; 0 drops the row.
+    pub weight: Vec<f64>,
+    /// Fixture groups and the group of each row.
+    pub fix_groups: Vec<Group>,
+    fix_of: Vec<u32>,
+    /// Length-zero groups and the group of each row.
+    pub off_groups: Vec<Group>,
+    off_of: Vec<u32>,
 }
 
 /// Quintic (6-point) Lagrange interpolation of the recorded angles at time t: servo lags are
@@ -222,30 +364,63 @@ fn interp(t: &[f64], q: &[[f64; 6]], at: f64) -> [f64; 6] {
     out
 }
 
-/// Joint velocities of one run (5-point stencil inside, one-sided at the ends).
-fn velocities(t: &[f64], q: &[[f64; 6]]) -> Vec<[f64; 6]> {
+/// Joint velocities and accelerations of one continuous run (5-point stencils inside,
+/// shorter ones at the ends).
+fn derivatives(t: &[f64], q: &[[f64; 6]]) -> (Vec<[f64; 6]>, Vec<[f64; 6]>) {
     let n = t.len();
     let mut qdot = vec![[0.0; 6]; n];
+    let mut qdd = vec![[0.0; 6]; n];
     for k in 0..n {
         for j in 0..6 {
-            qdot[k][j] = if k >= 2 && k + 2 < n {
+            if k >= 2 && k + 2 < n {
                 let h = (t[k + 2] - t[k - 2]) / 4.0;
-                (-q[k + 2][j] + 8.0 * q[k + 1][j] - 8.0 * q[k - 1][j] + q[k - 2][j]) / (12.0 * h)
+                qdot[k][j] = (-q[k + 2][j] + 8.0 * q[k + 1][j] - 8.0 * q[k - 1][j] + q[k - 2][j])
+                    / (12.0 * h);
+                qdd[k][j] = (-q[k + 2][j] + 16.0 * q[k + 1][j] - 30.0 * q[k][j]
+                    + 16.0 * q[k - 1][j]
+                    - q[k - 2][j])
+                    / (12.0 * h * h);
             } else {
                 let (a, b) = (k.saturating_sub(1), (k + 1).min(n - 1));
                 if b > a {
-                    (q[b][j] - q[a][j]) / (t[b] - t[a])
-                } else {
-                    0.0
+                    qdot[k][j] = (q[b][j] - q[a][j]) / (t[b] - t[a]);
                 }
-            };
+                if k >= 1 && k + 1 < n {
+                    let h = (t[k + 1] - t[k - 1]) / 2.0;
+                    qdd[k][j] = (q[k + 1][j] - 2.0 * q[k][j] + q[k - 1][j]) / (h * h);
+                }
+            }
         }
     }
-    qdot
+    (qdot, qdd)
 }
 
-/// Backlash: direction of the last motion between samples (the twin's rule); before the first
-/// motion, that of the first.
+/// The means of sin(h·q) and cos(h·q), h = 1..MAX_HARMONIC, over each joint's measured range
+/// [min q, max q], uniformly (closed form).
+fn harmonic_means(q: &[[f64; 6]]) -> [[(f64, f64); MAX_HARMONIC]; 6] {
+    std::array::from_fn(|j| {
+        let (lo, hi) = q
+            .iter()
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), x| {
+                (a.min(x[j]), b.max(x[j]))
+            });
+        let span = hi - lo;
+        std::array::from_fn(|k| {
+            let h = (k + 1) as f64;
+            if span.is_nan() || span <= 1e-9 {
+                let (s, c) = (h * lo).sin_cos();
+                return if lo.is_finite() { (s, c) } else { (0.0, 0.0) };
+            }
+            (
+                ((h * lo).cos() - (h * hi).cos()) / (h * span),
+                ((h * hi).sin() - (h * lo).sin()) / (h * span),
+            )
+        })
+    })
+}
+
+/// Direction of the last motion between rows (a continuous run's samples, or a static run's
+/// poses: the approach to each pose); before the first motion, that of the first.
 fn directions(q: &[[f64; 6]]) -> Vec<[f64; 6]> {
     let n = q.len();
     let mut dir = vec![[0.0; 6]; n];
@@ -266,9 +441,36 @@ fn directions(q: &[[f64; 6]]) -> Vec<[f64; 6]> {
     dir
 }
 
+/// A run's restarts: true after a gap (a continuous recording's time step more than three
+/// times its median: the robot moved unrecorded), and at the first row and each gap the
+/// direction of every joint's next motion.
+fn restarts(t: &[f64], q: &[[f64; 6]], form: Form) -> (Vec<bool>, Vec<[f64; 6]>) {
+    let n = t.len();
+    let mut gap = vec![false; n];
+    if form == Form::Continuous && n > 2 {
+        let mut dt: Vec<f64> = t.windows(2).map(|w| w[1] - w[0]).collect();
+        dt.sort_by(f64::total_cmp);
+        let median = dt[dt.len() / 2];
+        for k in 1..n {
+            gap[k] = t[k] - t[k - 1] > 3.0 * median;
+        }
+    }
+    let mut next = vec![[0.0; 6]; n];
+    for k in (0..n).filter(|&k| k == 0 || gap[k]) {
+        for j in 0..6 {
+            next[k][j] = (k + 1..n)
+                .take_while(|&i| !gap[i])
+                .map(|i| q[i][j] - q[i - 1][j])
+                .find(|d| d.abs() > MOTION_DEADBAND)
+                .map_or(1.0, f64::signum);
+        }
+    }
+    (gap, next)
+}
+
 impl Problem {
     /// The rows of every run, in order. Temperatures are used for thermal drift only when
-    /// every run has them.
+    /// every run has them; stated uncertainties weight the rows of their run.
     pub fn new(model: &MeasurementModel, runs: &[Run]) -> Problem {
         let with_temp = !runs.is_empty() && runs.iter().all(|r| r.measured.temp.is_some());
         let n: usize = runs.iter().map(|r| r.measured.len()).sum();
@@ -281,11 +483,23 @@ impl Problem {
         };
         let mut ranges = Vec::with_capacity(runs.len());
         let mut run = Vec::with_capacity(n);
-        let (mut qdot, mut dir, mut therm) = (
+        let mut since = Vec::with_capacity(n);
+        let (mut qdot, mut qddot, mut dir) = (
             Vec::with_capacity(n),
             Vec::with_capacity(n),
             Vec::with_capacity(n),
         );
+        let mut temp_rise = with_temp.then(|| Vec::with_capacity(n));
+        let (mut gap, mut next_dir) = (Vec::with_capacity(n), Vec::with_capacity(n));
+        let mut base_weight = Vec::with_capacity(n);
+        // One yardstick for the stated uncertainties of the whole campaign: their RMS.
+        let stated: Vec<f64> = runs
+            .iter()
+            .filter_map(|r| r.measured.std.as_ref())
+            .flatten()
+            .copied()
+            .collect();
+        let s_ref = (stated.iter().map(|s| s * s).sum::<f64>() / stated.len().max(1) as f64).sqrt();
         for (r, x) in runs.iter().enumerate() {
             let rm = x.measured;
             let start = m.len();
@@ -297,40 +511,92 @@ impl Problem {
             if rm.is_empty() {
                 continue;
             }
-            qdot.extend(velocities(&rm.t, &rm.q));
-            dir.extend(directions(&rm.q));
-            match (&mut m.temp, &rm.temp) {
-                (Some(all), Some(temp)) => {
-                    all.extend_from_slice(temp);
-                    therm.extend(temp.iter().map(|c| [c - temp[0], 0.0, 0.0]));
+            since.extend(rm.t.iter().map(|t| t - rm.t[0]));
+            let (g, nd) = restarts(&rm.t, &rm.q, rm.form);
+            match rm.form {
+                Form::Continuous => {
+                    // Rates of each stretch between gaps on its own: across a gap the robot
+                    // moved unrecorded, and a stencil spanning it would see a jump.
+                    let mut a = 0;
+                    while a < rm.len() {
+                        let b = (a + 1..rm.len()).find(|&i| g[i]).unwrap_or(rm.len());
+                        let (v, acc) = derivatives(&rm.t[a..b], &rm.q[a..b]);
+                        qdot.extend(v);
+                        qddot.extend(acc);
+                        a = b;
+                    }
                 }
-                _ => {
-                    let (t0, t1) = (rm.t[0], rm.t[rm.len() - 1]);
-                    let span = (t1 - t0).max(1e-9);
-                    therm.extend(rm.t.iter().map(|t| {
-                        let u = (t - t0) / span;
-                        [u, u * u, u * u * u]
-                    }));
+                Form::Static { .. } => {
+                    qdot.extend(std::iter::repeat_n([0.0; 6], rm.len()));
+                    qddot.extend(std::iter::repeat_n([0.0; 6], rm.len()));
                 }
             }
+            dir.extend(directions(&rm.q));
+            gap.extend(g);
+            next_dir.extend(nd);
+            if let (Some(all), Some(t), Some(rise)) = (&mut m.temp, &rm.temp, &mut temp_rise) {
+                all.extend_from_slice(t);
+                rise.extend(t.iter().map(|c| c - t[0]));
+            }
+            match &rm.std {
+                Some(s) if s_ref > 0.0 => {
+                    base_weight.extend(s.iter().map(|v| s_ref / v.max(1e-3 * s_ref)))
+                }
+                _ => base_weight.extend(std::iter::repeat_n(1.0, rm.len())),
+            }
         }
+        let groups: Vec<Group> = ranges
+            .iter()
+            .enumerate()
+            .map(|(r, rows)| Group {
+                run: r,
+                rows: rows.clone(),
+                given: true,
+            })
+            .collect();
+        let means = harmonic_means(&m.q);
         Problem {
             model: model.clone(),
+            fix_of: run.iter().map(|&r| r as u32).collect(),
+            off_of: run.iter().map(|&r| r as u32).collect(),
             m,
             ranges,
             run,
             fixtures: runs.iter().map(|r| r.fixture).collect(),
+            offsets_given: vec![0.0; runs.len()],
+            forms: runs.iter().map(|r| r.measured.form).collect(),
+            since,
             qdot,
+            qddot,
             dir,
-            therm,
-            thermal_terms: if with_temp { 1 } else { 3 },
+            gap,
+            next_dir,
+            temp_rise,
             masses: Vec::new(),
+            harmonic_means: means,
+            weight: base_weight.clone(),
+            base_weight,
+            fix_groups: groups.clone(),
+            off_groups: groups,
         }
     }
 
     /// The robot's link masses, for the known-mass form of joint compliance.
     pub fn with_masses(mut self, masses: &[PointMass]) -> Self {
         self.masses = masses.to_vec();
+        self
+    }
+
+    /// sin(h·q) and cos(h·q) less their means over joint j's measured range.
+    fn harmonic(&self, j: usize, h: usize, q: f64) -> (f64, f64) {
+        let (sn, cs) = (h as f64 * q).sin_cos();
+        let (ms, mc) = self.harmonic_means[j][h - 1];
+        (sn - ms, cs - mc)
+    }
+
+    /// The length zero every run was given (m).
+    pub fn with_offset(mut self, offset: f64) -> Self {
+        self.offsets_given = vec![offset; self.runs()];
         self
     }
 
@@ -347,35 +613,229 @@ impl Problem {
         self.run[k]
     }
 
-    /// Recorded angles of row k's run, re-interpolated at that run's time `at`.
-    fn interp_run(&self, k: usize, values: &[[f64; 6]], at: f64) -> [f64; 6] {
-        let r = self.ranges[self.run[k]].clone();
-        interp(&self.m.t[r.clone()], &values[r], at)
+    /// The fixture group of row k.
+    pub fn fixture_group_of(&self, k: usize) -> usize {
+        self.fix_of[k] as usize
     }
 
-    /// Effective (load-side) configuration and parameters of row k under the estimate.
-    pub fn apply(&self, est: &Estimate, k: usize) -> ([f64; 6], Params) {
-        let tau = est.tau();
-        let q0 = if tau != 0.0 {
-            self.interp_run(k, &self.m.q, self.m.t[k] - tau)
-        } else {
-            self.m.q[k]
+    /// The length-zero group of row k.
+    pub fn offset_group_of(&self, k: usize) -> usize {
+        self.off_of[k] as usize
+    }
+
+    /// Rows that count (weight above zero).
+    pub fn kept(&self) -> usize {
+        self.weight.iter().filter(|w| **w > 0.0).count()
+    }
+
+    /// True when every run has real times: a time-dependent effect may be fitted.
+    pub fn timed(&self) -> bool {
+        !self.forms.is_empty() && self.forms.iter().all(Form::timed)
+    }
+
+    /// True when some run was recorded while the robot moved (velocities exist).
+    pub fn moving(&self) -> bool {
+        self.forms.contains(&Form::Continuous)
+    }
+
+    /// True when every run logs a temperature.
+    pub fn has_temperature(&self) -> bool {
+        self.temp_rise.is_some()
+    }
+
+    /// The longest run's span (s, or rows for untimed runs).
+    pub fn span(&self) -> f64 {
+        self.ranges
+            .iter()
+            .filter(|r| !r.is_empty())
+            .map(|r| self.since[r.end - 1])
+            .fold(0.0, f64::max)
+    }
+
+    /// A thinned copy for fits that need fewer rows (the set-up's start): every s-th row of
+    /// each run, s such that at most about `max` rows remain; groups keep their rows.
+    pub fn thinned(&self, max: usize) -> Problem {
+        let n = self.rows();
+        let stride = n.div_ceil(max.max(1)).max(1);
+        let keep: Vec<usize> = self
+            .ranges
+            .iter()
+            .flat_map(|r| r.clone().step_by(stride))
+            .collect();
+        // New index of the first kept row at or after each old row.
+        let mut before = vec![0usize; n + 1];
+        let mut j = 0;
+        for k in 0..=n {
+            while j < keep.len() && keep[j] < k {
+                j += 1;
+            }
+            before[k] = j;
+        }
+        let remap = |g: &Group| Group {
+            run: g.run,
+            rows: before[g.rows.start]..before[g.rows.end],
+            given: g.given,
         };
-        let mut p = est.params(self.run[k]).to_array();
+        let pick = |v: &[[f64; 6]]| keep.iter().map(|&k| v[k]).collect::<Vec<_>>();
+        let m = Measured {
+            t: keep.iter().map(|&k| self.m.t[k]).collect(),
+            q: pick(&self.m.q),
+            length: keep.iter().map(|&k| self.m.length[k]).collect(),
+            temp: self
+                .m
+                .temp
+                .as_ref()
+                .map(|t| keep.iter().map(|&k| t[k]).collect()),
+            ..Measured::default()
+        };
+        Problem {
+            model: self.model.clone(),
+            m,
+            ranges: self
+                .ranges
+                .iter()
+                .map(|r| before[r.start]..before[r.end])
+                .collect(),
+            run: keep.iter().map(|&k| self.run[k]).collect(),
+            fixtures: self.fixtures.clone(),
+            offsets_given: self.offsets_given.clone(),
+            forms: self.forms.clone(),
+            since: keep.iter().map(|&k| self.since[k]).collect(),
+            qdot: pick(&self.qdot),
+            qddot: pick(&self.qddot),
+            dir: pick(&self.dir),
+            gap: keep.iter().map(|&k| self.gap[k]).collect(),
+            next_dir: pick(&self.next_dir),
+            temp_rise: self
+                .temp_rise
+                .as_ref()
+                .map(|t| keep.iter().map(|&k| t[k]).collect()),
+            masses: self.masses.clone(),
+            harmonic_means: self.harmonic_means,
+            base_weight: keep.iter().map(|&k| self.base_weight[k]).collect(),
+            weight: keep.iter().map(|&k| self.weight[k]).collect(),
+            fix_groups: self.fix_groups.iter().map(remap).collect(),
+            fix_of: keep.iter().map(|&k| self.fix_of[k]).collect(),
+            off_groups: self.off_groups.iter().map(remap).collect(),
+            off_of: keep.iter().map(|&k| self.off_of[k]).collect(),
+        }
+    }
+
+    /// Splits the fixture group (or, `fixture` false, the length-zero group) that holds row
+    /// `at` there: rows from `at` to the end of that group get a new group, which starts at
+    /// the old one's estimate. Returns the new group's index.
+    pub fn split(&mut self, est: &mut Estimate, fixture: bool, at: usize) -> usize {
+        let (groups, of) = if fixture {
+            (&mut self.fix_groups, &mut self.fix_of)
+        } else {
+            (&mut self.off_groups, &mut self.off_of)
+        };
+        let old = of[at] as usize;
+        let end = groups[old].rows.end;
+        let new = groups.len();
+        groups[old].rows.end = at;
+        groups.push(Group {
+            run: groups[old].run,
+            rows: at..end,
+            given: false,
+        });
+        for g in &mut of[at..end] {
+            *g = new as u32;
+        }
+        if fixture {
+            let f = est.fixtures[old];
+            est.fixtures.push(f);
+        } else {
+            let o = est.offsets[old];
+            est.offsets.push(o);
+        }
+        new
+    }
+
+    /// 1-based segment number of a group within its run (by its first row) and the number of
+    /// groups of that kind in the run.
+    pub fn segment_of(&self, fixture: bool, group: usize) -> (usize, usize) {
+        let groups = if fixture {
+            &self.fix_groups
+        } else {
+            &self.off_groups
+        };
+        let g = &groups[group];
+        let same: Vec<&Group> = groups.iter().filter(|h| h.run == g.run).collect();
+        let before = same.iter().filter(|h| h.rows.start < g.rows.start).count();
+        (before + 1, same.len())
+    }
+
+    /// The report name of a parameter: Eq. 6's (`a2`, `x_map`); a fixture coordinate is
+    /// `x_fix`, or `x_fix[k]` (run k, 1-based) in a campaign of several runs, `x_fix[k.s]` for
+    /// segment s of a run split at a step; a length zero likewise `length_offset[...]`.
+    pub fn param_name(&self, q: Param) -> String {
+        let suffix = |fixture: bool, group: usize| -> String {
+            let groups = if fixture {
+                &self.fix_groups
+            } else {
+                &self.off_groups
+            };
+            let run = groups[group].run;
+            let (s, of) = self.segment_of(fixture, group);
+            match (self.runs() > 1, of > 1) {
+                (_, true) => format!("[{}.{s}]", run + 1),
+                (true, false) => format!("[{}]", run + 1),
+                (false, false) => String::new(),
+            }
+        };
+        match q {
+            Param::Shared(i) => model::PARAM_NAMES[i].to_string(),
+            Param::Fixture { group, axis } => {
+                format!("{}{}", model::PARAM_NAMES[FIX + axis], suffix(true, group))
+            }
+            Param::Offset { group } => format!("length_offset{}", suffix(false, group)),
+        }
+    }
+
+    /// Recorded values of row k's run, re-interpolated at that run's time `at` (near row k)
+    /// from the rows of k's stretch between gaps only: across a gap the robot moved
+    /// unrecorded, and a polynomial through samples on both sides of it is no estimate of
+    /// where it was (before a stretch's first row it is extrapolated from the stretch).
+    fn interp_run(&self, k: usize, values: &[[f64; 6]], at: f64) -> [f64; 6] {
+        let r = self.ranges[self.run[k]].clone();
+        let mut lo = k;
+        while lo > r.start && !self.gap[lo] && k - lo < 6 {
+            lo -= 1;
+        }
+        let mut hi = k + 1;
+        while hi < r.end && !self.gap[hi] && hi - k < 6 {
+            hi += 1;
+        }
+        interp(&self.m.t[lo..hi], &values[lo..hi], at)
+    }
+
+    /// Effective (load-side) configuration, parameters and length zero of row k under the
+    /// estimate.
+    fn apply(&self, est: &Estimate, prep: &Prep, k: usize) -> ([f64; 6], Params, f64) {
+        let q0 = prep.motor.as_ref().map_or(self.m.q[k], |m| m[k]);
+        let mut p = est.params_group(self.fix_of[k] as usize).to_array();
         let mut q = q0;
         let mut frames = None;
         for t in &est.effects {
             let c = &t.coef;
             match t.effect {
                 Effect::CyclicError(j) => {
-                    for h in 0..3 {
-                        let (sn, cs) = ((h + 1) as f64 * q0[j]).sin_cos();
-                        q[j] += c[2 * h] * cs + c[2 * h + 1] * sn;
+                    for (n, h) in t.basis.orders().into_iter().enumerate() {
+                        let (sn, cs) = self.harmonic(j, h, q0[j]);
+                        q[j] += c[2 * n] * cs + c[2 * n + 1] * sn;
                     }
                 }
-                Effect::Backlash(j) => q[j] -= 0.5 * c[0] * self.dir[k][j],
+                Effect::Backlash(j) => {
+                    if let Some(b) = &prep.back[j] {
+                        q[j] += b.offset[k];
+                    }
+                }
                 Effect::ThermalDrift => {
-                    let f: f64 = (0..c.len()).map(|h| c[h] * self.therm[k][h]).sum();
+                    let f = match t.basis {
+                        Basis::Temperature => c[0] * self.temp_rise.as_ref().map_or(0.0, |r| r[k]),
+                        _ => c[0] * lag(self.since[k], c[1]).0,
+                    };
                     for i in 0..6 {
                         p[A + i] *= 1.0 + f;
                         p[D + i] *= 1.0 + f;
@@ -401,7 +861,7 @@ impl Problem {
                             &q0,
                         )
                     });
-                    let cols = effect_cols(Effect::JointCompliance, Basis::Standard, 0);
+                    let cols = effect_cols(Effect::JointCompliance, Basis::Standard);
                     for (n, col) in cols.iter().enumerate() {
                         if let Col::Comp(j, i, comp) = col {
                             q[*j] += c[n] * gravity_basis(fr, *j, *i, *comp);
@@ -411,48 +871,86 @@ impl Problem {
                 Effect::Geometric | Effect::ServoLag => {}
             }
         }
-        (q, Params::from_array(&p))
+        (
+            q,
+            Params::from_array(&p),
+            est.offsets[self.off_of[k] as usize],
+        )
     }
 
-    /// Fills the regressor values of row k for `cols`; returns the residual measured − model.
-    fn row_values(&self, est: &Estimate, k: usize, cols: &[Col], out: &mut [f64]) -> f64 {
-        let (q, p) = self.apply(est, k);
+    /// Fills the regressor values of row k for `cols`; returns the residual measured − model
+    /// (unweighted).
+    fn row_values(
+        &self,
+        est: &Estimate,
+        prep: &Prep,
+        k: usize,
+        cols: &[Col],
+        out: &mut [f64],
+    ) -> f64 {
+        let (q, p, offset) = self.apply(est, prep, k);
+        let q0 = prep.motor.as_ref().map_or(self.m.q[k], |m| m[k]);
         let mut j = [0.0; N_PARAMS];
         let len = self.model.jacobian_row(&p, &q, &mut j);
+        // The compliance regressors exactly as `apply` deflects: at the motor-side angles and
+        // the estimate's own geometry (a consistent derivative: Levenberg-Marquardt stalls on
+        // an inconsistent one once the cost is small).
         let needs_frames = cols.iter().any(|c| matches!(c, Col::Comp(..)));
-        let fr =
-            needs_frames.then(|| chain_frames(&self.model.base, &p.dh, &self.model.flange, &q));
+        let geometry = || Params::from_array(&est.p);
+        let fr = needs_frames
+            .then(|| chain_frames(&self.model.base, &geometry().dh, &self.model.flange, &q0));
         let needs_torques = cols.iter().any(|c| matches!(c, Col::CompKnown(..)));
-        let torques = needs_torques.then(|| gravity_torques(&self.model, &p, &q, &self.masses));
-        let tau = est.tau();
-        let qd = if tau != 0.0 {
-            self.interp_run(k, &self.qdot, self.m.t[k] - tau)
-        } else {
-            self.qdot[k]
+        let torques =
+            needs_torques.then(|| gravity_torques(&self.model, &geometry(), &q0, &self.masses));
+        let (qd, qdd) = match &prep.rates {
+            Some((v, a)) => (v[k], a[k]),
+            None => (self.qdot[k], self.qddot[k]),
         };
-        let run = self.run[k];
+        let sens = || -> f64 {
+            (0..6)
+                .map(|i| est.p[A + i] * j[A + i] + est.p[D + i] * j[D + i])
+                .sum()
+        };
+        let (fg, og) = (self.fix_of[k] as usize, self.off_of[k] as usize);
         for (o, c) in out.iter_mut().zip(cols) {
             *o = match *c {
                 Col::Geo(Param::Shared(i)) => j[i],
-                Col::Geo(Param::Fixture { run: r, axis }) => {
-                    if r == run {
+                Col::Geo(Param::Fixture { group, axis }) => {
+                    if group == fg {
                         j[FIX + axis]
                     } else {
                         0.0
                     }
                 }
+                Col::Geo(Param::Offset { group }) => {
+                    if group == og {
+                        1.0
+                    } else {
+                        0.0
+                    }
+                }
                 Col::Cyc(jj, h, sine) => {
-                    let a = h as f64 * q[jj];
-                    j[THETA + jj] * if sine { a.sin() } else { a.cos() }
+                    let (sn, cs) = self.harmonic(jj, h, q0[jj]);
+                    j[THETA + jj] * if sine { sn } else { cs }
                 }
-                Col::Back(jj) => -0.5 * j[THETA + jj] * self.dir[k][jj],
+                Col::Back(jj) => {
+                    let side = prep.back[jj]
+                        .as_ref()
+                        .map_or(self.dir[k][jj], |b| b.side[k]);
+                    -0.5 * j[THETA + jj] * side
+                }
                 Col::Servo => -(0..6).map(|i| j[THETA + i] * qd[i]).sum::<f64>(),
-                Col::Thermal(h) => {
-                    let sens: f64 = (0..6)
-                        .map(|i| est.p[A + i] * j[A + i] + est.p[D + i] * j[D + i])
-                        .sum();
-                    sens * self.therm[k][h - 1]
-                }
+                Col::Servo2 => (0..6).map(|i| j[THETA + i] * qdd[i]).sum::<f64>(),
+                Col::ThermAt(tau) => sens() * lag(self.since[k], tau).0,
+                Col::ThermAmp => match est.lag() {
+                    Some((_, tau)) => sens() * lag(self.since[k], tau).0,
+                    None => 0.0,
+                },
+                Col::ThermTau => match est.lag() {
+                    Some((amp, tau)) => sens() * amp * lag(self.since[k], tau).1,
+                    None => 0.0,
+                },
+                Col::ThermTemp => sens() * self.temp_rise.as_ref().map_or(0.0, |r| r[k]),
                 Col::Comp(jj, i, comp) => match &fr {
                     Some(fr) => j[THETA + jj] * gravity_basis(fr, jj, i, comp),
                     None => 0.0,
@@ -461,10 +959,137 @@ impl Problem {
                     Some(tau) => j[THETA + jj] * tau[jj],
                     None => 0.0,
                 },
+                Col::StepFix { from, to, axis } => {
+                    if (from..to).contains(&k) {
+                        j[FIX + axis]
+                    } else {
+                        0.0
+                    }
+                }
+                Col::StepOff { from, to } => {
+                    if (from..to).contains(&k) {
+                        1.0
+                    } else {
+                        0.0
+                    }
+                }
             };
         }
-        self.m.length[k] - len
+        self.m.length[k] - len - offset
     }
+
+    /// Residual (measured − model, unweighted) of every row under the estimate.
+    pub fn residual(&self, est: &Estimate) -> Vec<f64> {
+        accumulate(self, est, &[], 1).residual
+    }
+
+    /// The MAP's position (in the base frame of the estimate) and the load-side joints of row
+    /// k: for figures and the robust start.
+    pub fn loaded(&self, est: &Estimate, k: usize) -> ([f64; 6], Params) {
+        let prep = prepare(self, est);
+        let (q, p, _) = self.apply(est, &prep, k);
+        (q, p)
+    }
+}
+
+/// Per-row joint velocities and accelerations.
+type Rates = (Vec<[f64; 6]>, Vec<[f64; 6]>);
+
+/// What the rows need from the estimate before they can be evaluated one by one: the motor
+/// angles under a servo lag and the backlash play operator, which runs along each run.
+pub(crate) struct Prep {
+    /// Motor-side joint angles (the logged setpoints delayed), when a servo lag is fitted.
+    motor: Option<Vec<[f64; 6]>>,
+    /// Joint rates at the delayed time (velocity, acceleration), with a servo lag.
+    rates: Option<Rates>,
+    /// Per joint with a backlash term: the load's offset from the motor and the flank it
+    /// rests on (+1: it was last pushed in the positive direction).
+    back: [Option<Play>; 6],
+}
+
+pub(crate) struct Play {
+    offset: Vec<f64>,
+    side: Vec<f64>,
+}
+
+pub(crate) fn prepare(problem: &Problem, est: &Estimate) -> Prep {
+    let (tau, c2) = est.servo();
+    let n = problem.rows();
+    let (motor, rates) = if tau != 0.0 || c2 != 0.0 {
+        let rows: Vec<([f64; 6], [f64; 6], [f64; 6])> = (0..n)
+            .into_par_iter()
+            .map(|k| {
+                if problem.forms[problem.run[k]] != Form::Continuous {
+                    return (problem.m.q[k], [0.0; 6], [0.0; 6]);
+                }
+                let at = problem.m.t[k] - tau;
+                let q = problem.interp_run(k, &problem.m.q, at);
+                let v = problem.interp_run(k, &problem.qdot, at);
+                let a = problem.interp_run(k, &problem.qddot, at);
+                (std::array::from_fn(|j| q[j] + c2 * a[j]), v, a)
+            })
+            .collect();
+        let mut motor = Vec::with_capacity(n);
+        let mut v = Vec::with_capacity(n);
+        let mut a = Vec::with_capacity(n);
+        for (q, qd, qdd) in rows {
+            motor.push(q);
+            v.push(qd);
+            a.push(qdd);
+        }
+        (Some(motor), Some((v, a)))
+    } else {
+        (None, None)
+    };
+    let mut back: [Option<Play>; 6] = Default::default();
+    for t in &est.effects {
+        if let Effect::Backlash(j) = t.effect {
+            let b = t.coef[0].max(0.0);
+            let x = |k: usize| motor.as_ref().map_or(problem.m.q[k][j], |m| m[k][j]);
+            let mut offset = vec![0.0; n];
+            let mut side = vec![0.0; n];
+            for (r, range) in problem.ranges.iter().enumerate() {
+                if range.is_empty() {
+                    continue;
+                }
+                let moving = problem.forms[r] == Form::Continuous;
+                // The load rests against the flank of the run's first motion, then follows the
+                // motor only where the motor pushes it (a play operator of width b). Across a
+                // gap (the robot moved unrecorded, e.g. between a program's sections) it is
+                // pushed by the net motion: exact for one monotonic move.
+                let mut s = problem.next_dir[range.start][j];
+                let mut y = x(range.start) - 0.5 * b * s;
+                for k in range.clone() {
+                    let xk = x(k);
+                    let mut steps = Vec::new();
+                    // Where the motor turns between samples (the differences change sign at
+                    // the previous sample), its extreme lies past the samples: take it from
+                    // the parabola through the three samples around the turn, before this one.
+                    if moving && k >= range.start + 2 && !problem.gap[k] && !problem.gap[k - 1] {
+                        let (x0, x1) = (x(k - 2), x(k - 1));
+                        let (d1, d2) = (x1 - x0, xk - x1);
+                        if d1 * d2 < 0.0 && d1.abs() > MOTION_DEADBAND && d2.abs() > MOTION_DEADBAND
+                        {
+                            let curv = x0 - 2.0 * x1 + xk;
+                            steps.push(x1 - (xk - x0).powi(2) / (8.0 * curv));
+                        }
+                    }
+                    steps.push(xk);
+                    for xi in steps {
+                        let pushed = play(y, xi, b);
+                        if pushed != y {
+                            s = (pushed - y).signum();
+                            y = pushed;
+                        }
+                    }
+                    offset[k] = y - xk;
+                    side[k] = s;
+                }
+            }
+            back[j] = Some(Play { offset, side });
+        }
+    }
+    Prep { motor, rates, back }
 }
 
 /// Torque about joint j per unit mass (comp 0, mass at frame i's origin) or per unit first
@@ -480,14 +1105,15 @@ fn gravity_basis(fr: &[crate::robot::Frame; 8], j: usize, i: usize, comp: usize)
     z.dot(&arm.cross(&f))
 }
 
-/// Normal equations per fold.
+/// Normal equations per fold (contiguous blocks of rows), weighted.
 pub(crate) struct Stats {
     pub c: usize,
-    /// Per fold: N (c×c, full), b, rᵀr, rows.
+    /// Per fold: N (c×c, full), b, rᵀr, rows that count.
     pub n: Vec<DMatrix<f64>>,
     pub b: Vec<DVector<f64>>,
     pub rr: Vec<f64>,
     pub rows: Vec<usize>,
+    /// Measured − model of every row, unweighted.
     pub residual: Vec<f64>,
 }
 
@@ -506,38 +1132,72 @@ impl Stats {
 
 pub(crate) const CHUNK: usize = 256;
 
-/// One chunk's partial sums: N (row-major upper triangle), b, rᵀr, residuals.
-type Partial = (Vec<f64>, Vec<f64>, f64, Vec<f64>);
+/// The chunks of the rows: at most [`CHUNK`] rows each, inside fold f's block
+/// [f·n/folds, (f+1)·n/folds): (rows, fold).
+fn chunks(n: usize, folds: usize) -> Vec<(Range<usize>, usize)> {
+    let mut out = Vec::new();
+    for f in 0..folds {
+        let (a, b) = (f * n / folds, (f + 1) * n / folds);
+        let mut s = a;
+        while s < b {
+            let e = (s + CHUNK).min(b);
+            out.push((s..e, f));
+            s = e;
+        }
+    }
+    out
+}
+
+/// One chunk's partial sums: N (row-major upper triangle), b, rᵀr, rows, residuals.
+type Partial = (Vec<f64>, Vec<f64>, f64, usize, Vec<f64>);
 
 pub(crate) fn accumulate(problem: &Problem, est: &Estimate, cols: &[Col], folds: usize) -> Stats {
+    let prep = prepare(problem, est);
+    accumulate_with(problem, est, &prep, cols, folds)
+}
+
+fn accumulate_with(
+    problem: &Problem,
+    est: &Estimate,
+    prep: &Prep,
+    cols: &[Col],
+    folds: usize,
+) -> Stats {
     let n = problem.rows();
     let c = cols.len();
-    let chunks = n.div_ceil(CHUNK);
-    let parts: Vec<Partial> = (0..chunks)
+    let folds = folds.max(1);
+    let parts: Vec<(Partial, usize)> = chunks(n, folds)
         .into_par_iter()
-        .map(|ch| {
+        .map(|(rows, f)| {
             let mut nn = vec![0.0; c * c];
             let mut b = vec![0.0; c];
             let mut rr = 0.0;
-            let mut res = Vec::with_capacity(CHUNK);
+            let mut kept = 0;
+            let mut res = Vec::with_capacity(rows.len());
             let mut x = vec![0.0; c];
-            for k in ch * CHUNK..((ch + 1) * CHUNK).min(n) {
-                let r = problem.row_values(est, k, cols, &mut x);
+            for k in rows {
+                let r = problem.row_values(est, prep, k, cols, &mut x);
                 res.push(r);
-                rr += r * r;
+                let w = problem.weight[k];
+                if w <= 0.0 {
+                    continue;
+                }
+                kept += 1;
+                let rw = r * w;
+                rr += rw * rw;
                 for a in 0..c {
-                    let xa = x[a];
+                    let xa = x[a] * w;
                     if xa == 0.0 {
                         continue;
                     }
-                    b[a] += xa * r;
+                    b[a] += xa * rw;
                     let row = &mut nn[a * c..a * c + c];
                     for bb in a..c {
-                        row[bb] += xa * x[bb];
+                        row[bb] += xa * x[bb] * w;
                     }
                 }
             }
-            (nn, b, rr, res)
+            ((nn, b, rr, kept, res), f)
         })
         .collect();
     let mut st = Stats {
@@ -548,8 +1208,7 @@ pub(crate) fn accumulate(problem: &Problem, est: &Estimate, cols: &[Col], folds:
         rows: vec![0; folds],
         residual: Vec::with_capacity(n),
     };
-    for (ch, (nn, b, rr, res)) in parts.into_iter().enumerate() {
-        let f = ch * folds / chunks.max(1);
+    for ((nn, b, rr, kept, res), f) in parts {
         for a in 0..c {
             st.b[f][a] += b[a];
             for bb in a..c {
@@ -557,7 +1216,7 @@ pub(crate) fn accumulate(problem: &Problem, est: &Estimate, cols: &[Col], folds:
             }
         }
         st.rr[f] += rr;
-        st.rows[f] += res.len();
+        st.rows[f] += kept;
         st.residual.extend(res);
     }
     for f in 0..folds {
@@ -568,6 +1227,40 @@ pub(crate) fn accumulate(problem: &Problem, est: &Estimate, cols: &[Col], folds:
         }
     }
     st
+}
+
+/// Every row's regressors (weighted), weighted residual and weight, for the step scan: the
+/// rows in order, `cols.len()` values each.
+pub(crate) fn rows_of(
+    problem: &Problem,
+    est: &Estimate,
+    cols: &[Col],
+) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
+    let prep = prepare(problem, est);
+    let c = cols.len();
+    let n = problem.rows();
+    let parts: Vec<(Vec<f64>, Vec<f64>)> = chunks(n, 1)
+        .into_par_iter()
+        .map(|(rows, _)| {
+            let mut xs = Vec::with_capacity(rows.len() * c);
+            let mut rs = Vec::with_capacity(rows.len());
+            let mut x = vec![0.0; c];
+            for k in rows {
+                let r = problem.row_values(est, &prep, k, cols, &mut x);
+                let w = problem.weight[k];
+                xs.extend(x.iter().map(|v| v * w));
+                rs.push(r * w);
+            }
+            (xs, rs)
+        })
+        .collect();
+    let mut xs = Vec::with_capacity(n * c);
+    let mut rs = Vec::with_capacity(n);
+    for (x, r) in parts {
+        xs.extend(x);
+        rs.extend(r);
+    }
+    (xs, rs, problem.weight.clone())
 }
 
 /// Least squares from normal equations on the columns `sel`: (x, N⁺ diagonal, rank).
@@ -659,15 +1352,16 @@ pub fn inverse(n: &DMatrix<f64>) -> DMatrix<f64> {
     DMatrix::from_fn(k, k, |a, c| out[(a, c)] * scale[a] * scale[c])
 }
 
-/// Score of the model on columns `sel`: (RSS, rank, BIC, CV sum of squares).
+/// Score of the model on columns `sel`: (RSS, rank, BIC, held-out sum of squares). The
+/// held-out sum: each block's rows predicted by the model fitted to the other blocks.
 pub(crate) fn score(st: &Stats, sel: &[usize]) -> (f64, usize, f64, f64) {
     let folds = st.n.len();
     let (nt, bt, rr, rows) = st.total();
     let (x, _, rank) = solve(&nt, &bt, sel);
     let bsel = DVector::from_fn(sel.len(), |a, _| bt[sel[a]]);
     let rss = (rr - x.dot(&bsel)).max(rr * 1e-15);
-    let nf = rows as f64;
-    let bic = nf * (rss / nf).ln() + rank as f64 * nf.ln();
+    let nf = (rows as f64).max(1.0);
+    let bic = nf * (rss / nf).max(1e-300).ln() + rank as f64 * nf.ln();
     let mut cv = 0.0;
     for f in 0..folds {
         if st.rows[f] == 0 {
@@ -681,13 +1375,36 @@ pub(crate) fn score(st: &Stats, sel: &[usize]) -> (f64, usize, f64, f64) {
     (rss, rank, bic, cv)
 }
 
+/// The held-out sum of squares that white noise of unit variance gives a right model on the
+/// folds of `st` (columns `sel`): per fold, its rows plus the variance of its prediction by
+/// the model fitted to the others, tr(N_f · (N − N_f)⁺). Held-out residuals exceed the
+/// in-sample ones by this much without any model error: by little on a long recording, by
+/// a large factor on a few dozen static readings with nearly as many parameters.
+pub(crate) fn heldout_noise(st: &Stats, sel: &[usize]) -> f64 {
+    let (nt, _, _, _) = st.total();
+    let k = sel.len();
+    let mut e = 0.0;
+    for f in 0..st.n.len() {
+        if st.rows[f] == 0 {
+            continue;
+        }
+        let nf = DMatrix::from_fn(k, k, |a, c| st.n[f][(sel[a], sel[c])]);
+        let rest = DMatrix::from_fn(k, k, |a, c| nt[(sel[a], sel[c])]) - &nf;
+        e += st.rows[f] as f64 + (nf * inverse(&rest)).trace().max(0.0);
+    }
+    e
+}
+
 /// A converged fit: the model's columns (free geometry, then the effects' coefficients), its
-/// normal matrix N = JᵀJ at the estimate, and the residual measured − model per row.
+/// normal matrix N = JᵀWJ at the estimate, and the residual measured − model per row.
 pub struct Fitted {
     pub free: Vec<Param>,
     pub normal: DMatrix<f64>,
     pub residual: Vec<f64>,
+    /// Weighted residual sum of squares.
     pub rss: f64,
+    /// Rows that count.
+    pub rows: usize,
 }
 
 impl Fitted {
@@ -700,17 +1417,25 @@ impl Fitted {
 /// Levenberg-Marquardt on the free geometry `free` and the estimate's effects, from `est`.
 pub fn refit(problem: &Problem, est: &mut Estimate, free: &[Param]) -> Fitted {
     let st = refit_stats(problem, est, free);
-    let (normal, _, rss, _) = st.total();
+    let (normal, _, rss, rows) = st.total();
     Fitted {
         free: free.to_vec(),
         normal,
         residual: st.residual,
         rss,
+        rows,
     }
 }
 
+/// At most this many Gauss-Newton steps per refit. A fit that starts far from its optimum
+/// with many nearly collinear columns (joint compliance's general gravity basis on top of a
+/// geometry that had absorbed it by hundreds of micrometres) descends by damped steps of a
+/// few per cent each: one such fit on the KR 210 takes some 230 steps to converge. A fit
+/// near its optimum stops on convergence after a few.
+const MAX_REFIT_STEPS: usize = 300;
+
 pub(crate) fn refit_stats(problem: &Problem, est: &mut Estimate, free: &[Param]) -> Stats {
-    let cols = model_cols(problem, est, free);
+    let cols = model_cols(est, free);
     let sel: Vec<usize> = (0..cols.len()).collect();
     let mut st = accumulate(problem, est, &cols, 1);
     // Gauss-Newton while the model is nearly linear over the step; where it is not (large
@@ -719,10 +1444,14 @@ pub(crate) fn refit_stats(problem: &Problem, est: &mut Estimate, free: &[Param])
     // descent until it descends. A step is taken only when it descends: the fit never ends
     // worse than where it started.
     let mut lambda = 0.0;
-    for _ in 0..30 {
+    let mut gain = 1.0;
+    for _ in 0..MAX_REFIT_STEPS {
         let before = st.rr[0];
         let mut accepted = None;
-        for _ in 0..8 {
+        // Near the optimum (the last, undamped step gained little), a step that does not
+        // descend means the rounding floor is reached: no damping search.
+        let attempts = if gain < 1e-3 && lambda == 0.0 { 1 } else { 10 };
+        for _ in 0..attempts {
             let (x, _, _) = solve_damped(&st.n[0], &st.b[0], &sel, lambda);
             let mut trial = est.clone();
             add_step(&mut trial, &cols, &x);
@@ -740,8 +1469,11 @@ pub(crate) fn refit_stats(problem: &Problem, est: &mut Estimate, free: &[Param])
         let Some((trial, st2)) = accepted else {
             break;
         };
+        gain = 1.0 - st2.rr[0] / before.max(f64::MIN_POSITIVE);
         *est = trial;
-        let done = st2.rr[0] > before * (1.0 - 1e-6);
+        // Converged when a step gains less than 1e-5 of the sum of squares: the parameters
+        // are then within a small fraction of their standard uncertainty of the optimum.
+        let done = st2.rr[0] > before * (1.0 - 1e-5);
         st = st2;
         if done {
             break;
@@ -754,8 +1486,10 @@ fn add_step(est: &mut Estimate, cols: &[Col], x: &DVector<f64>) {
     let mut k = 0;
     for c in cols {
         match *c {
-            Col::Geo(Param::Shared(i)) => est.p[i] += x[k],
-            Col::Geo(Param::Fixture { run, axis }) => est.fixtures[run][axis] += x[k],
+            Col::Geo(q) => {
+                let v = est.get(q) + x[k];
+                est.set(q, v);
+            }
             _ => break,
         }
         k += 1;
@@ -765,48 +1499,77 @@ fn add_step(est: &mut Estimate, cols: &[Col], x: &DVector<f64>) {
             *v += x[k];
             k += 1;
         }
+        if t.effect == Effect::ThermalDrift && t.basis == Basis::Lag {
+            t.coef[1] = t.coef[1].clamp(TAU_RANGE.0, TAU_RANGE.1);
+        }
     }
 }
 
-/// Which parameters the data can identify at all (Section 2.1.2, on the recorded poses): the
-/// shared geometry in Eq. 6's preference order (DH, then the MAP), then the fixtures run by
-/// run. Returns every parameter's status and the identifiable ones.
+/// What a fit holds at its given value by assumption.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Known {
+    /// The runs' fixtures (a segment opened at a step is always estimated).
+    pub fixture: bool,
+    /// The MAP (tool ball centre).
+    pub map: bool,
+    /// The runs' length zeros (a segment's own zero after a step is always estimated).
+    pub offset: bool,
+}
+
+/// Which parameters the data can identify at all (Section 2.1.2, on the recorded poses).
+/// Preference order, least known first: the MAP (a tool is known to a drawing, link 6 to a
+/// machined flange), each group's fixture (a fixture is never known to a micrometre in the
+/// robot's frame) and length zero, then the robot's DH in Eq. 6 order. So the MAP takes the
+/// place of link 6's parameters, and the first fixture's height and azimuth take d1's and θ1's
+/// (the base frame's: a rigid registration removes them). Judged at the estimate `at` (a set-up
+/// given far off changes which parameters the poses separate). Returns every parameter's
+/// status and the identifiable ones.
 pub fn structural(
     problem: &Problem,
-    fixture_free: bool,
-    map_free: bool,
+    known: &Known,
+    at: &Estimate,
 ) -> (Vec<(Param, model::Status)>, Vec<Param>) {
-    let runs = problem.runs();
-    let mut params: Vec<Param> = (model::ALPHA..N_PARAMS).map(Param::Shared).collect();
-    for run in 0..runs {
-        params.extend((0..3).map(|axis| Param::Fixture { run, axis }));
+    let mut params: Vec<Param> = (MAP..N_PARAMS).map(Param::Shared).collect();
+    for group in 0..problem.fix_groups.len() {
+        params.extend((0..3).map(|axis| Param::Fixture { group, axis }));
     }
-    // At most ~3000 rows: the rank question does not need every sample.
-    let stride = (problem.rows() / 3000).max(1);
-    let rows: Vec<usize> = (0..problem.rows()).step_by(stride).collect();
-    let est = Estimate::nominal(problem);
-    let cols = DMatrix::from_fn(rows.len(), params.len(), |_, _| 0.0);
-    let mut cols = cols;
+    for group in 0..problem.off_groups.len() {
+        params.push(Param::Offset { group });
+    }
+    params.extend((model::ALPHA..MAP).map(Param::Shared));
+    // At most ~3000 rows: the rank question does not need every sample; but every row of a
+    // short group, so that a segment's own parameters are judged on all its rows.
+    let n = problem.rows();
+    let stride = (n / 3000).max(1);
+    let short = |k: usize| {
+        let g = &problem.fix_groups[problem.fix_of[k] as usize];
+        let h = &problem.off_groups[problem.off_of[k] as usize];
+        g.rows.len().min(h.rows.len()) < 100 * stride
+    };
+    let rows: Vec<usize> = (0..n)
+        .filter(|&k| problem.weight[k] > 0.0 && (k % stride == 0 || short(k)))
+        .collect();
+    let est = Estimate {
+        effects: Vec::new(),
+        ..at.clone()
+    };
+    let prep = prepare(problem, &est);
+    let mut cols = DMatrix::zeros(rows.len(), params.len());
+    let geo: Vec<Col> = params.iter().map(|&q| Col::Geo(q)).collect();
+    let mut x = vec![0.0; geo.len()];
     for (i, &k) in rows.iter().enumerate() {
-        let mut j = [0.0; N_PARAMS];
-        let run = problem.run_of(k);
-        problem
-            .model
-            .jacobian_row(&est.params(run), &problem.m.q[k], &mut j);
-        for (c, q) in params.iter().enumerate() {
-            cols[(i, c)] = match *q {
-                Param::Shared(s) => j[s],
-                Param::Fixture { run: r, axis } if r == run => j[FIX + axis],
-                Param::Fixture { .. } => 0.0,
-            };
+        problem.row_values(&est, &prep, k, &geo, &mut x);
+        for c in 0..geo.len() {
+            cols[(i, c)] = x[c];
         }
     }
-    let names: Vec<String> = params.iter().map(|q| q.name(runs)).collect();
+    let names: Vec<String> = params.iter().map(|&q| problem.param_name(q)).collect();
     let known: Vec<bool> = params
         .iter()
         .map(|q| match *q {
-            Param::Shared(i) => model::is_map(i) && !map_free,
-            Param::Fixture { .. } => !fixture_free,
+            Param::Shared(i) => model::is_map(i) && known.map,
+            Param::Fixture { group, .. } => problem.fix_groups[group].given && known.fixture,
+            Param::Offset { group } => problem.off_groups[group].given && known.offset,
         })
         .collect();
     let order: Vec<usize> = (0..params.len()).collect();
@@ -825,6 +1588,16 @@ pub fn structural(
 /// RMS of a residual.
 pub fn rms(r: &[f64]) -> f64 {
     (r.iter().map(|v| v * v).sum::<f64>() / r.len().max(1) as f64).sqrt()
+}
+
+/// RMS of the rows that count (weight above zero).
+pub fn kept_rms(r: &[f64], weight: &[f64]) -> f64 {
+    let (s, n) = r
+        .iter()
+        .zip(weight)
+        .filter(|(_, w)| **w > 0.0)
+        .fold((0.0, 0usize), |(s, n), (v, _)| (s + v * v, n + 1));
+    (s / n.max(1) as f64).sqrt()
 }
 
 /// Bar noise from second differences of the residual (robust: median absolute value).
@@ -851,4 +1624,42 @@ pub fn lag1(r: &[f64]) -> f64 {
         .map(|w| (w[0] - mean) * (w[1] - mean))
         .sum::<f64>()
         / var
+}
+
+/// The integrated autocorrelation time of a residual, 1 + 2 Σ ρ_k (Geyer's initial positive
+/// sequence: pairs ρ_2m + ρ_2m+1 summed while positive): the factor by which correlated rows
+/// inflate the variance of a mean, the number of rows one independent reading is worth.
+/// White noise gives 1; an AR(1) of lag-1 correlation ρ gives (1 + ρ)/(1 − ρ). At most n/10.
+pub fn correlation_time(r: &[f64]) -> f64 {
+    let n = r.len();
+    if n < 8 {
+        return 1.0;
+    }
+    let mean = r.iter().sum::<f64>() / n as f64;
+    let c0: f64 = r.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n as f64;
+    if c0 == 0.0 {
+        return 1.0;
+    }
+    let rho = |k: usize| -> f64 {
+        (0..n - k)
+            .map(|i| (r[i] - mean) * (r[i + k] - mean))
+            .sum::<f64>()
+            / (n as f64 * c0)
+    };
+    let cap = (n / 10).max(1);
+    let mut sum = 0.0;
+    let mut m = 0;
+    // Γ_m = ρ_2m + ρ_2m+1 (with ρ_0 = 1), summed while positive and not increasing.
+    let mut prev = f64::INFINITY;
+    while 2 * m + 1 < n.min(2 * cap + 2) {
+        let g = if m == 0 { 1.0 } else { rho(2 * m) } + rho(2 * m + 1);
+        if g <= 0.0 {
+            break;
+        }
+        let g = g.min(prev);
+        sum += g;
+        prev = g;
+        m += 1;
+    }
+    (2.0 * sum - 1.0).clamp(1.0, cap as f64)
 }

@@ -4,35 +4,49 @@
 //!
 //! Method. The fit ([`fit`]) turns every effect of the library into regressors linear in its
 //! few parameters, so one pass over the rows gives the normal equations of the geometry and of
-//! every candidate at once, per contiguous time block. A candidate is accepted only when it
-//! lowers both the BIC and the cross-validated error clearly and explains a good part of the
-//! excess over the noise; the accepted model is refitted jointly (geometry and effects, the
-//! effects applied exactly), and the loop repeats until the residual is at the noise level and
-//! white, or nothing helps. `calibrate` runs the same loop on a campaign of runs to name the
-//! effects it fits with the geometry.
+//! every candidate at once, per contiguous block of rows (time, or the order the poses were
+//! taken). A candidate is adopted only when it lowers the residual on held-out blocks (each
+//! block predicted by the model fitted to the others) clearly, and the BIC with it; a diagnosis
+//! also asks that it explain a good part of the excess over the noise. The adopted model is
+//! refitted jointly (geometry and effects, the effects applied exactly), and the loop repeats
+//! until the residual is at the noise level and white, or nothing helps. `calibrate` runs the
+//! same loop on a campaign of runs, with steps (a moved fixture, a changed length zero,
+//! [`steps`]) as candidates too; [`start`] gives the set-up a start that needs none.
 
 pub mod fit;
 pub mod plot;
+pub mod start;
+pub mod steps;
 
-pub use fit::{Basis, Estimate, Fitted, Param, Problem, Run, Term};
+pub use fit::{Basis, Estimate, Fitted, Known, Param, Problem, Run, Term};
 
 use crate::model::{MeasurementModel, N_PARAMS};
 use crate::twin::effects::Effect;
+use crate::twin::measured::Form;
 use crate::twin::Measured;
 use crate::units::{fmt_fixed, to_deg, DEG, MM};
-use fit::{accumulate, effect_cols, lag1, model_cols, noise_estimate, rms, score, solve};
+use fit::{
+    accumulate, effect_cols, kept_rms, lag1, model_cols, noise_estimate, rms, score, solve, Col,
+};
 use rayon::prelude::*;
 use serde::Serialize;
 
 #[derive(Clone, Debug)]
 pub struct DiagnoseOptions {
-    /// Contiguous time blocks for cross-validation.
+    /// Contiguous blocks of rows for the held-out validation.
     pub folds: usize,
     /// At most this many effects after the geometry.
     pub max_effects: usize,
     /// The robot's link masses (its file's inertials; empty when it has none): joint
     /// compliance is then also tried with the gravity torques they give.
     pub masses: Vec<crate::robot::PointMass>,
+    /// At most this many steps (a fixture that moved, a length zero that changed) are split
+    /// off as segments with their own parameters; 0: none (a diagnosis reports them as
+    /// unexplained structure).
+    pub max_steps: usize,
+    /// A diagnosis names an effect only when it explains at least this share of the
+    /// residual's excess over the noise.
+    pub min_explained: f64,
 }
 
 impl Default for DiagnoseOptions {
@@ -41,6 +55,8 @@ impl Default for DiagnoseOptions {
             folds: 8,
             max_effects: 3,
             masses: Vec::new(),
+            max_steps: 0,
+            min_explained: 0.6,
         }
     }
 }
@@ -118,6 +134,22 @@ pub struct Report {
     /// The final joint fit: geometry and every named effect together (the `geometric` step
     /// holds the geometry-only fit, which a missing effect biases).
     pub model: ModelReport,
+    /// Every effect considered, with the held-out residual of the model with it.
+    pub candidates: Vec<CandidateReport>,
+}
+
+/// One effect considered: the held-out RMS (µm) of the model with it, in the last round it
+/// was scored (the round it was adopted, for an adopted one).
+#[derive(Clone, Debug, Serialize)]
+pub struct CandidateReport {
+    pub effect: &'static str,
+    pub joint: Option<usize>,
+    pub heldout_rms_um: f64,
+    pub adopted: bool,
+    /// The form tried: the harmonic orders of a cyclic error, `lag` or `temperature` for a
+    /// thermal drift, `delay` or `second_order` for a servo lag, `known_masses` or
+    /// `general_basis` for joint compliance.
+    pub form: String,
 }
 
 /// The report plus the residual after each stage (for the plot) and a human summary.
@@ -131,56 +163,74 @@ pub struct Diagnosis {
 }
 
 /// Noise of the residual in the GUM's sense: (σ per row, lag-1 autocorrelation ρ, the factor
-/// (1 + ρ)/(1 − ρ) by which correlated rows inflate a variance). σ² = rᵀr / (n − p); a
-/// lag-1-correlated residual carries fewer independent rows than it has.
-pub fn noise_variance(residual: &[f64], coefficients: usize) -> (f64, f64, f64) {
-    let n = residual.len();
-    let rr: f64 = residual.iter().map(|v| v * v).sum();
-    let sigma = (rr / (n.saturating_sub(coefficients)).max(1) as f64).sqrt();
-    let rho = lag1(residual).clamp(0.0, 0.99);
-    (sigma, rho, (1.0 + rho) / (1.0 - rho))
+/// by which correlated rows inflate a variance). σ² = rᵀWr / (n − p) over the rows that count;
+/// the inflation is the residual's integrated autocorrelation time ([`fit::correlation_time`]):
+/// a correlated residual carries fewer independent rows than it has.
+pub fn noise_variance(fitted: &Fitted, weight: &[f64]) -> (f64, f64, f64) {
+    let kept: Vec<f64> = fitted
+        .residual
+        .iter()
+        .zip(weight)
+        .filter(|(_, w)| **w > 0.0)
+        .map(|(r, w)| r * w)
+        .collect();
+    let n = kept.len();
+    let sigma = (fitted.rss / (n.saturating_sub(fitted.coefficients())).max(1) as f64).sqrt();
+    let rho = lag1(&kept).clamp(0.0, 0.99);
+    (sigma, rho, fit::correlation_time(&kept))
 }
 
 /// An effect's parameters in report units, with standard uncertainties from the diagonal of
 /// the coefficient covariance `var` (same order as the coefficients).
-pub fn effect_report(
-    e: Effect,
-    basis: Basis,
-    coef: &[f64],
-    var: &[f64],
-    temp_log: bool,
-) -> EffectReport {
+pub fn effect_report(e: Effect, basis: Basis, coef: &[f64], var: &[f64]) -> EffectReport {
     let sd = |k: usize| var.get(k).map_or(0.0, |v| v.max(0.0).sqrt());
     let mut params = serde_json::Map::new();
     let mut std = serde_json::Map::new();
     match e {
         Effect::CyclicError(_) => {
+            // Harmonic orders 1.. up to the highest fitted; orders not fitted are 0.
+            let orders = basis.orders();
+            let top = orders.iter().copied().max().unwrap_or(0);
             let pick = |f: &dyn Fn(usize) -> f64, off: usize| -> Vec<f64> {
-                (0..3).map(|h| round(to_deg(f(2 * h + off)), 6)).collect()
+                (1..=top)
+                    .map(|h| match orders.iter().position(|o| *o == h) {
+                        Some(n) => round(to_deg(f(2 * n + off)), 6),
+                        None => 0.0,
+                    })
+                    .collect()
             };
             params.insert("cos_deg".into(), pick(&|k| coef[k], 0).into());
             params.insert("sin_deg".into(), pick(&|k| coef[k], 1).into());
+            params.insert(
+                "harmonics".into(),
+                serde_json::to_value(&orders).unwrap_or_default(),
+            );
             std.insert("cos_deg".into(), pick(&sd, 0).into());
             std.insert("sin_deg".into(), pick(&sd, 1).into());
         }
         Effect::Backlash(_) => {
             params.insert("play_deg".into(), round(to_deg(coef[0]), 6).into());
-            std.insert("play_deg".into(), round(to_deg(sd(0)), 6).into());
+            std.insert("play_deg".into(), sane(round(to_deg(sd(0)), 6)));
         }
         Effect::ServoLag => {
             params.insert("tau_s".into(), round(coef[0], 6).into());
-            std.insert("tau_s".into(), round(sd(0), 6).into());
+            std.insert("tau_s".into(), sane(round(sd(0), 6)));
+            if coef.len() > 1 {
+                // The second-order term: −τ²/2 for a pure delay, −τ² for a first-order loop.
+                params.insert("second_order_s2".into(), round(coef[1], 9).into());
+                std.insert("second_order_s2".into(), sane(round(sd(1), 9)));
+            }
+        }
+        Effect::ThermalDrift if basis == Basis::Temperature => {
+            params.insert("alpha_per_k".into(), round(coef[0], 12).into());
+            std.insert("alpha_per_k".into(), sane(round(sd(0), 12)));
         }
         Effect::ThermalDrift => {
-            let key = if temp_log {
-                "alpha_per_k"
-            } else {
-                "scale_poly_t"
-            };
-            let v: Vec<f64> = coef.iter().map(|c| round(*c, 12)).collect();
-            let s: Vec<f64> = (0..coef.len()).map(|k| round(sd(k), 12)).collect();
-            params.insert(key.into(), v.into());
-            std.insert(key.into(), s.into());
+            // Lengths scale by 1 + s·(1 − exp(−t/τ)): the scale reached and the time constant.
+            params.insert("scale".into(), round(coef[0], 12).into());
+            params.insert("time_constant_s".into(), round(coef[1], 3).into());
+            std.insert("scale".into(), sane(round(sd(0), 12)));
+            std.insert("time_constant_s".into(), sane(round(sd(1), 3)));
         }
         Effect::JointCompliance if basis == Basis::KnownMasses => {
             // Compliance c = 1/k per joint; a stiffness only where c is clearly positive.
@@ -215,8 +265,8 @@ pub fn effect_report(
     }
 }
 
-/// Deviations from nominal of the free geometry (mm, deg) and their standard uncertainties
-/// from the diagonal `var` (SI², same order as `free`).
+/// Deviations from nominal (or from the given set-up) of the free parameters (mm, deg) and
+/// their standard uncertainties from the diagonal `var` (SI², same order as `free`).
 pub fn geometry_report(
     problem: &Problem,
     est: &Estimate,
@@ -231,29 +281,33 @@ pub fn geometry_report(
     let mut std = serde_json::Map::new();
     for (k, q) in free.iter().enumerate() {
         let unit = if q.is_angle() { DEG } else { MM };
-        let name = q.name(problem.runs());
+        let name = problem.param_name(*q);
         let dev = (est.get(*q) - nominal.get(*q)) / unit;
         params.insert(name.clone(), round(dev, 6).into());
-        std.insert(name, round(var[k].max(0.0).sqrt() / unit, 6).into());
+        std.insert(name, sane(round(var[k].max(0.0).sqrt() / unit, 6)));
     }
     (params, std)
 }
 
+/// A number for a report, or null when it is not finite or beyond any sense (an uncertainty
+/// of 1e6 mm or degrees says only that the data do not determine it).
+pub fn sane(v: f64) -> serde_json::Value {
+    if v.is_finite() && v.abs() < 1e6 {
+        v.into()
+    } else {
+        serde_json::Value::Null
+    }
+}
+
 /// Every effect of the estimate with its parameters, their variances `var` following the
 /// effects' coefficients in order.
-pub fn effects_report(problem: &Problem, est: &Estimate, var: &[f64]) -> Vec<EffectReport> {
+pub fn effects_report(est: &Estimate, var: &[f64]) -> Vec<EffectReport> {
     let mut k = 0;
     est.effects
         .iter()
         .map(|t| {
             let n = t.coef.len();
-            let r = effect_report(
-                t.effect,
-                t.basis,
-                &t.coef,
-                &var[k..k + n],
-                problem.m.temp.is_some(),
-            );
+            let r = effect_report(t.effect, t.basis, &t.coef, &var[k..k + n]);
             k += n;
             r
         })
@@ -263,12 +317,12 @@ pub fn effects_report(problem: &Problem, est: &Estimate, var: &[f64]) -> Vec<Eff
 /// The report of a fitted model: geometry and effects with standard uncertainties from the
 /// residual's noise (correlation-inflated) and the pseudo-inverse of the normal matrix.
 pub fn model_report(problem: &Problem, est: &Estimate, fitted: &Fitted) -> ModelReport {
-    let (sigma, _, inflate) = noise_variance(&fitted.residual, fitted.coefficients());
+    let (sigma, _, inflate) = noise_variance(fitted, &problem.weight);
     let cov = fit::inverse(&fitted.normal) * (sigma * sigma * inflate);
     let var: Vec<f64> = (0..cov.nrows()).map(|k| cov[(k, k)]).collect();
     let g = fitted.free.len();
     let (params, std) = geometry_report(problem, est, &fitted.free, &var[..g]);
-    let effects = effects_report(problem, est, &var[g..]);
+    let effects = effects_report(est, &var[g..]);
     ModelReport {
         params,
         std,
@@ -336,33 +390,132 @@ fn round(v: f64, d: i32) -> f64 {
 
 // ---- the loop -----------------------------------------------------------------------------
 
-/// The candidates tried after the geometry (joint compliance with known masses too, when the
-/// robot file gives them).
-fn candidates(masses_known: bool) -> Vec<(Effect, Basis)> {
+/// Thermal time constants screened, as fractions of the longest run's span (the refit then
+/// frees τ).
+const LAG_GRID: [f64; 7] = [1.0 / 16.0, 0.125, 0.25, 0.5, 1.0, 2.0, 4.0];
+/// A candidate must lower the held-out mean square by this share.
+const HELDOUT_GAIN: f64 = 0.05;
+/// A cyclic error takes harmonic orders up to the lowest whose held-out mean square is within
+/// this share of the best order's.
+const HARMONIC_GAIN: f64 = 0.01;
+
+/// What a round can adopt.
+#[derive(Clone, Debug, PartialEq)]
+enum Move {
+    /// An effect in one form; for a thermal lag, its starting time constant.
+    Effect(Effect, Basis, f64),
+    /// A cyclic error of a joint, its harmonic orders chosen on held-out data.
+    Cyclic(usize),
+    /// A step: a new fixture or length zero from a row on.
+    Step(steps::Split),
+}
+
+/// The effect candidates the data can carry: no time-dependent effect on untimed data, no
+/// servo lag without motion, thermal drift from a logged temperature where every run has one.
+fn candidates(problem: &Problem) -> Vec<Move> {
     let mut c = Vec::new();
-    if masses_known {
-        c.push((Effect::JointCompliance, Basis::KnownMasses));
+    if !problem.masses.is_empty() {
+        c.push(Move::Effect(
+            Effect::JointCompliance,
+            Basis::KnownMasses,
+            0.0,
+        ));
     }
-    c.extend([
-        (Effect::JointCompliance, Basis::Standard),
-        (Effect::ThermalDrift, Basis::Standard),
-        (Effect::ServoLag, Basis::Standard),
-    ]);
-    c.extend((0..6).map(|j| (Effect::CyclicError(j), Basis::Standard)));
-    c.extend((0..6).map(|j| (Effect::Backlash(j), Basis::Standard)));
+    c.push(Move::Effect(Effect::JointCompliance, Basis::Standard, 0.0));
+    if problem.has_temperature() {
+        c.push(Move::Effect(Effect::ThermalDrift, Basis::Temperature, 0.0));
+    } else if problem.timed() && problem.span() > 0.0 {
+        for f in LAG_GRID {
+            c.push(Move::Effect(
+                Effect::ThermalDrift,
+                Basis::Lag,
+                f * problem.span(),
+            ));
+        }
+    }
+    if problem.moving() {
+        c.push(Move::Effect(Effect::ServoLag, Basis::Standard, 0.0));
+        c.push(Move::Effect(Effect::ServoLag, Basis::SecondOrder, 0.0));
+    }
+    c.extend((0..6).map(Move::Cyclic));
+    c.extend((0..6).map(|j| Move::Effect(Effect::Backlash(j), Basis::Standard, 0.0)));
     c
 }
 
+/// The columns a move adds.
+fn move_cols(m: &Move) -> Vec<Col> {
+    match m {
+        Move::Effect(Effect::ThermalDrift, Basis::Lag, tau) => vec![Col::ThermAt(*tau)],
+        Move::Effect(e, b, _) => effect_cols(*e, *b),
+        Move::Cyclic(j) => effect_cols(
+            Effect::CyclicError(*j),
+            Basis::Harmonics((1u8 << fit::MAX_HARMONIC) - 1),
+        ),
+        Move::Step(s) if s.fixture => (0..3)
+            .map(|axis| Col::StepFix {
+                from: s.at,
+                to: s.to,
+                axis,
+            })
+            .collect(),
+        Move::Step(s) => vec![Col::StepOff {
+            from: s.at,
+            to: s.to,
+        }],
+    }
+}
+
+/// The name of an effect's form, for the candidates' report.
+pub fn form_name(e: Effect, b: Basis) -> String {
+    match (e, b) {
+        (Effect::CyclicError(_), b) => format!("harmonics {:?}", b.orders()),
+        (_, Basis::KnownMasses) => "known_masses".into(),
+        (Effect::JointCompliance, _) => "general_basis".into(),
+        (_, Basis::Lag) => "lag".into(),
+        (_, Basis::Temperature) => "temperature".into(),
+        (_, Basis::SecondOrder) => "second_order".into(),
+        (Effect::ServoLag, _) => "delay".into(),
+        _ => "play".into(),
+    }
+}
+
+/// An effect considered by the selection, with the held-out RMS (m) of the model with it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Candidate {
+    pub effect: Effect,
+    pub basis: Basis,
+    pub heldout_rms: f64,
+    pub adopted: bool,
+}
+
+/// A step the selection split off: from row `at` on (of the concatenated problem), group
+/// `group` holds a new fixture (`fixture`) or a new length zero.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Step {
+    pub fixture: bool,
+    pub at: usize,
+    pub group: usize,
+    /// Held-out RMS (m) of the model before and with the split.
+    pub heldout_before: f64,
+    pub heldout_after: f64,
+}
+
 /// A diagnosis with its final model: the estimate and the joint fit of the geometry and the
-/// named effects.
+/// named effects, the candidates considered and the steps split off.
 pub struct Selected {
     pub estimate: Estimate,
     pub fitted: Fitted,
     pub diagnosis: Diagnosis,
+    /// The free parameters of the final model (the given ones and every segment's own).
+    pub free: Vec<Param>,
+    pub candidates: Vec<Candidate>,
+    pub steps: Vec<Step>,
+    /// Held-out RMS (m) of the geometry alone, before any effect or step.
+    pub heldout_geometry: f64,
 }
 
 /// Runs the diagnosis of one recorded run: the fixture and the MAP are free where the data
-/// determine them (calibration absorbs them).
+/// determine them (calibration absorbs them), started where the readings put them.
 pub fn run(
     model: &MeasurementModel,
     m: &Measured,
@@ -375,7 +528,7 @@ pub fn run(
             N_PARAMS + 2
         )));
     }
-    let problem = Problem::new(
+    let mut problem = Problem::new(
         model,
         &[Run {
             measured: m,
@@ -383,87 +536,253 @@ pub fn run(
         }],
     )
     .with_masses(&opts.masses);
-    let (_, free) = fit::structural(&problem, true, true);
-    Ok(select(&problem, &free, opts).diagnosis)
+    let mut est = Estimate::nominal(&problem);
+    let (_, free) = fit::structural(&problem, &Known::default(), &est);
+    let setup: Vec<Param> = free.iter().copied().filter(Param::is_setup).collect();
+    start::setup(&problem, &mut est, &setup);
+    let (_, free) = fit::structural(&problem, &Known::default(), &est);
+    Ok(select(&mut problem, &free, est, opts).diagnosis)
 }
 
-/// The diagnosis of a prepared problem whose free geometry is `free`: the geometry first, then
-/// one effect at a time while one clearly helps; every accepted model is refitted jointly.
-pub fn select(problem: &Problem, free: &[Param], opts: &DiagnoseOptions) -> Selected {
-    let m = &problem.m;
-    let folds = opts.folds.clamp(2, 20).min(m.len() / fit::CHUNK).max(2);
-    let mut s = Estimate::nominal(problem);
-    let nominal_res = accumulate(problem, &s, &[], 1).residual;
-    let rms_nominal = rms(&nominal_res);
+/// The diagnosis of a prepared problem whose free parameters are `free`, from `start`: the
+/// geometry first, then one effect (or step) at a time while one clearly helps on held-out
+/// data; every adopted model is refitted jointly.
+pub fn select(
+    problem: &mut Problem,
+    free: &[Param],
+    start: Estimate,
+    opts: &DiagnoseOptions,
+) -> Selected {
+    let mut free = free.to_vec();
+    let kept = problem.kept().max(1);
+    let folds = opts.folds.clamp(2, 20).min(kept / 8).max(2);
+    let nominal = Estimate::nominal(problem);
+    let nominal_res = accumulate(problem, &nominal, &[], 1).residual;
+    let rms_nominal = kept_rms(&nominal_res, &problem.weight);
     let mut stages = vec![("nominal".to_string(), nominal_res.clone())];
+    let n = kept as f64;
 
     // Calibration: the geometric fit.
-    let st = fit::refit_stats(problem, &mut s, free);
+    let mut s = start;
+    let st = fit::refit_stats(problem, &mut s, &free);
     let mut residual = st.residual.clone();
-    let (x_var, bic0, cv0) = {
+    let x_var = {
         let sel: Vec<usize> = (0..st.c).collect();
-        let (_, var, _) = solve(&st.n[0], &st.b[0], &sel);
-        let (_, _, bic, cv) = score(&st, &sel);
-        (var, bic, cv)
+        solve(&st.n[0], &st.b[0], &sel).1
     };
-    let n = m.len() as f64;
+    let (bic0, cv0) = {
+        let cols = model_cols(&s, &free);
+        let st = accumulate(problem, &s, &cols, folds);
+        let sel: Vec<usize> = (0..cols.len()).collect();
+        let (_, _, bic, cv) = score(&st, &sel);
+        (bic, cv)
+    };
+    let heldout_geometry = (cv0 / n).sqrt();
     let sigma2 = st.rr[0] / (n - free.len() as f64).max(1.0);
     let var: Vec<f64> = x_var.iter().map(|v| v * sigma2).collect();
-    let (params, std) = geometry_report(problem, &s, free, &var);
+    let (params, std) = geometry_report(problem, &s, &free, &var);
     let mut steps = vec![StepReport {
         effect: "geometric",
         joint: None,
-        rms_after_um: round(rms(&residual) * 1e6, 3),
+        rms_after_um: round(kept_rms(&residual, &problem.weight) * 1e6, 3),
         params,
         std,
         bic: round(bic0, 1),
-        cv_rms_um: round((cv0 / n).sqrt() * 1e6, 3),
+        cv_rms_um: round(heldout_geometry * 1e6, 3),
     }];
     stages.push(("geometric".to_string(), residual.clone()));
     let mut named = vec![NamedEffect {
         effect: "geometric",
         joint: None,
     }];
+    let mut records: Vec<Candidate> = vec![Candidate {
+        effect: Effect::Geometric,
+        basis: Basis::Standard,
+        heldout_rms: heldout_geometry,
+        adopted: true,
+    }];
+    let mut found: Vec<Step> = Vec::new();
 
-    let mut noise = noise_estimate(&residual);
-    for _ in 0..opts.max_effects {
-        noise = noise.min(noise_estimate(&residual));
-        let r_now = rms(&residual);
-        if r_now <= 1.5 * noise && lag1(&residual) < 0.2 {
+    let kept_of = |r: &[f64], w: &[f64]| -> Vec<f64> {
+        r.iter()
+            .zip(w)
+            .filter(|(_, w)| **w > 0.0)
+            .map(|(v, _)| *v)
+            .collect()
+    };
+    let mut noise = noise_estimate(&kept_of(&residual, &problem.weight));
+    let (mut effects_added, mut steps_added) = (0, 0);
+    while effects_added < opts.max_effects || steps_added < opts.max_steps {
+        let live = kept_of(&residual, &problem.weight);
+        noise = noise.min(noise_estimate(&live));
+        let r_now = rms(&live);
+        // At the noise level and white: nothing left to explain. The candidates are still
+        // scored once, so that the report lists each with its held-out error.
+        let settled = r_now <= 1.5 * noise && lag1(&live) < 0.2;
+        if settled && records.len() > 1 {
             break;
         }
         // One pass: the current model's columns plus every candidate's.
-        let base_cols = model_cols(problem, &s, free);
+        let base_cols = model_cols(&s, &free);
         let mut cols = base_cols.clone();
-        let mut groups = Vec::new();
-        for (e, basis) in candidates(!problem.masses.is_empty()) {
-            if s.effects.iter().any(|t| t.effect == e) {
-                continue;
+        let mut moves: Vec<(Move, std::ops::Range<usize>)> = Vec::new();
+        let mut add = |m: Move, cols: &mut Vec<Col>| {
+            let c = move_cols(&m);
+            moves.push((m, cols.len()..cols.len() + c.len()));
+            cols.extend(c);
+        };
+        if effects_added < opts.max_effects {
+            for m in candidates(problem) {
+                let present = match &m {
+                    Move::Effect(e, _, _) => s.effects.iter().any(|t| t.effect == *e),
+                    Move::Cyclic(j) => s
+                        .effects
+                        .iter()
+                        .any(|t| t.effect == Effect::CyclicError(*j)),
+                    Move::Step(_) => false,
+                };
+                if !present {
+                    add(m, &mut cols);
+                }
             }
-            let ec = effect_cols(e, basis, problem.thermal_terms);
-            groups.push(((e, basis), cols.len()..cols.len() + ec.len()));
-            cols.extend(ec);
+        }
+        if steps_added < opts.max_steps {
+            for split in steps::scan(problem, &s, &free) {
+                add(Move::Step(split), &mut cols);
+            }
+        }
+        if moves.is_empty() {
+            break;
         }
         let st = accumulate(problem, &s, &cols, folds);
         let base_sel: Vec<usize> = (0..base_cols.len()).collect();
         let (rss0, _, bic0, cv0) = score(&st, &base_sel);
         let excess = (rss0 - n * noise * noise).max(0.0);
-        let scored: Vec<((Effect, Basis), f64, f64, f64)> = groups
+        // Each move's best form: its score (rss, bic, held-out) on the shared sums.
+        let scored: Vec<(Move, Basis, f64, f64, f64)> = moves
             .par_iter()
-            .map(|(e, range)| {
-                let sel: Vec<usize> = base_sel.iter().copied().chain(range.clone()).collect();
-                let (rss, _, bic, cv) = score(&st, &sel);
-                (*e, rss, bic, cv)
+            .map(|(m, range)| {
+                let with = |extra: &[usize]| -> (f64, f64, f64) {
+                    let sel: Vec<usize> = base_sel.iter().chain(extra).copied().collect();
+                    let (rss, _, bic, cv) = score(&st, &sel);
+                    (rss, bic, cv)
+                };
+                match m {
+                    Move::Cyclic(_) => {
+                        // Harmonic orders 1..H, H the smallest whose held-out error is within
+                        // HARMONIC_GAIN of the best: a higher order joins only when the data
+                        // support it, and the first (which a joint short of a turn confuses
+                        // with its zero offset) is never left out for a higher one that
+                        // happens to mimic it.
+                        let upto = |h: usize| -> (f64, f64, f64) {
+                            let sel: Vec<usize> = (range.start..range.start + 2 * h).collect();
+                            with(&sel)
+                        };
+                        let all: Vec<(f64, f64, f64)> = (1..=fit::MAX_HARMONIC).map(upto).collect();
+                        let min = all.iter().map(|x| x.2).fold(f64::INFINITY, f64::min);
+                        let h = (1..=fit::MAX_HARMONIC)
+                            .find(|&h| all[h - 1].2 * (1.0 - HARMONIC_GAIN) <= min)
+                            .unwrap_or(fit::MAX_HARMONIC);
+                        let best = all[h - 1];
+                        let mask = ((1u16 << h) - 1) as u8;
+                        (m.clone(), Basis::Harmonics(mask), best.0, best.1, best.2)
+                    }
+                    Move::Effect(_, b, _) => {
+                        let extra: Vec<usize> = range.clone().collect();
+                        let (rss, bic, cv) = with(&extra);
+                        (m.clone(), *b, rss, bic, cv)
+                    }
+                    Move::Step(_) => {
+                        let extra: Vec<usize> = range.clone().collect();
+                        let (rss, bic, cv) = with(&extra);
+                        // The step's place is one more parameter, chosen on these data.
+                        (m.clone(), Basis::Standard, rss, bic + 2.0 * n.ln(), cv)
+                    }
+                }
             })
             .collect();
+        // The record of every effect considered: its best form this round.
+        let mut round_best: Vec<(Effect, Basis, f64)> = Vec::new();
+        for (m, b, _, _, cv) in &scored {
+            let e = match m {
+                Move::Effect(e, _, _) => *e,
+                Move::Cyclic(j) => Effect::CyclicError(*j),
+                Move::Step(_) => continue,
+            };
+            match round_best.iter_mut().find(|r| r.0 == e) {
+                Some(r) if *cv < r.2 => *r = (e, *b, *cv),
+                Some(_) => {}
+                None => round_best.push((e, *b, *cv)),
+            }
+        }
+        for (e, b, cv) in round_best {
+            let h = (cv / n).sqrt();
+            match records.iter_mut().find(|r| r.effect == e) {
+                Some(r) => {
+                    r.heldout_rms = h;
+                    r.basis = b;
+                }
+                None => records.push(Candidate {
+                    effect: e,
+                    basis: b,
+                    heldout_rms: h,
+                    adopted: false,
+                }),
+            }
+        }
+        // An effect must lower the held-out error; a step (a fault, not a model of the robot)
+        // must pass the change-point test, the BIC with its place as a parameter, and in a
+        // continuous recording (whose real faults leave long segments) lower the held-out
+        // error too. Held-out blocks cannot judge a static run's short segments (a drifting
+        // zero cut into steps), whose own zero no other block sees.
         let best = scored
             .iter()
-            .filter(|(_, rss, bic, cv)| {
-                *bic < bic0 - 10.0 && *cv < 0.95 * cv0 && rss0 - rss >= 0.6 * excess
+            .filter(|(m, _, rss, bic, cv)| match m {
+                Move::Step(split) => {
+                    let run = problem.run_of(split.at);
+                    *bic < bic0 - 10.0
+                        && (problem.forms[run] != Form::Continuous
+                            || *cv < (1.0 - HELDOUT_GAIN) * cv0)
+                }
+                _ => {
+                    *bic < bic0 - 10.0
+                        && *cv < (1.0 - HELDOUT_GAIN) * cv0
+                        && rss0 - rss >= opts.min_explained * excess
+                }
             })
-            .min_by(|a, b| a.2.total_cmp(&b.2));
-        let Some(&((e, basis), _, _, cv)) = best else {
+            // Of those that qualify, the one the BIC prefers (on the same rows for every kind).
+            .min_by(|a, b| a.3.total_cmp(&b.3));
+        let Some((m, basis, _, _, cv)) = best.cloned() else {
             break;
+        };
+        if settled {
+            break;
+        }
+        let heldout = (cv / n).sqrt();
+        let (e, tau0) = match m {
+            Move::Effect(e, _, tau) => (e, tau),
+            Move::Cyclic(j) => (Effect::CyclicError(j), 0.0),
+            Move::Step(split) => {
+                let mut trial = s.clone();
+                let group = problem.split(&mut trial, split.fixture, split.at);
+                if split.fixture {
+                    free.extend((0..3).map(|axis| Param::Fixture { group, axis }));
+                } else {
+                    free.push(Param::Offset { group });
+                }
+                let st = fit::refit_stats(problem, &mut trial, &free);
+                s = trial;
+                residual = st.residual;
+                found.push(Step {
+                    fixture: split.fixture,
+                    at: split.at,
+                    group,
+                    heldout_before: (cv0 / n).sqrt(),
+                    heldout_after: heldout,
+                });
+                steps_added += 1;
+                continue;
+            }
         };
         // The linearised score judged the forms at a geometry that still absorbs the effect;
         // an effect with two forms (joint compliance with and without known masses) is
@@ -476,9 +795,9 @@ pub fn select(problem: &Problem, free: &[Param], opts: &DiagnoseOptions) -> Sele
         let mut chosen: Option<(Estimate, fit::Stats, f64, Basis)> = None;
         for b in forms {
             let mut trial = s.clone();
-            trial.add_effect(e, b, problem.thermal_terms);
-            let st = fit::refit_stats(problem, &mut trial, free);
-            let k = model_cols(problem, &trial, free).len() as f64;
+            trial.add_effect(e, b, tau0);
+            let st = fit::refit_stats(problem, &mut trial, &free);
+            let k = model_cols(&trial, &free).len() as f64;
             let bic = n * (st.rr[0] / n).max(1e-300).ln() + k * n.ln();
             if chosen.as_ref().is_none_or(|c| bic < c.2 - 10.0) {
                 chosen = Some((trial, st, bic, b));
@@ -489,8 +808,16 @@ pub fn select(problem: &Problem, free: &[Param], opts: &DiagnoseOptions) -> Sele
         };
         s = trial;
         residual = st.residual.clone();
+        effects_added += 1;
+        records.retain(|r| r.effect != e);
+        records.push(Candidate {
+            effect: e,
+            basis,
+            heldout_rms: heldout,
+            adopted: true,
+        });
         let coef = s.effects.last().map(|x| x.coef.clone()).unwrap_or_default();
-        let step = effect_report(e, basis, &coef, &[], m.temp.is_some());
+        let step = effect_report(e, basis, &coef, &[]);
         let label = match e.joint() {
             Some(j) => format!("+{} (joint {j})", e.name()),
             None => format!("+{}", e.name()),
@@ -498,11 +825,11 @@ pub fn select(problem: &Problem, free: &[Param], opts: &DiagnoseOptions) -> Sele
         steps.push(StepReport {
             effect: e.name(),
             joint: e.joint(),
-            rms_after_um: round(rms(&residual) * 1e6, 3),
+            rms_after_um: round(kept_rms(&residual, &problem.weight) * 1e6, 3),
             params: step.params,
             std: serde_json::Map::new(),
             bic: round(bic, 1),
-            cv_rms_um: round((cv / n).sqrt() * 1e6, 3),
+            cv_rms_um: round(heldout * 1e6, 3),
         });
         named.push(NamedEffect {
             effect: e.name(),
@@ -511,24 +838,43 @@ pub fn select(problem: &Problem, free: &[Param], opts: &DiagnoseOptions) -> Sele
         stages.push((label, residual.clone()));
     }
     // The final model: the joint fit's normal matrix at the estimate.
-    let cols = model_cols(problem, &s, free);
+    let cols = model_cols(&s, &free);
     let st = accumulate(problem, &s, &cols, 1);
-    let (normal, _, rss, _) = st.total();
+    let (normal, _, rss, rows) = st.total();
     let fitted = Fitted {
-        free: free.to_vec(),
+        free: free.clone(),
         normal,
         residual: st.residual,
         rss,
+        rows,
     };
-    noise = noise.min(noise_estimate(&residual));
-    let rms_final = rms(&residual);
-    let l1 = lag1(&residual);
+    let live = kept_of(&residual, &problem.weight);
+    noise = noise.min(noise_estimate(&live));
+    let rms_final = rms(&live);
+    let l1 = lag1(&live);
     let unexplained = rms_final > 2.0 * noise || l1 > 0.5;
+    let m = &problem.m;
     let where_ = if unexplained {
         locate(m, &residual)
     } else {
         None
     };
+    // Candidates in a fixed order: as considered (the geometry first), adopted ones where
+    // they were adopted.
+    let candidate_reports = records
+        .iter()
+        .map(|c| CandidateReport {
+            effect: c.effect.name(),
+            joint: c.effect.joint(),
+            heldout_rms_um: round(c.heldout_rms * 1e6, 3),
+            adopted: c.adopted,
+            form: if c.effect == Effect::Geometric {
+                "geometry".into()
+            } else {
+                form_name(c.effect, c.basis)
+            },
+        })
+        .collect();
     let report = Report {
         schema: "edbbgen.diagnose/1",
         rms_nominal_um: round(rms_nominal * 1e6, 3),
@@ -543,11 +889,16 @@ pub fn select(problem: &Problem, free: &[Param], opts: &DiagnoseOptions) -> Sele
         lag1_final: round(l1, 4),
         nominal_where: locate(m, &nominal_res),
         model: model_report(problem, &s, &fitted),
+        candidates: candidate_reports,
     };
-    let summary = summary(&report);
+    let summary = summary(&report, problem.timed());
     Selected {
         estimate: s,
         fitted,
+        free,
+        candidates: records,
+        steps: found,
+        heldout_geometry,
         diagnosis: Diagnosis {
             report,
             t: m.t.clone(),
@@ -557,13 +908,21 @@ pub fn select(problem: &Problem, free: &[Param], opts: &DiagnoseOptions) -> Sele
     }
 }
 
-fn summary(r: &Report) -> String {
-    let mut s = format!(
-        "{} rows over {} s; bar noise ~{} um\n",
-        r.rows,
-        fmt_fixed(r.duration_s, 1),
-        fmt_fixed(r.noise_um, 2)
-    );
+fn summary(r: &Report, timed: bool) -> String {
+    let mut s = if timed {
+        format!(
+            "{} rows over {} s; bar noise ~{} um\n",
+            r.rows,
+            fmt_fixed(r.duration_s, 1),
+            fmt_fixed(r.noise_um, 2)
+        )
+    } else {
+        format!(
+            "{} readings (static, in the order taken); reading noise ~{} um\n",
+            r.rows,
+            fmt_fixed(r.noise_um, 2)
+        )
+    };
     s += &format!("nominal model: RMS {} um", fmt_fixed(r.rms_nominal_um, 2));
     if let Some(w) = &r.nominal_where {
         s += &format!(

@@ -70,6 +70,30 @@ pub fn page(c: &Calibration, robot: &str, inputs_sha256: &str) -> Result<Page, R
             ),
         ),
     ];
+    facts.push(("verdict".into(), r.verdict.clone()));
+    facts.push((
+        "held-out residual, nominal → calibrated".into(),
+        format!(
+            "{} µm → {} µm RMS ({})",
+            fmt_fixed(r.validation.heldout_rms_um.nominal, 3),
+            fmt_fixed(r.validation.heldout_rms_um.calibrated, 3),
+            r.validation.split
+        ),
+    ));
+    let t = &r.tool;
+    facts.push((
+        "tool point (MAP), given → estimated".into(),
+        format!(
+            "{}, {}, {} mm → {}, {}, {} mm (moved {} mm)",
+            fmt_fixed(t.given_mm[0], 3),
+            fmt_fixed(t.given_mm[1], 3),
+            fmt_fixed(t.given_mm[2], 3),
+            fmt_fixed(t.fitted_mm[0], 3),
+            fmt_fixed(t.fitted_mm[1], 3),
+            fmt_fixed(t.fitted_mm[2], 3),
+            fmt_fixed(t.moved_mm, 3)
+        ),
+    ));
     if !r.held.is_empty() {
         facts.push(("held at the given value".into(), r.held.join(", ")));
     }
@@ -155,7 +179,7 @@ pub fn page(c: &Calibration, robot: &str, inputs_sha256: &str) -> Result<Page, R
             heading: "Calibrated parameters".into(),
             blocks: vec![
                 Block::text(
-                    "Deviations from nominal of the parameters the data determine (lengths in mm, angles in degrees), with standard uncertainties (GUM Type A: the residual's noise, inflated for its lag-1 correlation, through the fit's covariance). A parameter is determined when the data bring its uncertainty below its prior divided by κ.",
+                    "Deviations from nominal of the parameters the data determine (lengths in mm, angles in degrees), with standard uncertainties (GUM Type A: the residual's noise, inflated for its autocorrelation and for what the held-out residual says about model error, through the fit's covariance). A parameter is determined when the data bring its uncertainty below its prior divided by κ.",
                 ),
                 Block::table(&["parameter", "deviation", "std"], params),
             ],
@@ -165,6 +189,90 @@ pub fn page(c: &Calibration, robot: &str, inputs_sha256: &str) -> Result<Page, R
             blocks: vec![Block::table(&["parameter", "why"], undetermined)],
         },
     ];
+    let candidates: Vec<Vec<String>> = r
+        .candidates
+        .iter()
+        .map(|c| {
+            vec![
+                match c.joint {
+                    Some(j) => format!("{} (joint {j})", c.effect),
+                    None => c.effect.to_string(),
+                },
+                c.form.clone(),
+                fmt_fixed(c.heldout_rms_um, 3),
+                if c.adopted { "yes" } else { "no" }.to_string(),
+            ]
+        })
+        .collect();
+    sections.push(Section {
+        heading: "Candidates, judged on held-out data".into(),
+        blocks: vec![
+            Block::text("Each effect considered, with the residual RMS of the model with it on blocks of rows held out of the fit; an effect is adopted only when it lowers that clearly."),
+            Block::table(&["effect", "form", "held-out RMS [µm]", "adopted"], candidates),
+        ],
+    });
+    if !r.segments.is_empty() || !r.outliers.is_empty() {
+        let mut blocks = Vec::new();
+        if !r.segments.is_empty() {
+            let rows: Vec<Vec<String>> = r
+                .segments
+                .iter()
+                .map(|g| {
+                    vec![
+                        g.run.to_string(),
+                        format!("{}..{}", g.from_row, g.to_row),
+                        match (g.t_from_s, g.t_to_s) {
+                            (Some(a), Some(b)) => {
+                                format!("{}..{}", fmt_fixed(a, 2), fmt_fixed(b, 2))
+                            }
+                            _ => String::new(),
+                        },
+                        g.cause.to_string(),
+                        format!(
+                            "{}, {}, {}",
+                            fmt_fixed(g.fixture_fitted_mm[0], 3),
+                            fmt_fixed(g.fixture_fitted_mm[1], 3),
+                            fmt_fixed(g.fixture_fitted_mm[2], 3)
+                        ),
+                        fmt_fixed(g.length_offset_mm, 4),
+                    ]
+                })
+                .collect();
+            blocks.push(Block::table(
+                &[
+                    "run",
+                    "rows",
+                    "t [s]",
+                    "cause",
+                    "fixture [mm]",
+                    "length zero [mm]",
+                ],
+                rows,
+            ));
+        }
+        if !r.outliers.is_empty() {
+            let rows: Vec<Vec<String>> = r
+                .outliers
+                .iter()
+                .map(|o| {
+                    vec![
+                        o.run.to_string(),
+                        o.row.to_string(),
+                        o.t_s.map(|t| fmt_fixed(t, 3)).unwrap_or_default(),
+                        fmt_fixed(o.residual_um, 3),
+                    ]
+                })
+                .collect();
+            blocks.push(Block::table(
+                &["run", "row", "t [s]", "residual [µm]"],
+                rows,
+            ));
+        }
+        sections.push(Section {
+            heading: "Faults: segments and outliers".into(),
+            blocks,
+        });
+    }
     if !effects.is_empty() {
         sections.push(Section {
             heading: "Effects fitted with the geometry".into(),

@@ -11,11 +11,19 @@ use serde::{Deserialize, Serialize};
 
 /// Standard gravity, m/s².
 pub const G: f64 = 9.80665;
-/// Backlash: a joint that moves less than this between two samples (rad) keeps its last
-/// motion direction. The twin's drives are sampled at the bar's rate, so the simulator and the
-/// diagnosis judge the direction from the same samples (1e-6 rad: far above the CSV's 1e-6°
-/// quantisation of the recorded angles).
+/// A joint that moves less than this between two samples (rad) keeps its last motion
+/// direction (the approach direction the fit's screening uses for backlash; 1e-6 rad: far
+/// above the CSV's 1e-6° quantisation of the recorded angles).
 pub const MOTION_DEADBAND: f64 = 1e-6;
+
+/// Backlash as a play (hysteresis) operator of full width `play` (rad): the load-side angle
+/// stays where it was until the motor, `play`/2 away on either side, pushes it. Returns the
+/// new load angle. Sampled at the bar's rate it is exact wherever the motor moves
+/// monotonically between two samples.
+pub fn play(load: f64, motor: f64, play: f64) -> f64 {
+    let h = 0.5 * play.max(0.0);
+    load.clamp(motor - h, motor + h)
+}
 
 /// One effect of the library, with its joint (0-based) where it belongs to one.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize)]

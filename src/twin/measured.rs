@@ -1,10 +1,14 @@
 //! Measured EDBB data (DESIGN.md's CSV contract): in/out = CSV text; in memory SI units.
 //!
 //! ```text
-//! t_s,q1_deg,q2_deg,q3_deg,q4_deg,q5_deg,q6_deg,length_mm[,temp_c]
+//! t_s,q1_deg,q2_deg,q3_deg,q4_deg,q5_deg,q6_deg,length_mm[,temp_c]      continuous
+//! q1_deg,q2_deg,q3_deg,q4_deg,q5_deg,q6_deg,length_mm[,std_um][,n][,temp_c]   static
 //! ```
-//! Written with a fixed number of decimals (deterministic bytes); read strictly: every error
-//! names the line and the column.
+//! The static form (no `t_s`) holds one reading per pose in the order taken; its rows get their
+//! order (0, 1, 2, ...) as `t` and [`Form::Static`] `{ timed: false }`. `std_um` (the reading's
+//! standard uncertainty) and `n` (bar samples averaged) are read in either form. Written with a
+//! fixed number of decimals (deterministic bytes); read strictly: every error names the line and
+//! the column.
 
 use crate::units::{fmt_fixed, DEG, MM};
 
@@ -34,6 +38,25 @@ pub enum Form {
     Static { timed: bool },
 }
 
+impl Form {
+    /// True when `t` holds real times (a time-dependent effect may be fitted).
+    pub fn timed(&self) -> bool {
+        match self {
+            Form::Continuous => true,
+            Form::Static { timed } => *timed,
+        }
+    }
+
+    /// The report's name of the form.
+    pub fn name(&self) -> &'static str {
+        match self {
+            Form::Continuous => "continuous",
+            Form::Static { timed: true } => "static, timed",
+            Form::Static { timed: false } => "static",
+        }
+    }
+}
+
 /// One recorded run, in the order taken (sorted by time when timed). SI: s, rad, m, °C.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Measured {
@@ -58,22 +81,41 @@ impl Measured {
         self.t.is_empty()
     }
 
-    /// CSV text: times to 1 ms, angles to 1e-6 deg, lengths to 0.1 µm, temperatures to 0.001 K.
+    /// CSV text: times to 1 ms, angles to 1e-6 deg, lengths to 0.1 µm, uncertainties to
+    /// 1 nm, temperatures to 0.001 K. An untimed static run is written in the static form
+    /// (no `t_s`).
     pub fn to_csv(&self) -> String {
+        let timed = self.form.timed();
         let mut s = String::with_capacity(self.len() * 90);
-        s += &COLUMNS.join(",");
+        let cols = if timed { &COLUMNS[..] } else { &COLUMNS[1..] };
+        s += &cols.join(",");
+        if self.std.is_some() {
+            s += ",std_um";
+        }
+        if self.samples.is_some() {
+            s += ",n";
+        }
         if self.temp.is_some() {
             s += ",temp_c";
         }
         s.push('\n');
         for k in 0..self.len() {
-            s += &fmt_fixed(self.t[k], 3);
-            for i in 0..6 {
+            if timed {
+                s += &fmt_fixed(self.t[k], 3);
                 s.push(',');
-                s += &fmt_fixed(self.q[k][i] / DEG, 6);
             }
-            s.push(',');
+            for i in 0..6 {
+                s += &fmt_fixed(self.q[k][i] / DEG, 6);
+                s.push(',');
+            }
             s += &fmt_fixed(self.length[k] / MM, 4);
+            if let Some(v) = &self.std {
+                s.push(',');
+                s += &fmt_fixed(v[k] * 1e6, 3);
+            }
+            if let Some(v) = &self.samples {
+                s += &format!(",{}", v[k]);
+            }
             if let Some(t) = &self.temp {
                 s.push(',');
                 s += &fmt_fixed(t[k], 3);
@@ -101,11 +143,12 @@ pub(crate) fn err(line: usize, column: impl Into<String>, msg: impl Into<String>
     }
 }
 
-/// Parses measured data. `min_rows`: the fit needs at least this many rows.
 /// The most rows a run may have (about 11 hours at 500 Hz): memory stays bounded (a few GB
 /// through the fit) whatever the file claims.
 pub const MAX_ROWS: usize = 20_000_000;
 
+/// Parses measured data, continuous (with `t_s`) or static (without). `min_rows`: the fit
+/// needs at least this many rows.
 pub fn parse_csv(text: &str, min_rows: usize) -> Result<Measured, CsvError> {
     let mut lines = text
         .lines()
@@ -115,12 +158,17 @@ pub fn parse_csv(text: &str, min_rows: usize) -> Result<Measured, CsvError> {
         err(
             1,
             "1",
-            "empty file: expected the header t_s,q1_deg,...,length_mm",
+            "empty file: expected the header t_s,q1_deg,...,length_mm (or q1_deg,...,length_mm for one reading per pose)",
         )
     })?;
     let names: Vec<&str> = header.split(',').map(str::trim).collect();
-    let mut idx = [0usize; 8];
+    // Without `t_s` the file is in the static form: one reading per pose, in the order taken.
+    let timed = names.contains(&"t_s");
+    let mut idx = [usize::MAX; 8];
     for (c, want) in COLUMNS.iter().enumerate() {
+        if c == 0 && !timed {
+            continue;
+        }
         idx[c] = names.iter().position(|n| n == want).ok_or_else(|| {
             err(
                 hl + 1,
@@ -129,9 +177,17 @@ pub fn parse_csv(text: &str, min_rows: usize) -> Result<Measured, CsvError> {
             )
         })?;
     }
-    let temp_idx = names.iter().position(|n| *n == "temp_c");
+    let optional = |name: &str| names.iter().position(|n| *n == name);
+    let (temp_idx, std_idx, n_idx) = (optional("temp_c"), optional("std_um"), optional("n"));
     let mut m = Measured {
         temp: temp_idx.map(|_| Vec::new()),
+        std: std_idx.map(|_| Vec::new()),
+        samples: n_idx.map(|_| Vec::new()),
+        form: if timed {
+            Form::Continuous
+        } else {
+            Form::Static { timed: false }
+        },
         ..Measured::default()
     };
     for (l, raw) in lines {
@@ -155,26 +211,31 @@ pub fn parse_csv(text: &str, min_rows: usize) -> Result<Measured, CsvError> {
                 ),
             ));
         }
+        let col = |c: usize| format!("{} ({})", c + 1, names[c]);
         let cell = |c: usize| -> Result<f64, CsvError> {
-            let col = || format!("{} ({})", c + 1, names[c]);
             let v: f64 = cells[c]
                 .parse()
-                .map_err(|_| err(line, col(), format!("'{}' is not a number", cells[c])))?;
+                .map_err(|_| err(line, col(c), format!("'{}' is not a number", cells[c])))?;
             if !v.is_finite() {
-                return Err(err(line, col(), format!("'{}' is not finite", cells[c])));
+                return Err(err(line, col(c), format!("'{}' is not finite", cells[c])));
             }
             Ok(v)
         };
-        let t = cell(idx[0])?;
-        if let Some(&prev) = m.t.last() {
-            if t <= prev {
-                return Err(err(
-                    line,
-                    format!("{} (t_s)", idx[0] + 1),
-                    format!("time {t} s is not after the previous row's {prev} s (rows must be sorted by time)"),
-                ));
+        let t = if timed {
+            let t = cell(idx[0])?;
+            if let Some(&prev) = m.t.last() {
+                if t <= prev {
+                    return Err(err(
+                        line,
+                        format!("{} (t_s)", idx[0] + 1),
+                        format!("time {t} s is not after the previous row's {prev} s (rows must be sorted by time)"),
+                    ));
+                }
             }
-        }
+            t
+        } else {
+            m.t.len() as f64
+        };
         let mut q = [0.0; 6];
         for i in 0..6 {
             q[i] = cell(idx[1 + i])? * DEG;
@@ -187,6 +248,31 @@ pub fn parse_csv(text: &str, min_rows: usize) -> Result<Measured, CsvError> {
                 format!("length {len} mm is not positive"),
             ));
         }
+        if let (Some(c), Some(v)) = (std_idx, m.std.as_mut()) {
+            let s = cell(c)?;
+            if s <= 0.0 {
+                return Err(err(
+                    line,
+                    col(c),
+                    format!("standard uncertainty {s} um is not positive"),
+                ));
+            }
+            v.push(s * 1e-6);
+        }
+        if let (Some(c), Some(v)) = (n_idx, m.samples.as_mut()) {
+            let n = cells[c]
+                .parse::<u32>()
+                .ok()
+                .filter(|n| *n > 0)
+                .ok_or_else(|| {
+                    err(
+                        line,
+                        col(c),
+                        format!("'{}' is not a positive whole number of samples", cells[c]),
+                    )
+                })?;
+            v.push(n);
+        }
         if let (Some(ti), Some(temps)) = (temp_idx, m.temp.as_mut()) {
             temps.push(cell(ti)?);
         }
@@ -198,7 +284,7 @@ pub fn parse_csv(text: &str, min_rows: usize) -> Result<Measured, CsvError> {
         let last = text.lines().count().max(1);
         return Err(err(
             last,
-            "1 (t_s)",
+            if timed { "1 (t_s)" } else { "1 (q1_deg)" },
             format!(
                 "{} data rows, fewer than the {min_rows} the fit needs (one per parameter at least)",
                 m.len()

@@ -102,16 +102,19 @@ pub fn simulate(
 }
 
 /// The real robot sampled along a trajectory, one bar reading after another: the state the
-/// effects carry between samples (the backlash flank, judged between samples as the drives
-/// see it) and the noise stream.
+/// effects carry between samples (the backlash's load side, which follows the motor through a
+/// play operator along the motion between samples) and the noise stream.
 pub struct Sampler<'a> {
     model: &'a MeasurementModel,
     traj: &'a Trajectory,
     truth: &'a Truth,
     truep: [f64; N_PARAMS],
     masses: Vec<crate::robot::PointMass>,
-    dir: [f64; 6],
-    prev_motor: Option<[f64; 6]>,
+    t0: f64,
+    /// The backlash joint's load-side angle at the previous sample.
+    load_b: Option<f64>,
+    /// Program time of the previous sample.
+    prev_ts: Option<f64>,
     rng: rand_chacha::ChaCha8Rng,
 }
 
@@ -131,18 +134,15 @@ impl<'a> Sampler<'a> {
         for k in 0..N_PARAMS {
             truep[k] += truth.geometric[k];
         }
-        let mut dir = [0.0f64; 6];
-        if let Some(b) = &truth.backlash {
-            dir[b.joint] = traj.first_direction(b.joint, t0);
-        }
         Sampler {
             model,
             traj,
             truth,
             truep,
             masses: truth.compliance_masses(robot),
-            dir,
-            prev_motor: None,
+            t0,
+            load_b: None,
+            prev_ts: None,
             rng: rand_chacha::ChaCha8Rng::seed_from_u64(seed),
         }
     }
@@ -159,15 +159,26 @@ impl<'a> Sampler<'a> {
         };
         let mut load = motor;
         if let Some(b) = &truth.backlash {
-            if let Some(prev) = self.prev_motor {
-                let step: f64 = motor[b.joint] - prev[b.joint];
-                if step.abs() > effects::MOTION_DEADBAND {
-                    self.dir[b.joint] = step.signum();
+            let x = motor[b.joint];
+            let y = match (self.load_b, self.prev_ts) {
+                // The play follows the motor through the motion since the last sample (it
+                // may have turned between samples): 8 steps along the trajectory.
+                (Some(mut y), Some(tp)) => {
+                    for i in 1..=8 {
+                        let ti = tp + (ts - tp) * i as f64 / 8.0;
+                        let xi = self.traj.position(ti - truth.servo_lag.unwrap_or(0.0))[b.joint];
+                        y = effects::play(y, xi, b.play);
+                    }
+                    y
                 }
-            }
-            load[b.joint] -= 0.5 * b.play * self.dir[b.joint];
+                (Some(y), None) => effects::play(y, x, b.play),
+                // The load rests against the flank of the joint's first motion.
+                (None, _) => x - 0.5 * b.play * self.traj.first_direction(b.joint, self.t0),
+            };
+            self.load_b = Some(y);
+            load[b.joint] = y;
         }
-        self.prev_motor = Some(motor);
+        self.prev_ts = Some(ts);
         if let Some(c) = &truth.cyclic {
             load[c.joint] += effects::cyclic(c, motor[c.joint]);
         }

@@ -19,7 +19,7 @@
 //! joint = 2
 //! cos_deg = [0.002, 0.0, 0.001]
 //! sin_deg = [0.0, 0.001, 0.0]
-//! [backlash]                # load = motor - play/2 * sign(last motion direction)
+//! [backlash]                # play operator: the load stays until the motor, play/2 away, pushes it
 //! joint = 3
 //! play_deg = 0.01
 //! [servo_lag]               # the axes follow the logged setpoints with this delay
