@@ -626,8 +626,21 @@ pub fn select(
         let base_cols = model_cols(&s, &free);
         let mut cols = base_cols.clone();
         let mut moves: Vec<(Move, std::ops::Range<usize>)> = Vec::new();
+        // A model with as many unknowns as readings interpolates them: its residual vanishes,
+        // its BIC runs to −∞ and its held-out folds are fitted on fewer rows than columns. A
+        // move is a candidate only when the model with it keeps at least as many readings
+        // spare as it has unknowns (a general compliance basis of 60 terms is no candidate
+        // for 42 plateau means).
+        let spare = base_cols.len();
         let mut add = |m: Move, cols: &mut Vec<Col>| {
             let c = move_cols(&m);
+            let least = match m {
+                Move::Cyclic(_) => 2,
+                _ => c.len(),
+            };
+            if 2 * (spare + least) > kept {
+                return;
+            }
             moves.push((m, cols.len()..cols.len() + c.len()));
             cols.extend(c);
         };

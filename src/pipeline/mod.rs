@@ -519,7 +519,18 @@ pub fn compile(
     progress.stage("identify");
     // Identifiability over the poses the bar can actually measure: the pool itself.
     let pool_q: Vec<[f64; 6]> = sections.pool.candidates.iter().map(|c| c.q).collect();
-    let mut identifiability = model::analyse(&model.rows(&pool_q), &IdentifyOptions::default());
+    // A stop-and-measure program has one reading per pose to share between the robot and
+    // the set-up, which `calibrate` estimates by default: its poses are chosen for both (a
+    // continuous recording learns the set-up along its moves).
+    let identify = if opts.dwell.is_some() {
+        IdentifyOptions {
+            fixture_known: false,
+            map_known: false,
+        }
+    } else {
+        IdentifyOptions::default()
+    };
+    let mut identifiability = model::analyse(&model.rows(&pool_q), &identify);
     warnings.extend(map_warnings(&model, &identifiability));
     if let Some(focus) = &opts.focus {
         warnings.extend(focus_on(&mut identifiability, focus)?);
@@ -942,9 +953,27 @@ fn predict(
         .filter(|(_, w)| !w.support)
         .map(|(q, _)| *q)
         .collect();
+    // Both forms are predicted as `calibrate` reads them by default: the fixture and the
+    // tool point estimated where the data determine them (a stop-and-measure run has one
+    // reading per pose to share between the robot and the set-up; its recording along the
+    // moves is what the synchronous form adds).
+    let calibrated = |info: &p::RunInformation, noise: f64| {
+        let e = p::expected_setup_free(
+            ck.model,
+            info,
+            noise,
+            &p::Prior::default(),
+            crate::calibrate::DEFAULT_PRIOR_SETUP_MM * crate::units::MM,
+            &space,
+        );
+        p::spread(&e.combined)
+    };
     // The continuous recording of the same run also holds every dwell: S seconds at the pose.
     segments.extend(poses.iter().map(|q| (*q, *q, dwell)));
-    let recorded = continuous(&segments);
+    let recorded = calibrated(
+        &p::recording_information(ck.model, &segments, opts.bar_rate),
+        opts.bar_noise,
+    );
     let n = crate::logs::plateau_core_samples(dwell, opts.bar_rate).max(1);
     let rows: Vec<[f64; N_PARAMS]> = poses
         .iter()
@@ -954,13 +983,10 @@ fn predict(
             row
         })
         .collect();
-    let spread = p::spread(&p::after_readings(
-        ck.model,
-        &rows,
-        &id.identifiable,
+    let spread = calibrated(
+        &p::readings_information(&rows),
         opts.bar_noise / (n as f64).sqrt(),
-        &space,
-    ));
+    );
     Predicted {
         workspace_rms: spread.rms * 1e6,
         workspace_p95: spread.p95 * 1e6,
