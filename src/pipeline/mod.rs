@@ -914,7 +914,9 @@ fn dwell_time(opts: &CompileOptions, plan: &Plan) -> f64 {
 /// stop-and-measure program (`--dwell`) is calibrated from one reading per measurement pose,
 /// the mean of a plateau's core ([`crate::logs::plateau_core_samples`] samples, so the noise
 /// falls by its square root); the same program recorded continuously (moves and dwells, with
-/// a synchronous joint log) is predicted alongside.
+/// a synchronous joint log) is predicted alongside. Both as `calibrate` reads them by
+/// default (the fixture and the MAP estimated); a continuous program's prediction keeps the
+/// paper's convention (the set-up known, the identifiable parameters free).
 fn predict(
     ck: &Checker,
     id: &Identifiability,
