@@ -691,3 +691,29 @@ fn the_stop_and_measure_clock_is_the_bar_to_controller_offset_and_drift() {
         );
     }
 }
+
+/// A dwell too short for its plateaus: the compiler says so before anyone measures, when the
+/// plateau means predict more than twice the same run recorded synchronously (its two header
+/// figures), and says nothing when they are within 2x.
+#[test]
+fn a_dwell_too_short_for_its_plateaus_is_warned_about_at_compile_time() {
+    let warned = |d: &Dwell| {
+        d.compiled
+            .warnings
+            .iter()
+            .any(|w| w.starts_with("--dwell ") && w.contains("more than twice"))
+    };
+    let short = compile_dwell(0.3);
+    let h = &short.compiled.program.header;
+    assert!(
+        h.predicted_std_um > 2.0 * h.predicted_continuous_std_um,
+        "0.3 s: {} vs {} um",
+        h.predicted_std_um,
+        h.predicted_continuous_std_um
+    );
+    assert!(warned(&short), "{:?}", short.compiled.warnings);
+    let long = dwell_program_5();
+    let h = &long.compiled.program.header;
+    assert!(h.predicted_std_um <= 2.0 * h.predicted_continuous_std_um);
+    assert!(!warned(long), "{:?}", long.compiled.warnings);
+}

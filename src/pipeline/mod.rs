@@ -555,6 +555,7 @@ pub fn compile(
     );
     progress.stage("path, predict");
     let predicted = predict(&ck, &identifiability, &path, &planned.plan, opts);
+    warnings.extend(dwell_warning(&predicted, opts));
     let mut base = program::base(&ck, opts, &identifiability, &planned, &path, &predicted);
     if opts.focus.is_some() {
         base.header.notes.push(format!(
@@ -997,6 +998,22 @@ fn predict(
         plateau_samples: Some(n),
         continuous_workspace_rms: Some(recorded.rms * 1e6),
     }
+}
+
+/// A stop-and-measure program whose plateau means predict more than twice the uncertainty of
+/// the same run recorded synchronously: the dwell is too short for its readings to carry what
+/// the continuous recording adds along the moves (each plateau mean averages the dwell's
+/// core; a longer dwell narrows the gap).
+fn dwell_warning(p: &Predicted, opts: &CompileOptions) -> Option<String> {
+    let (dwell, cont) = (opts.dwell?, p.continuous_workspace_rms?);
+    (p.workspace_rms > 2.0 * cont).then(|| {
+        format!(
+            "--dwell {}: the plateau means predict {} um RMS over the joint space, more than twice the {} um of the same run recorded with a synchronous joint log: a longer dwell averages more of each standstill",
+            crate::units::fmt_fixed(dwell, 2),
+            crate::units::fmt_fixed(p.workspace_rms, 2),
+            crate::units::fmt_fixed(cont, 2)
+        )
+    })
 }
 
 /// The moves a program records: every move made with the bar (not the transits between
