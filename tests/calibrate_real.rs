@@ -213,8 +213,20 @@ fn every_effect_of_the_library_from_another_simulator_calibrates_within_10_um_as
     let mut lines = Vec::new();
     let mut failures = Vec::new();
     let (mut ms_real, mut ms_pred) = (0.0, 0.0);
+    // To re-measure one case over more robots: ONLY_CASE=backlash REPS=6 cargo test --test main
+    // every_effect_of_the_library -- --nocapture (each repeat a new robot and noise seed).
+    let only = std::env::var("ONLY_CASE").ok();
+    let reps: u64 = std::env::var("REPS")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(1);
+    let cases: Vec<(&str, Physics)> = cases
+        .into_iter()
+        .filter(|(n, _)| only.as_deref().is_none_or(|o| n.starts_with(o)))
+        .flat_map(|c| (0..reps).map(move |_| c.clone()))
+        .collect();
     for (k, (name, physics)) in cases.into_iter().enumerate() {
-        let seed = 220 + k as u64;
+        let seed = 220 + k as u64 + if reps > 1 { 1000 } else { 0 };
         let case = nj130_case(physics, 10.0, seed);
         let (code, report, out, run) = calibrate_cli(
             dir.path(),
@@ -246,7 +258,10 @@ fn every_effect_of_the_library_from_another_simulator_calibrates_within_10_um_as
         // single robot's error lies along a few directions: it may fall well below). Below
         // a micrometre, at the bar's 1 µm noise, the factor gets 0.5 µm of room, as in the
         // slip test (measured: the backlash case realises 0.94 µm against 0.44 µm predicted,
-        // the one case past 2x; the pooled ratio below is the factor-2 check).
+        // the one case past 2x; over six more robots, seeds 1220-1225, it realises 0.14-0.74
+        // µm against 0.51-0.98 µm predicted, ratios 0.23-1.39, pooled 0.69: one robot's error
+        // lies along a few directions, so a single ratio scatters; the pooled ratio below is
+        // the factor-2 check).
         if !(err <= 10.0 && err < nominal && err <= 2.0 * pred + 0.5) {
             failures.push(lines.last().unwrap().clone());
         }
