@@ -127,11 +127,15 @@ pub struct MoveTiming {
 }
 
 impl MoveTiming {
-    /// The path profile s(t) ∈ [0, 1] this timing states: the synchronous trapezoid (ramps at
-    /// the path acceleration 1/ta², a cruise at 1/cruise, or the triangle when the move is too
-    /// short for a cruise). Returns (s, ds/dt) at time t after the move's start; 0 before, 1
-    /// after. Its duration is exactly [`MoveTiming::duration`], its speed never above the
-    /// cruise's and its acceleration never above the path acceleration.
+    /// The path profile s(t) ∈ [0, 1] this timing states: the synchronous trapezoid's phases
+    /// (ramps of the trapezoid's length, a cruise at 1/cruise, or the triangle when the move is
+    /// too short for a cruise), each ramp shaped as a cycloidal speed ramp
+    /// v(u) = V·(u − sin(2πu)/2π): the same duration, distance and cruise speed as the
+    /// trapezoid's straight ramp, the speed monotone (never above the cruise's), the
+    /// acceleration continuous (zero at rest and at the cruise, a finite jerk, as a jerk-limited
+    /// controller runs its ramps) with its mean over the ramp at the path acceleration and its
+    /// peak twice that. Returns (s, ds/dt) at time t after the move's start; 0 before, 1 after.
+    /// Its duration is exactly [`MoveTiming::duration`].
     pub fn profile(&self, t: f64) -> (f64, f64) {
         let d = self.duration;
         if d <= 0.0 || t >= d {
@@ -145,14 +149,24 @@ impl MoveTiming {
         } else {
             (1.0 / self.ta, self.ta)
         };
-        let acc = if ramp > 0.0 { v / ramp } else { 0.0 };
+        // Distance and speed of a cycloidal ramp from rest, `r` s into it.
+        let up = |r: f64| -> (f64, f64) {
+            let u = r / ramp;
+            let w = std::f64::consts::TAU * u;
+            (
+                v * ramp
+                    * (0.5 * u * u
+                        + (w.cos() - 1.0) / (std::f64::consts::TAU * std::f64::consts::TAU)),
+                v * (u - w.sin() / std::f64::consts::TAU),
+            )
+        };
         if t < ramp {
-            (0.5 * acc * t * t, acc * t)
+            up(t)
         } else if t <= d - ramp {
             (0.5 * v * ramp + v * (t - ramp), v)
         } else {
-            let r = d - t;
-            (1.0 - 0.5 * acc * r * r, acc * r)
+            let (s, ds) = up(d - t);
+            (1.0 - s, ds)
         }
     }
 }
@@ -295,5 +309,41 @@ mod tests {
         let (t, total) = program(&poses, &cruise, &[false, true, false], &lim, 0.5);
         assert_eq!(t, vec![0.0, 3.0, 3.0]);
         assert!((total - 5.0).abs() < 1e-12);
+    }
+
+    /// The profile a twin runs: it takes the move's duration, reaches s = 1, never exceeds the
+    /// cruise speed, and its speed is the derivative of its distance (central differences) with
+    /// no jump in distance or speed, for a trapezoid and a triangle.
+    #[test]
+    fn the_profile_takes_the_stated_time_within_the_cruise_speed() {
+        for &(cruise, ta) in &[(2.0, 1.0), (0.5, 1.0), (1.0, 1.0), (3.0, 0.2)] {
+            let m = MoveTiming {
+                cruise,
+                ta,
+                duration: trapezoid(cruise, ta),
+                overlap_next: 0.0,
+            };
+            let vmax = 1.0 / cruise.max(ta);
+            assert_eq!(m.profile(m.duration), (1.0, 0.0));
+            assert!((m.profile(m.duration * (1.0 - 1e-12)).0 - 1.0).abs() < 1e-9);
+            let h = 1e-6;
+            let mut prev = m.profile(0.0);
+            let n = 2000;
+            for k in 1..n {
+                let t = m.duration * k as f64 / n as f64;
+                let (s, v) = m.profile(t);
+                assert!(
+                    v <= vmax * (1.0 + 1e-12) && v >= 0.0,
+                    "{cruise} {ta} {t}: {v}"
+                );
+                let fd = (m.profile(t + h).0 - m.profile(t - h).0) / (2.0 * h);
+                assert!(
+                    (fd - v).abs() < 1e-5 * vmax.max(1.0),
+                    "{cruise} {ta} {t}: {fd} vs {v}"
+                );
+                assert!(s >= prev.0 && (s - prev.0) <= vmax * m.duration / n as f64 * 1.0001);
+                prev = (s, v);
+            }
+        }
     }
 }

@@ -4,14 +4,18 @@
 //!
 //! - The moves are timed by the model the program states its times with
 //!   ([`crate::timing::moves`], as the compiler's header and `verify` time them): each move a
-//!   synchronous joint-space line on a trapezoidal speed profile (ramps at the joints'
-//!   accelerations, scaled by the dialect's blend acceleration on moves that blend; a cruise
-//!   at the commanded speed, read the dialect's way ([`crate::dialect::Timing`]: G93 60/F s,
-//!   RAPID `\T` and URScript `t` whole-move times, a speed percentage of the axes, G0: the
-//!   slowest axis at its maximum speed), never faster than the slowest axis at its maximum
-//!   (the controller is velocity-limited). The trapezoid is the fastest profile within the
-//!   speed and acceleration limits, so the twin's moves take exactly the stated times; its
-//!   acceleration steps at the ramps' ends (no jerk limit, as LinuxCNC's planner).
+//!   synchronous joint-space line on the trapezoid's phases (ramps as long as the trapezoid's
+//!   at the joints' accelerations, scaled by the dialect's blend acceleration on moves that
+//!   blend; a cruise at the commanded speed, read the dialect's way
+//!   ([`crate::dialect::Timing`]: G93 60/F s, RAPID `\T` and URScript `t` whole-move times, a
+//!   speed percentage of the axes, G0: the slowest axis at its maximum speed), never faster
+//!   than the slowest axis at its maximum: the controller is velocity-limited). The moves take
+//!   exactly the stated times. Each ramp is a cycloidal speed ramp
+//!   ([`crate::timing::MoveTiming::profile`]): the trapezoid's distance and time, the speed
+//!   within the cruise's, the acceleration continuous (a finite jerk, as industrial
+//!   controllers ramp) with its mean at the joint's acceleration and its peak twice that — a
+//!   straight trapezoid would meet the acceleration limit exactly, but its acceleration steps
+//!   and a robot at an exact stop then turns on a parabola, which no jerk-limited arm does.
 //! - Blends: the next move starts while the previous one still runs, the two superposed
 //!   (LinuxCNC's parabolic blend), overlapping by [`crate::timing::overlap`]. A corner blends
 //!   when the program writes a blend there, the next line is a move and the bar is in place on
