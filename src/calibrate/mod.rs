@@ -1199,8 +1199,9 @@ pub fn run(
 /// less the fitted model's. For nested least-squares models the two estimates differ by a
 /// vector whose covariance is that difference (Hausman), so while the data do not reject the
 /// smaller model its error is bounded by the larger model's covariance: this is the extra
-/// variance, propagated to the MAP after registration; per pose of each set, the largest over
-/// the alternatives, root-sum-squared over the cyclic errors (m).
+/// variance, propagated to the MAP after registration. Beside it, the larger model's estimate
+/// itself: the MAP shift between the two fits. Per pose of each set, the largest over the
+/// alternatives and the two measures, root-sum-squared over the cyclic errors (m).
 fn effect_model_spread<const N: usize>(
     problem: &Problem,
     est: &Estimate,
@@ -1231,16 +1232,27 @@ fn effect_model_spread<const N: usize>(
                 cols.push(fit::Col::Cyc(j, o, false));
                 cols.push(fit::Col::Cyc(j, o, true));
             }
-            let (n, _, _, _) = accumulate(problem, est, &cols, 1).total();
+            let (n, b, _, _) = accumulate(problem, est, &cols, 1).total();
             let big = fit::inverse(&n);
             let diff = DMatrix::from_fn(shared.len(), shared.len(), |a, b| {
                 let (x, y) = (shared[a].0, shared[b].0);
                 (big[(x, y)] - small[(x, y)]) * sigma * sigma
             });
+            // The larger model's own estimate, one Gauss-Newton step from the fitted one (at
+            // which the smaller model's step is nil): how far the geometry moves were the
+            // form one order richer. Without model error its square is the variance above on
+            // average; a higher order the data hold but the selection left out (a joint's
+            // third harmonic mimicked by the second over a short range) shows in it alone.
+            let all: Vec<usize> = (0..cols.len()).collect();
+            let (step, _, _) = fit::solve(&n, &b, &all);
+            let shift = DMatrix::from_fn(shared.len(), shared.len(), |a, b| {
+                step[shared[a].0] * step[shared[b].0]
+            });
             for (i, set) in poses.iter().enumerate() {
                 let v = predict::position_std(&problem.model, &p, set, &w, &diff);
-                for (m, x) in worst[i].iter_mut().zip(v) {
-                    *m = m.max(x);
+                let d = predict::position_std(&problem.model, &p, set, &w, &shift);
+                for ((m, x), y) in worst[i].iter_mut().zip(v).zip(d) {
+                    *m = m.max(x).max(y);
                 }
             }
         }
