@@ -209,11 +209,17 @@ pub struct Path {
     /// speed), s: what a feed or speed percentage states.
     #[serde(default)]
     pub cruise_times: Vec<f64>,
-    /// Estimated time of the selected poses in their pool order and in tour order, s: the tour
-    /// order's with every ramp and blend ([`crate::timing::program`]), the pool order's with
-    /// the tour cost.
+    /// Estimated times, s. `time_unsorted`: the selected poses in their pool order by direct
+    /// moves (each with its ramps, exact stops, no support poses). `time_sorted`: the program
+    /// as planned, in tour order with its support poses, every ramp and blend
+    /// ([`crate::timing::program`]).
     pub time_unsorted: f64,
     pub time_sorted: f64,
+    /// The same poses as `time_unsorted` in the program's order (the tour, with any pose the
+    /// safe planner deferred where it went), by the same direct moves: the like-for-like
+    /// comparison with `time_unsorted` (what the ordering gains; the paper's Fig. 6), s.
+    #[serde(default)]
+    pub time_direct: f64,
 }
 
 /// The program: what `emit` renders, and the whole context of every template (`h` = the
@@ -253,8 +259,15 @@ pub struct Header {
     pub sections: usize,
     pub identifiable: usize,
     pub cond: f64,
+    /// The measurement poses in pool order by direct moves with exact stops (no support poses,
+    /// no blends), s.
     pub time_unsorted_s: f64,
+    /// The program's estimated time as planned: support poses, detours and blends included, s.
     pub time_s: f64,
+    /// The measurement poses in the program's order by the same direct moves as
+    /// `time_unsorted_s`, s.
+    #[serde(default)]
+    pub time_direct_s: f64,
     /// The joint accelerations the times assume: deg/s² per model joint in the dialect-neutral
     /// program, per controller axis in its units (per s²) once `emit::target` has filled it.
     #[serde(default)]

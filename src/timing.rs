@@ -86,6 +86,18 @@ pub fn with_ramps(a: &[f64; 6], b: &[f64; 6], cruise: f64, lim: &Limits, accel_s
     trapezoid(cruise, ta)
 }
 
+/// The cruise time of a move whose whole time (ramps included) is `total`: T = T₇ + T_a²/T₇
+/// solved for T₇ (a move too short for a cruise runs its triangle at T_a). How a whole-move
+/// time word (RAPID `\T`, URScript `t`) is read.
+pub fn cruise_of(total: f64, ta: f64) -> f64 {
+    let disc = total * total - 4.0 * ta * ta;
+    if disc <= 0.0 {
+        ta
+    } else {
+        (total + disc.sqrt()) / 2.0
+    }
+}
+
 /// The time two moves overlap at a blended corner (superposed ramps): the shorter of the first
 /// move's final ramp and either move's time at its cruise speed (a blend takes at most half of
 /// each move). `t7`/`ta` are each move's cruise time and acceleration time as in [`trapezoid`].
@@ -102,11 +114,99 @@ pub fn overlap(t7_in: f64, ta_in: f64, t7_out: f64, ta_out: f64) -> f64 {
     ramp_in.min(cruise_in).min(cruise_out)
 }
 
+/// One move of a program as [`program`] times it: its cruise time (the time at its cruise
+/// speed over the whole move, [`eq7`] or what the program commands), its acceleration time
+/// `ta` (at the acceleration its blends allow, see [`accel_time`]), its own duration (ramps
+/// included) and the time it overlaps the next move (0 unless the corner between them blends).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct MoveTiming {
+    pub cruise: f64,
+    pub ta: f64,
+    pub duration: f64,
+    pub overlap_next: f64,
+}
+
+impl MoveTiming {
+    /// The path profile s(t) ∈ [0, 1] this timing states: the synchronous trapezoid's phases
+    /// (ramps of the trapezoid's length, a cruise at 1/cruise, or the triangle when the move is
+    /// too short for a cruise), each ramp shaped as a cycloidal speed ramp
+    /// v(u) = V·(u − sin(2πu)/2π): the same duration, distance and cruise speed as the
+    /// trapezoid's straight ramp, the speed monotone (never above the cruise's), the
+    /// acceleration continuous (zero at rest and at the cruise, a finite jerk, as a jerk-limited
+    /// controller runs its ramps) with its mean over the ramp at the path acceleration and its
+    /// peak twice that. Returns (s, ds/dt) at time t after the move's start; 0 before, 1 after.
+    /// Its duration is exactly [`MoveTiming::duration`].
+    pub fn profile(&self, t: f64) -> (f64, f64) {
+        let d = self.duration;
+        if d <= 0.0 || t >= d {
+            return (1.0, 0.0);
+        }
+        if t <= 0.0 {
+            return (0.0, 0.0);
+        }
+        let (v, ramp) = if self.cruise >= self.ta {
+            (1.0 / self.cruise, self.ta * self.ta / self.cruise)
+        } else {
+            (1.0 / self.ta, self.ta)
+        };
+        // Distance and speed of a cycloidal ramp from rest, `r` s into it.
+        let up = |r: f64| -> (f64, f64) {
+            let u = r / ramp;
+            let w = std::f64::consts::TAU * u;
+            (
+                v * ramp
+                    * (0.5 * u * u
+                        + (w.cos() - 1.0) / (std::f64::consts::TAU * std::f64::consts::TAU)),
+                v * (u - w.sin() / std::f64::consts::TAU),
+            )
+        };
+        if t < ramp {
+            up(t)
+        } else if t <= d - ramp {
+            (0.5 * v * ramp + v * (t - ramp), v)
+        } else {
+            let (s, ds) = up(d - t);
+            (1.0 - s, ds)
+        }
+    }
+}
+
 /// A program's moves timed together: `poses[k]` reached from `poses[k-1]` in `cruise[k]` s
 /// without ramps (`cruise[0]` is ignored: the approach), `blended[k]` when the corner at pose k
-/// blends into the next move. Returns each move's own duration (its ramps included, at the
-/// acceleration its blends allow; 0 for the first) and the total, the overlaps of blended
-/// corners taken off.
+/// blends into the next move. Returns each move's timing (the first, the approach's start,
+/// all 0): its ramps at the acceleration its blends allow, and the overlap of each blended
+/// corner with the move after it.
+pub fn moves(
+    poses: &[[f64; 6]],
+    cruise: &[f64],
+    blended: &[bool],
+    lim: &Limits,
+    blend_acceleration: f64,
+) -> Vec<MoveTiming> {
+    let n = poses.len();
+    let mut out = vec![MoveTiming::default(); n];
+    for k in 1..n {
+        let blends = blended[k] || blended[k - 1];
+        let scale = if blends { blend_acceleration } else { 1.0 };
+        let ta = accel_time(&poses[k - 1], &poses[k], &lim.accel) / scale.sqrt();
+        out[k] = MoveTiming {
+            cruise: cruise[k],
+            ta,
+            duration: trapezoid(cruise[k], ta),
+            overlap_next: 0.0,
+        };
+    }
+    for k in 1..n.saturating_sub(1) {
+        if blended[k] {
+            let (a, b) = (out[k], out[k + 1]);
+            out[k].overlap_next = overlap(a.cruise, a.ta, b.cruise, b.ta);
+        }
+    }
+    out
+}
+
+/// [`moves`] as each move's own duration (0 for the first) and the program's total, the
+/// overlaps of blended corners taken off.
 pub fn program(
     poses: &[[f64; 6]],
     cruise: &[f64],
@@ -114,24 +214,15 @@ pub fn program(
     lim: &Limits,
     blend_acceleration: f64,
 ) -> (Vec<f64>, f64) {
-    let n = poses.len();
-    let mut times = vec![0.0; n];
-    let mut parts = vec![(0.0, 0.0); n];
-    for k in 1..n {
-        let blends = blended[k] || blended[k - 1];
-        let scale = if blends { blend_acceleration } else { 1.0 };
-        let ta = accel_time(&poses[k - 1], &poses[k], &lim.accel) / scale.sqrt();
-        parts[k] = (cruise[k], ta);
-        times[k] = trapezoid(cruise[k], ta);
-    }
-    let mut total: f64 = times.iter().sum();
-    for k in 1..n.saturating_sub(1) {
-        if blended[k] {
-            let (a, b) = (parts[k], parts[k + 1]);
-            total -= overlap(a.0, a.1, b.0, b.1);
+    let m = moves(poses, cruise, blended, lim, blend_acceleration);
+    // Summed as before the split (all durations, then the overlaps): the same bits.
+    let mut total: f64 = m.iter().map(|m| m.duration).sum();
+    for mt in &m {
+        if mt.overlap_next != 0.0 {
+            total -= mt.overlap_next;
         }
     }
-    (times, total)
+    (m.iter().map(|m| m.duration).collect(), total)
 }
 
 #[cfg(test)]
@@ -218,5 +309,41 @@ mod tests {
         let (t, total) = program(&poses, &cruise, &[false, true, false], &lim, 0.5);
         assert_eq!(t, vec![0.0, 3.0, 3.0]);
         assert!((total - 5.0).abs() < 1e-12);
+    }
+
+    /// The profile a twin runs: it takes the move's duration, reaches s = 1, never exceeds the
+    /// cruise speed, and its speed is the derivative of its distance (central differences) with
+    /// no jump in distance or speed, for a trapezoid and a triangle.
+    #[test]
+    fn the_profile_takes_the_stated_time_within_the_cruise_speed() {
+        for &(cruise, ta) in &[(2.0, 1.0), (0.5, 1.0), (1.0, 1.0), (3.0, 0.2)] {
+            let m = MoveTiming {
+                cruise,
+                ta,
+                duration: trapezoid(cruise, ta),
+                overlap_next: 0.0,
+            };
+            let vmax = 1.0 / cruise.max(ta);
+            assert_eq!(m.profile(m.duration), (1.0, 0.0));
+            assert!((m.profile(m.duration * (1.0 - 1e-12)).0 - 1.0).abs() < 1e-9);
+            let h = 1e-6;
+            let mut prev = m.profile(0.0);
+            let n = 2000;
+            for k in 1..n {
+                let t = m.duration * k as f64 / n as f64;
+                let (s, v) = m.profile(t);
+                assert!(
+                    v <= vmax * (1.0 + 1e-12) && v >= 0.0,
+                    "{cruise} {ta} {t}: {v}"
+                );
+                let fd = (m.profile(t + h).0 - m.profile(t - h).0) / (2.0 * h);
+                assert!(
+                    (fd - v).abs() < 1e-5 * vmax.max(1.0),
+                    "{cruise} {ta} {t}: {fd} vs {v}"
+                );
+                assert!(s >= prev.0 && (s - prev.0) <= vmax * m.duration / n as f64 * 1.0001);
+                prev = (s, v);
+            }
+        }
     }
 }

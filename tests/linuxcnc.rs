@@ -463,9 +463,23 @@ fn linuxcnc_executes_every_shipped_cells_program_as_verified_and_in_the_estimate
                         "{label}: estimated {estimate:.2} s, LinuxCNC {executed:.2} s ({:.1} % off)",
                         100.0 * err
                     );
+                    // The digital twin runs the program by the same timing model (issue 25):
+                    // against LinuxCNC's own planner, to the same bound as the estimate.
+                    let twin = edbbgen::twin::Trajectory::from_program(
+                        &c.robot,
+                        &c.compiled.model,
+                        &parsed,
+                    )
+                    .unwrap()
+                    .end();
+                    assert!(
+                        (twin - executed).abs() <= 0.15 * executed,
+                        "{label}: the twin runs {twin:.2} s, LinuxCNC {executed:.2} s"
+                    );
                     let mut line = format!(
-                        "{label}: LinuxCNC {executed:.2} s, estimated {estimate:.2} s ({:+.1} %)",
-                        100.0 * (estimate - executed) / executed
+                        "{label}: LinuxCNC {executed:.2} s, estimated {estimate:.2} s ({:+.1} %), twin {twin:.2} s ({:+.2} %)",
+                        100.0 * (estimate - executed) / executed,
+                        100.0 * (twin - executed) / executed
                     );
                     if !blended {
                         let program = dir.join(format!("{label}.nc"));

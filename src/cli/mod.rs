@@ -574,13 +574,14 @@ fn run_compile(a: &CompileArgs) -> Result<i32, Error> {
         let h = &out.program.header;
         let v = &out.verified;
         println!(
-            "{}: {} poses + {} support ({} identifiable parameters, cond {}), estimated {} s in tour order ({} s unsorted); verified: min clearance {} mm ({} / {}), bar {}..{} mm; predicted MAP position uncertainty after calibration {} um RMS over the joint space ({} um bar noise at {} Hz)",
+            "{}: {} poses + {} support ({} identifiable parameters, cond {}), estimated {} s as programmed (support poses and blends included); ordering: {} s in tour order, {} s unsorted (the measurement poses alone, direct moves); verified: min clearance {} mm ({} / {}), bar {}..{} mm; predicted MAP position uncertainty after calibration {} um RMS over the joint space ({} um bar noise at {} Hz)",
             output.display(),
             h.poses,
             h.supports,
             h.identifiable,
             fmt_fixed(h.cond, 2),
             fmt_fixed(h.time_s, 1),
+            fmt_fixed(h.time_direct_s, 1),
             fmt_fixed(h.time_unsorted_s, 1),
             fmt_fixed(to_mm(v.min_clearance.distance), 1),
             v.min_clearance.a,

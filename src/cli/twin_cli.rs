@@ -46,17 +46,39 @@ pub fn simulate(a: &SimulateArgs) -> Result<i32, Error> {
     if !(1.0..=10_000.0).contains(&rate) {
         return Err(usage(format!("--rate: {rate} Hz is outside 1..10000 Hz")));
     }
-    let robot = load(&a.robot)?;
     let text = read(&a.program, "program", crate::files::Kind::Program)?;
     let spec = match &a.cell {
         Some(p) => crate::cell::load(p)?,
         None => Default::default(),
     };
+    // The twin's robot moves at the cell's joint speeds and accelerations where it states them
+    // (as compile and verify take them).
+    let mut robot = robot::load(
+        &a.robot,
+        &robot::LoadOptions {
+            speeds: spec.speeds,
+            accelerations: spec.accelerations,
+            ..Default::default()
+        },
+    )?;
     let dialect = super::program_dialect(a.dialect.as_deref(), &a.program, &text)?;
     let axes = super::controller_map(&spec, a.cell.as_deref(), dialect, &robot)?;
     let parsed = dialect
         .read(&text, &axes)
         .map_err(|e| file_err(&a.program, format!("{} program: {e}", dialect.name)))?;
+    // Without a cell that states them, the controller's accelerations are the ones the program
+    // header states its times with (the robot file's are often a default): the twin then runs
+    // the program in the times it states.
+    if spec.accelerations.is_none() {
+        let stated = crate::verify::HeaderLimits::read(&parsed)
+            .map_err(|e| file_err(&a.program, e))?
+            .accelerations_deg;
+        if let Some((acc, _)) = stated {
+            for (j, v) in robot.joints.iter_mut().zip(acc) {
+                j.max_acceleration = v * crate::units::DEG;
+            }
+        }
+    }
     let truth_text = read(&a.truth, "truth", crate::files::Kind::Config)?;
     let truth = Truth::from_toml(&truth_text).map_err(|e| file_err(&a.truth, e))?;
     let fixture = match &a.fixture {

@@ -158,6 +158,10 @@ impl Dialect {
             }),
         }?;
         p.map = map.clone();
+        p.timing = ProgramTiming {
+            move_time: self.move_time,
+            blend_acceleration: self.corner.blend_acceleration,
+        };
         Ok(p)
     }
 
@@ -420,6 +424,29 @@ pub struct Parsed {
     pub header: Vec<String>,
     pub lines: Vec<Line>,
     pub map: ControllerMap,
+    /// How the dialect it was read in times moves (what its time words state, the
+    /// acceleration of moves that blend): the twin runs the program on this timing.
+    #[serde(default)]
+    pub timing: ProgramTiming,
+}
+
+/// How a dialect's controller times a program's moves ([`crate::timing`]'s model): what a
+/// move's time word states and the acceleration of moves that blend (the dialect's
+/// `[corner] blend_acceleration`).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ProgramTiming {
+    pub move_time: MoveTime,
+    pub blend_acceleration: f64,
+}
+
+impl Default for ProgramTiming {
+    /// A controller that states cruise times and blends at full acceleration.
+    fn default() -> Self {
+        ProgramTiming {
+            move_time: MoveTime::Cruise,
+            blend_acceleration: 1.0,
+        }
+    }
 }
 
 impl Default for Parsed {
@@ -428,6 +455,7 @@ impl Default for Parsed {
             header: Vec::new(),
             lines: Vec::new(),
             map: ControllerMap::identity(Units::Deg, ["X", "Y", "Z", "A", "B", "C"]),
+            timing: ProgramTiming::default(),
         }
     }
 }

@@ -386,6 +386,7 @@ pub fn compile(
         cond: 0.0,
         time_unsorted_s: total,
         time_s: total,
+        time_direct_s: total,
         inputs_sha256: inputs_sha256.to_string(),
         joint_names: robot.joints.iter().map(|j| j.name.clone()).collect(),
         // The LDBB circle identifies no geometry: no calibration prediction (not rendered).

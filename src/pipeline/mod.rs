@@ -396,8 +396,13 @@ pub struct Report {
     pub bar_length_mm: [f64; 2],
     pub max_socket_angle_deg: f64,
     pub max_cup_angle_deg: f64,
+    /// The program's estimated time as planned (support poses, detours, blends), s.
     pub estimated_time_s: f64,
+    /// The measurement poses in pool order by direct moves with exact stops, s.
     pub time_unsorted_s: f64,
+    /// The measurement poses in tour order by the same direct moves, s (against
+    /// `time_unsorted_s`: what the ordering gains).
+    pub time_direct_s: f64,
     pub collision_pairs_checked: usize,
     pub excluded_pairs: Vec<collision::ExcludedPair>,
     pub warnings: Vec<String>,
@@ -549,7 +554,7 @@ pub fn compile(
     sections.report.measured_per_section = sections::measured_per_section(&planned.plan);
     let path = timed_path(
         &planned.plan,
-        planned.time_unsorted,
+        (planned.time_unsorted, planned.time_direct),
         &Limits::of(robot),
         template.dialect,
     );
@@ -600,6 +605,7 @@ pub fn compile(
         max_cup_angle_deg: to_deg(verified.extremes.max_cup_angle),
         estimated_time_s: path.time_sorted + dwell_time(opts, &planned.plan),
         time_unsorted_s: path.time_unsorted + dwell_time(opts, &planned.plan),
+        time_direct_s: path.time_direct + dwell_time(opts, &planned.plan),
         collision_pairs_checked: scene_report.pairs_checked,
         excluded_pairs: scene_report.excluded,
         warnings: warnings.clone(),
@@ -732,8 +738,10 @@ fn check_pool(
 /// The selection, its order and its safe plan.
 pub struct Planned {
     pub selection: Selection,
-    /// Eq. 7 time of the selected poses in pool order.
+    /// The selected poses in pool order by direct moves (ramps, exact stops), s.
     pub time_unsorted: f64,
+    /// The same poses in tour order by the same direct moves, s.
+    pub time_direct: f64,
     pub plan: Plan,
     /// Selected poses replaced because no safe move reached them or their section was too small.
     pub replaced: usize,
@@ -812,15 +820,9 @@ fn select_order_plan(
             &speeds,
             (opts.tour_cost == TourCost::Trapezoid).then_some(&accel),
         )?;
-        // The "unsorted" time: the chosen poses in pool order, each move with its ramps and
-        // an exact stop (the tour's estimate counts the same way).
-        let lim = Limits::of(ck.robot);
-        let time_unsorted: f64 = chosen
-            .windows(2)
-            .map(|w| timing::move_time(&pool[w[0]].q, &pool[w[1]].q, &lim, 1.0))
-            .sum();
         progress.stage("plan");
         let plan = safepath::plan_sections(&planner, &ordered, &speeds, opts.seed);
+        let (time_unsorted, time_direct) = direct_times(ck.robot, pool, &chosen, &plan);
         if plan.dropped.is_empty()
             || round == REPAIR_ROUNDS
             || usable.len() <= id.count() + plan.dropped.len()
@@ -828,6 +830,7 @@ fn select_order_plan(
             return Ok(Planned {
                 selection,
                 time_unsorted,
+                time_direct,
                 plan,
                 replaced,
             });
@@ -837,6 +840,34 @@ fn select_order_plan(
         replaced += unreachable.len();
         usable.retain(|&i| !unreachable.contains(&pool[i].q));
     }
+}
+
+/// The like-for-like pair that shows what the ordering gains (the paper's Fig. 6): the
+/// program's measurement poses by direct moves, each with its ramps and an exact stop, no
+/// support poses, in pool order (the "unsorted" time) and in the program's order (the tour, with
+/// any pose the planner deferred where it went), s. The program's own time (support poses,
+/// detours, blends) is another figure.
+fn direct_times(robot: &Robot, pool: &[Candidate], chosen: &[usize], plan: &Plan) -> (f64, f64) {
+    let lim = Limits::of(robot);
+    let time = |qs: &[[f64; 6]]| -> f64 {
+        qs.windows(2)
+            .map(|w| timing::move_time(&w[0], &w[1], &lim, 1.0))
+            .sum()
+    };
+    let near = |a: &[f64; 6], b: &[f64; 6]| (0..6).all(|j| (a[j] - b[j]).abs() < 1e-4);
+    // A pose the planner dropped is in neither (the program does not visit it).
+    let unsorted: Vec<[f64; 6]> = chosen
+        .iter()
+        .map(|&i| pool[i].q)
+        .filter(|q| !plan.dropped.iter().any(|d| near(&d.q, q)))
+        .collect();
+    let program: Vec<[f64; 6]> = plan
+        .waypoints
+        .iter()
+        .filter(|w| !w.support)
+        .map(|w| w.q)
+        .collect();
+    (time(&unsorted), time(&program))
 }
 
 /// The blend stage: every corner of the plan blended or stopped by the dialect's corner model
@@ -869,7 +900,12 @@ fn blend(
 /// than its speed): its cruise at the slowest joint's speed (Eq. 7) and its duration with the
 /// ramps at the joints' accelerations (the dialect's controller scales them on moves that
 /// blend); the total takes the blends' overlaps off ([`crate::timing`]).
-pub fn timed_path(plan: &Plan, time_unsorted: f64, lim: &Limits, dialect: &Dialect) -> Path {
+pub fn timed_path(
+    plan: &Plan,
+    (time_unsorted, time_direct): (f64, f64),
+    lim: &Limits,
+    dialect: &Dialect,
+) -> Path {
     let wq: Vec<[f64; 6]> = plan
         .waypoints
         .iter()
@@ -892,6 +928,7 @@ pub fn timed_path(plan: &Plan, time_unsorted: f64, lim: &Limits, dialect: &Diale
         cruise_times,
         time_unsorted,
         time_sorted,
+        time_direct,
     }
 }
 
@@ -1147,13 +1184,14 @@ pub fn retarget(
     let mut planned = Planned {
         selection: compiled.selection.clone(),
         time_unsorted: compiled.path.time_unsorted,
+        time_direct: compiled.path.time_direct,
         plan: compiled.plan.clone(),
         replaced: compiled.report.replaced_unreachable,
     };
     blend(&ck, &mut planned.plan, opts, template.dialect, &map);
     let path = timed_path(
         &planned.plan,
-        planned.time_unsorted,
+        (planned.time_unsorted, planned.time_direct),
         &Limits::of(robot),
         template.dialect,
     );

@@ -33,6 +33,7 @@ pub fn base(
         let total = dwell * header.measure_mm.len() as f64;
         header.time_s += total;
         header.time_unsorted_s += total;
+        header.time_direct_s += total;
         header.plateau_samples = predicted.plateau_samples.unwrap_or(0);
         header.predicted_continuous_std_um = predicted.continuous_workspace_rms.unwrap_or(0.0);
     }
@@ -74,6 +75,7 @@ fn header(
         cond,
         time_unsorted_s: path.time_unsorted,
         time_s: path.time_sorted,
+        time_direct_s: path.time_direct,
         accelerations: robot.max_accelerations().map(to_deg),
         inputs_sha256: String::new(),
         joint_names: robot.joints.iter().map(|j| j.name.clone()).collect(),

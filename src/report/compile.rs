@@ -4,7 +4,6 @@
 
 use super::{Block, Page, ReportError, Section};
 use crate::model::identify::Status;
-use crate::order::move_time;
 use crate::pipeline::Compiled;
 use crate::plot::{Figure, Legend, Mark, Panel, Series};
 use crate::robot::{kinematics::chain_frames, Robot};
@@ -99,7 +98,7 @@ pub fn page(robot: &Robot, out: &Compiled) -> Result<Page, ReportError> {
     let cell = &out.cell;
     let fixture = mm(&cell.fixture);
     let map_of = |q: &[f64; 6]| mm(&out.model.map_position(&out.model.nominal, q));
-    let speeds = robot.max_speeds();
+    let lim = crate::timing::Limits::of(robot);
 
     // ---- Fig. 4: pool and selection around the fixture --------------------------------------
     let stride = out.pool.candidates.len().div_ceil(POOL_DOTS).max(1);
@@ -204,7 +203,8 @@ pub fn page(robot: &Robot, out: &Compiled) -> Result<Page, ReportError> {
             if k == 0 {
                 0.0
             } else {
-                move_time(&unsorted[k - 1], &unsorted[k], &speeds)
+                // Timed as the header's unsorted time: direct, ramps, exact stops.
+                crate::timing::move_time(&unsorted[k - 1], &unsorted[k], &lim, 1.0)
             }
         })
         .collect();
@@ -213,14 +213,18 @@ pub fn page(robot: &Robot, out: &Compiled) -> Result<Page, ReportError> {
         panels: vec![
             joint_panel(
                 &format!(
-                    "selected poses in pool order: {} s",
+                    "selected poses in pool order, direct moves: {} s",
                     fmt_fixed(out.path.time_unsorted, 1)
                 ),
                 &unsorted,
                 &unsorted_t,
             ),
             joint_panel(
-                &format!("in tour order: {} s", fmt_fixed(out.path.time_sorted, 1)),
+                &format!(
+                    "the program in tour order, support poses included: {} s as programmed (the selected poses alone by direct moves: {} s)",
+                    fmt_fixed(out.path.time_sorted, 1),
+                    fmt_fixed(out.path.time_direct, 1)
+                ),
                 &out.path.poses,
                 &out.path.move_times,
             ),
@@ -467,8 +471,15 @@ pub fn page(robot: &Robot, out: &Compiled) -> Result<Page, ReportError> {
         (
             "estimated time".into(),
             format!(
-                "{} s in tour order ({} s unsorted; pauses not included)",
+                "{} s as programmed (support poses and blends included; pauses not included)",
                 fmt_fixed(h.time_s, 1),
+            ),
+        ),
+        (
+            "ordering (the measurement poses alone, direct moves with exact stops)".into(),
+            format!(
+                "{} s in tour order, {} s unsorted",
+                fmt_fixed(h.time_direct_s, 1),
                 fmt_fixed(h.time_unsorted_s, 1)
             ),
         ),
@@ -517,7 +528,7 @@ pub fn page(robot: &Robot, out: &Compiled) -> Result<Page, ReportError> {
                 heading: "Joint trajectories (Fig. 6)".into(),
                 blocks: vec![Block::figure(
                     "fig-joints",
-                    "Joint angles over the estimated time (Eq. 7: the slowest axis at its maximum speed), selected poses in pool order and in tour order.",
+                    "Joint angles over the estimated time (each move with its acceleration ramps from rest to rest; the program's blends overlap moves, which its stated time takes off): the selected poses in pool order by direct moves, and the program in tour order with its support poses. Like for like, the ordering takes the direct-move time of the same poses from the first panel's to the one in the second panel's title.",
                     &fig6,
                 )?],
             },

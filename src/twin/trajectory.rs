@@ -1,32 +1,47 @@
-//! Timing of a parsed program: in = the program's steps; out = the joint trajectory q(t) the
-//! virtual controller follows and the recording window.
+//! Timing of a parsed program: in = the program's steps and how its dialect times them
+//! ([`crate::dialect::ProgramTiming`]); out = the joint trajectory q(t) the virtual controller
+//! follows and the recording window.
 //!
-//! - Each move is a synchronous joint-space line with a cycloidal speed profile
-//!   s(u) = u − sin(2πu)/2π (smooth acceleration, zero speed at both ends; peak speed twice the
-//!   mean). Its duration is the commanded one, read the dialect's way ([`crate::dialect::Timing`]: G93 60/F s,
-//!   RAPID `\T`, URScript `t`, a speed percentage of the axes, G0: the slowest axis at its
-//!   maximum speed), stretched where needed so the peak speed stays within every joint's limit
-//!   (the controller is velocity-limited).
-//! - Blends (G64 P mm): the next move starts while the previous one still runs — the
-//!   controller superposes the two (overlapping blend). The overlap is the time in which the
-//!   MAP is within the blend distance of the corner (straight-line MAP distance along the move),
-//!   at most half of either move. The superposed trajectory stays smooth (C²).
+//! - The moves are timed by the model the program states its times with
+//!   ([`crate::timing::moves`], as the compiler's header and `verify` time them): each move a
+//!   synchronous joint-space line on the trapezoid's phases (ramps as long as the trapezoid's
+//!   at the joints' accelerations, scaled by the dialect's blend acceleration on moves that
+//!   blend; a cruise at the commanded speed, read the dialect's way
+//!   ([`crate::dialect::Timing`]: G93 60/F s, RAPID `\T` and URScript `t` whole-move times, a
+//!   speed percentage of the axes, G0: the slowest axis at its maximum speed), never faster
+//!   than the slowest axis at its maximum: the controller is velocity-limited). The moves take
+//!   exactly the stated times. Each ramp is a cycloidal speed ramp
+//!   ([`crate::timing::MoveTiming::profile`]): the trapezoid's distance and time, the speed
+//!   within the cruise's, the acceleration continuous (a finite jerk, as industrial
+//!   controllers ramp) with its mean at the joint's acceleration and its peak twice that — a
+//!   straight trapezoid would meet the acceleration limit exactly, but its acceleration steps
+//!   and a robot at an exact stop then turns on a parabola, which no jerk-limited arm does.
+//! - Blends: the next move starts while the previous one still runs, the two superposed
+//!   (LinuxCNC's parabolic blend), overlapping by [`crate::timing::overlap`]. A corner blends
+//!   when the program writes a blend there, the next line is a move and the bar is in place on
+//!   both moves (as `verify` counts it).
 //! - G4 dwells stand still; an M0 pause ends any blend. The bar is mounted at the first M0,
 //!   removed at the second, mounted again at the third (programs in sections), and so on: the
 //!   recording windows are the intervals with the bar in place (the whole program when it has
 //!   no M0).
 
 use super::SimError;
-use crate::dialect::{Parsed, Step};
+use crate::dialect::{MoveTime, Parsed, Step, Timing};
 use crate::model::MeasurementModel;
 use crate::robot::Robot;
-use std::f64::consts::TAU;
+use crate::timing::{self, Limits, MoveTiming};
 
 #[derive(Clone, Debug)]
 struct Seg {
     t0: f64,
-    dur: f64,
+    timing: MoveTiming,
     delta: [f64; 6],
+}
+
+impl Seg {
+    fn end(&self) -> f64 {
+        self.t0 + self.timing.duration
+    }
 }
 
 #[derive(Clone, Debug)]
@@ -55,103 +70,156 @@ pub struct Dwell {
     pub line: usize,
 }
 
-fn profile(u: f64) -> f64 {
-    let u = u.clamp(0.0, 1.0);
-    u - (TAU * u).sin() / TAU
-}
-
-fn profile_rate(u: f64) -> f64 {
-    if !(0.0..=1.0).contains(&u) {
-        return 0.0;
-    }
-    1.0 - (TAU * u).cos()
+/// A program step as the timeline needs it.
+enum Event {
+    /// Index into the moves (0: the approach's target, where the program starts).
+    Move(usize),
+    Dwell(f64, usize),
+    Pause,
 }
 
 impl Trajectory {
+    /// The program's trajectory on the robot's joint speeds and accelerations and the timing
+    /// of the dialect the program was read in (`program.timing`). `_model` is not used: the
+    /// blends overlap by the timing model, not by a MAP distance (kept for the callers).
     pub fn from_program(
         robot: &Robot,
-        model: &MeasurementModel,
+        _model: &MeasurementModel,
         program: &Parsed,
     ) -> Result<Trajectory, SimError> {
-        let vmax = robot.max_speeds();
-        let mut start: Option<[f64; 6]> = None;
-        let mut cur = [0.0; 6];
+        let lim = Limits::of(robot);
+        let vmax = lim.speed;
+        // The moves: targets (rad), cruise times, a blend written at the end, the bar in place.
+        let mut poses: Vec<[f64; 6]> = Vec::new();
+        let mut cruise: Vec<f64> = Vec::new();
+        let mut blend_written: Vec<bool> = Vec::new();
+        let mut mounted_at: Vec<bool> = Vec::new();
+        let mut flows_on: Vec<bool> = Vec::new();
+        let mut events: Vec<Event> = Vec::new();
+        let any_pause = program.lines.iter().any(|l| matches!(l.step, Step::Pause));
+        let mut mounted = !any_pause;
         let mut cur_axes = [0.0; 6];
-        let mut segs: Vec<Seg> = Vec::new();
-        let mut t_end = 0.0f64;
-        // Blend distance (m) of the corner at the end of the last segment, if it may blend.
-        let mut pending_blend: Option<f64> = None;
-        let mut pauses: Vec<f64> = Vec::new();
-        let mut dwells: Vec<Dwell> = Vec::new();
-        for l in &program.lines {
+        for (k, l) in program.lines.iter().enumerate() {
             match &l.step {
                 step @ Step::Move {
                     target,
                     axes,
                     blend,
+                    timing: word,
                     ..
                 } => {
                     let target: [f64; 6] = target.map(f64::to_radians);
-                    let Some(_) = start else {
-                        start = Some(target);
-                        cur = target;
-                        cur_axes = *axes;
-                        continue;
+                    let c = match poses.last() {
+                        None => 0.0,
+                        Some(cur) => {
+                            let eq7 = timing::eq7(cur, &target, &vmax);
+                            // A move whose speed is left to the controller runs at the axes'
+                            // maximum; a standstill takes no time.
+                            let commanded = program.duration(&cur_axes, step, &vmax).unwrap_or(eq7);
+                            if eq7 > 0.0 && !(commanded.is_finite() && commanded > 0.0) {
+                                return Err(SimError::Program {
+                                    line: l.line,
+                                    msg: "move without a usable feed".into(),
+                                });
+                            }
+                            // A whole-move time word (RAPID `\T`, URScript `t`) states the
+                            // ramps too: its cruise is what leaves them room (as `verify`).
+                            let c = match (program.timing.move_time, word) {
+                                (MoveTime::Total, Timing::Duration(_)) => timing::cruise_of(
+                                    commanded,
+                                    timing::accel_time(cur, &target, &lim.accel),
+                                ),
+                                _ => commanded,
+                            };
+                            // The controller never runs an axis above its maximum speed.
+                            if eq7 > 0.0 {
+                                c.max(eq7)
+                            } else {
+                                0.0
+                            }
+                        }
                     };
-                    let delta: [f64; 6] = std::array::from_fn(|i| target[i] - cur[i]);
-                    // Eq. 7: the slowest axis at its maximum speed.
-                    let eq7 = (0..6).map(|i| delta[i].abs() / vmax[i]).fold(0.0, f64::max);
-                    if eq7 == 0.0 {
-                        continue;
-                    }
-                    // A move whose speed is left to the controller runs at the axes' maximum.
-                    let commanded = program.duration(&cur_axes, step, &vmax).unwrap_or(eq7);
-                    if !(commanded.is_finite() && commanded > 0.0) {
-                        return Err(SimError::Program {
-                            line: l.line,
-                            msg: "move without a usable feed".into(),
-                        });
-                    }
-                    // Cycloidal profile: peak speed = 2 × mean.
-                    let dur = commanded.max(2.0 * eq7);
-                    let mut t0 = t_end;
-                    if let (Some(b), Some(prev)) = (pending_blend, segs.last()) {
-                        let w_prev = blend_time(model, prev, &cur, b, true);
-                        let seg = Seg {
-                            t0: 0.0,
-                            dur,
-                            delta,
-                        };
-                        let w_next = blend_time(model, &seg, &cur, b, false);
-                        t0 -= w_prev.min(w_next).min(0.5 * prev.dur).min(0.5 * dur);
-                    }
-                    segs.push(Seg { t0, dur, delta });
-                    t_end = t_end.max(t0 + dur);
-                    cur = target;
+                    events.push(Event::Move(poses.len()));
+                    poses.push(target);
+                    cruise.push(c);
+                    blend_written.push(blend.is_some());
+                    mounted_at.push(mounted);
+                    flows_on.push(matches!(
+                        program.lines.get(k + 1).map(|n| &n.step),
+                        Some(Step::Move { .. })
+                    ));
                     cur_axes = *axes;
-                    pending_blend = blend.filter(|b| *b > 0.0).map(|b| b * 1e-3);
                 }
-                Step::Dwell(s) => {
-                    let from = t_end;
-                    t_end += s.max(0.0);
-                    pending_blend = None;
-                    if start.is_some() {
-                        dwells.push(Dwell {
-                            from,
-                            to: t_end,
-                            q: cur,
-                            line: l.line,
-                        });
-                    }
-                }
+                Step::Dwell(s) => events.push(Event::Dwell(*s, l.line)),
                 Step::Pause => {
-                    pauses.push(t_end);
-                    pending_blend = None;
+                    mounted = !mounted;
+                    events.push(Event::Pause);
                 }
                 Step::End => break,
             }
         }
-        let start = start.ok_or_else(|| SimError::Empty("the program has no moves".into()))?;
+        let Some(&start) = poses.first() else {
+            return Err(SimError::Empty("the program has no moves".into()));
+        };
+        // The corners that blend, as `verify` counts them.
+        let n = poses.len();
+        let blended: Vec<bool> = (0..n)
+            .map(|j| {
+                blend_written[j]
+                    && mounted_at[j]
+                    && flows_on[j]
+                    && j > 0
+                    && j + 1 < n
+                    && mounted_at[j + 1]
+            })
+            .collect();
+        let timings = timing::moves(
+            &poses,
+            &cruise,
+            &blended,
+            &lim,
+            program.timing.blend_acceleration,
+        );
+        let mut segs: Vec<Seg> = Vec::with_capacity(n);
+        let mut t_end = 0.0f64;
+        let mut pauses: Vec<f64> = Vec::new();
+        let mut dwells: Vec<Dwell> = Vec::new();
+        // The program's time starts at the first move (the approach's target).
+        let mut started = false;
+        let mut last_q = start;
+        for e in &events {
+            match *e {
+                Event::Move(0) => started = true,
+                Event::Move(k) => {
+                    let overlap = if blended[k - 1] {
+                        timings[k - 1].overlap_next
+                    } else {
+                        0.0
+                    };
+                    let seg = Seg {
+                        t0: t_end - overlap,
+                        timing: timings[k],
+                        delta: std::array::from_fn(|i| poses[k][i] - poses[k - 1][i]),
+                    };
+                    t_end = t_end.max(seg.end());
+                    segs.push(seg);
+                    last_q = poses[k];
+                }
+                Event::Dwell(s, line) => {
+                    let from = t_end;
+                    t_end += s.max(0.0);
+                    if started {
+                        dwells.push(Dwell {
+                            from,
+                            to: t_end,
+                            q: last_q,
+                            line,
+                        });
+                    }
+                }
+                Event::Pause => pauses.push(t_end),
+            }
+        }
         let mut prefix = Vec::with_capacity(segs.len() + 1);
         let mut acc = start;
         prefix.push(acc);
@@ -161,8 +229,8 @@ impl Trajectory {
             }
             prefix.push(acc);
         }
-        // Segments end in order (overlaps are at most half a move).
-        let mut ends: Vec<f64> = segs.iter().map(|s| s.t0 + s.dur).collect();
+        // Segments end in order (a blend overlaps at most the next move's cruise).
+        let mut ends: Vec<f64> = segs.iter().map(Seg::end).collect();
         for k in 1..ends.len() {
             ends[k] = ends[k].max(ends[k - 1]);
         }
@@ -193,7 +261,7 @@ impl Trajectory {
         let done = self.ends.partition_point(|&e| e <= t);
         let mut q = self.prefix[done];
         for s in self.segs[done..].iter().take_while(|s| s.t0 < t) {
-            let f = profile((t - s.t0) / s.dur);
+            let (f, _) = s.timing.profile(t - s.t0);
             for i in 0..6 {
                 q[i] += s.delta[i] * f;
             }
@@ -206,7 +274,7 @@ impl Trajectory {
         let done = self.ends.partition_point(|&e| e <= t);
         let mut v = [0.0; 6];
         for s in self.segs[done..].iter().take_while(|s| s.t0 < t) {
-            let f = profile_rate((t - s.t0) / s.dur) / s.dur;
+            let (_, f) = s.timing.profile(t - s.t0);
             for i in 0..6 {
                 v[i] += s.delta[i] * f;
             }
@@ -218,7 +286,7 @@ impl Trajectory {
     pub fn first_direction(&self, j: usize, t: f64) -> f64 {
         self.segs
             .iter()
-            .filter(|s| s.t0 + s.dur > t && s.delta[j] != 0.0)
+            .filter(|s| s.end() > t && s.delta[j] != 0.0)
             .map(|s| s.delta[j].signum())
             .next()
             .unwrap_or(1.0)
@@ -243,41 +311,4 @@ impl Trajectory {
             .iter()
             .position(|&(a, b)| t >= a - 1e-9 && t <= b + 1e-9)
     }
-}
-
-/// Time before the end (`at_end`) or after the start of `seg` during which the MAP is within
-/// `blend` metres of that end, along the straight MAP chord of the move.
-fn blend_time(
-    model: &MeasurementModel,
-    seg: &Seg,
-    corner: &[f64; 6],
-    blend: f64,
-    at_end: bool,
-) -> f64 {
-    let other: [f64; 6] = std::array::from_fn(|i| {
-        if at_end {
-            corner[i] - seg.delta[i]
-        } else {
-            corner[i] + seg.delta[i]
-        }
-    });
-    let d = (model.map_position(&model.nominal, corner)
-        - model.map_position(&model.nominal, &other))
-    .norm();
-    if d <= blend {
-        return 0.5 * seg.dur;
-    }
-    // Profile fraction f = blend / d reached at u: profile is symmetric, so the time from
-    // the near end equals the time from the start to reach fraction f.
-    let f = blend / d;
-    let (mut lo, mut hi) = (0.0, 0.5);
-    for _ in 0..40 {
-        let mid = 0.5 * (lo + hi);
-        if profile(mid) < f {
-            lo = mid;
-        } else {
-            hi = mid;
-        }
-    }
-    0.5 * (lo + hi) * seg.dur
 }

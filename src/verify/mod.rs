@@ -18,9 +18,13 @@ pub mod trace;
 pub mod gcode {
     pub use crate::dialect::{Line, ParseError, Parsed, Step, Timing};
 
-    /// Reads RS274/NGC text with model joints as X Y Z A B C (degrees).
+    /// Reads RS274/NGC text with model joints as X Y Z A B C (degrees), timed as LinuxCNC
+    /// times it (the ngc dialect's [`crate::dialect::ProgramTiming`]).
     pub fn parse(text: &str) -> Result<Parsed, ParseError> {
-        crate::dialect::ngc::parse(text, &Parsed::default().map)
+        match crate::dialect::by_name("ngc") {
+            Some(d) => d.read(text, &Parsed::default().map),
+            None => crate::dialect::ngc::parse(text, &Parsed::default().map),
+        }
     }
 }
 
@@ -530,7 +534,9 @@ fn timed_motions(
                                     timing: crate::dialect::Timing::Duration(_),
                                     ..
                                 },
-                            ) => cruise_of(duration, timing::accel_time(&p, &q, &lim.accel)),
+                            ) => {
+                                timing::cruise_of(duration, timing::accel_time(&p, &q, &lim.accel))
+                            }
                             _ => duration,
                         }
                     }
@@ -647,15 +653,4 @@ fn timed_motions(
     // The dwells: standstills at the moves' targets, on top of the moves.
     let total = total + motions.iter().map(|m| m.dwell_after).sum::<f64>();
     Ok((motions, mount_at, blended, total))
-}
-
-/// The cruise time of a move whose whole time (ramps included) is `total`: T = T₇ + T_a²/T₇
-/// solved for T₇ (a move too short for a cruise runs its triangle at T_a).
-fn cruise_of(total: f64, ta: f64) -> f64 {
-    let disc = total * total - 4.0 * ta * ta;
-    if disc <= 0.0 {
-        ta
-    } else {
-        (total + disc.sqrt()) / 2.0
-    }
 }
