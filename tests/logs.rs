@@ -165,6 +165,7 @@ fn randomised_runs_are_matched_right_or_refused_naming_the_pose() {
                     "run {run}: a refusal that names no pose: {msg}"
                 );
                 assert!(!msg.contains('\n'), "one line: {msg}");
+                eprintln!("run {run} refused: {msg}");
                 refused += 1;
                 continue;
             }
