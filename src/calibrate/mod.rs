@@ -66,6 +66,9 @@ pub enum Effects {
     List(Vec<Effect>),
 }
 
+/// Linear thermal expansion of structural steel (1/K), for sizing a logged temperature change.
+const STEEL_EXPANSION: f64 = 11.5e-6;
+
 /// The bar's zero: the reading minus the ball-centre distance.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum LengthOffset {
@@ -862,6 +865,29 @@ pub fn run(
             fmt_fixed(noise_hf * 1e6, 3),
             fmt_fixed(rho, 2)
         ));
+    }
+    // A uniform expansion is a scale the geometry absorbs: a thermal drift the model leaves
+    // out need not show in the residual. The temperature log says it is there all the same.
+    let thermal_fitted = est.effects.iter().any(|t| t.effect == Effect::ThermalDrift);
+    if let (false, Some(dt)) = (thermal_fitted, problem.temperature_change()) {
+        let reach = region
+            .iter()
+            .map(|q| model.map_position(&calibrated, q).norm())
+            .fold(0.0f64, f64::max);
+        let growth = STEEL_EXPANSION * dt * reach;
+        if growth > noise_hf {
+            let hint = match opts.effects {
+                Effects::Auto => "",
+                _ => "; fit the effects with --effects auto",
+            };
+            warnings.push(format!(
+                "the logged temperature changed by {} K during the runs: about {} um of thermal growth at the MAP's {} mm reach (steel, {} per K), which the model leaves to the geometry{hint}",
+                fmt_fixed(dt, 2),
+                fmt_fixed(growth * 1e6, 1),
+                fmt_fixed(reach * 1e3, 0),
+                STEEL_EXPANSION
+            ));
+        }
     }
     if opts.fixture_known {
         if let Some(w) = fixture_check(&problem, &est, &free) {
