@@ -158,11 +158,7 @@ fn main() {
             // What the user gets: the calibrated robot when `calibrate` writes one, else (its
             // verdict: no better than nominal held out, or nothing determined) the nominal one.
             let written = cal.report.calibrated;
-            let p = if written {
-                cal.params()
-            } else {
-                model.nominal.clone()
-            };
+            let p = if written { cal.params() } else { model.nominal };
             let got: Vec<_> = space.iter().map(|q| model.map_position(&p, q)).collect();
             let (rms, max, _, _) = predict::register(&got, &truep);
             let row = Row {
