@@ -155,7 +155,10 @@ fn main() {
                 &CalibrateOptions::default(),
             )
             .expect("calibrate");
-            let p = cal.params();
+            // What the user gets: the calibrated robot when `calibrate` writes one, else (its
+            // verdict: no better than nominal held out, or nothing determined) the nominal one.
+            let written = cal.report.calibrated;
+            let p = if written { cal.params() } else { model.nominal };
             let got: Vec<_> = space.iter().map(|q| model.map_position(&p, q)).collect();
             let (rms, max, _, _) = predict::register(&got, &truep);
             let row = Row {
@@ -174,6 +177,9 @@ fn main() {
                 fmt_fixed(row.max, 2),
                 fmt_fixed(row.predicted, 2)
             );
+            if !written {
+                println!("      not written: {}", cal.report.verdict);
+            }
             rows[k].push(row);
         }
     }

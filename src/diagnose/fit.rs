@@ -643,6 +643,14 @@ impl Problem {
         self.temp_rise.is_some()
     }
 
+    /// How far the logged temperature moved within the runs (K): the largest rise or fall
+    /// from a run's first reading; None without a `temp_c` column.
+    pub fn temperature_change(&self) -> Option<f64> {
+        self.temp_rise
+            .as_ref()
+            .map(|r| r.iter().fold(0.0f64, |m, x| m.max(x.abs())))
+    }
+
     /// The longest run's span (s, or rows for untimed runs).
     pub fn span(&self) -> f64 {
         self.ranges
