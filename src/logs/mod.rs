@@ -265,6 +265,16 @@ pub fn stop_and_measure(tpl: &Template, bar: &BarLog) -> Result<StopAndMeasure, 
             cut_after: p.cut_after,
         })
         .collect();
+    if std::env::var_os("EDBB_DEBUG").is_some() {
+        for (j, o) in obs.iter().enumerate() {
+            eprintln!(
+                "plateau {j}: {:.2}..{:.2} {:.3} mm",
+                o.from,
+                o.to,
+                o.mean * 1e3
+            );
+        }
+    }
     let gap = (3.0 * stats.interval).max(0.05);
     let gaps: Vec<(f64, f64)> = bar
         .t
@@ -288,6 +298,23 @@ pub fn stop_and_measure(tpl: &Template, bar: &BarLog) -> Result<StopAndMeasure, 
                 tpl.slots.len()
             )),
         )));
+    }
+    // A plateau inside a section longer than its dwell holds a stop of the controller next to
+    // the pose: the reading is its last dwell, where the robot surely stood at the pose.
+    let mut plateaus = plateaus;
+    for (k, m) in alignment.matched.iter().enumerate() {
+        let (s, Some(j)) = (&tpl.slots[k], *m) else {
+            continue;
+        };
+        let p = &plateaus[j];
+        if !s.after_pause
+            && !s.before_pause
+            && p.to - p.from > align::longest_dwell(dwell, stats.interval)
+        {
+            if let Some(q) = plateau::tail(&bar.t, &bar.length, p, dwell, stats.rate) {
+                plateaus[j] = q;
+            }
+        }
     }
     let t0 = bar.t.first().copied().unwrap_or(0.0);
     let mut pose_of = vec![None; plateaus.len()];
