@@ -100,6 +100,55 @@ pub fn read_text(path: &Path, kind: Kind) -> Result<String, ReadError> {
     std::fs::read_to_string(path).map_err(ReadError::Io)
 }
 
+/// One CSV data row split into its cells (trimmed), checked to have as many cells as the
+/// header `names` has columns. Errors are (column, message): the caller adds the file and
+/// line in its own error type. Shared by the measured CSV and the instrument and controller
+/// logs, so that both say the same about the same fault.
+pub struct CsvRow<'a> {
+    cells: Vec<&'a str>,
+    names: &'a [&'a str],
+}
+
+/// Splits `raw` under the header `names`.
+pub fn csv_row<'a>(raw: &'a str, names: &'a [&'a str]) -> Result<CsvRow<'a>, (String, String)> {
+    let cells: Vec<&str> = raw.split(',').map(str::trim).collect();
+    if cells.len() != names.len() {
+        return Err((
+            format!("{}", cells.len().min(names.len()) + 1),
+            format!(
+                "{} cells, the header has {} columns",
+                cells.len(),
+                names.len()
+            ),
+        ));
+    }
+    Ok(CsvRow { cells, names })
+}
+
+impl CsvRow<'_> {
+    /// The column's name as messages give it: `3 (q2_deg)` (1-based).
+    pub fn column(&self, c: usize) -> String {
+        format!("{} ({})", c + 1, self.names[c])
+    }
+
+    /// Cell `c` (0-based) as written (trimmed).
+    pub fn text(&self, c: usize) -> &str {
+        self.cells[c]
+    }
+
+    /// Cell `c` (0-based) as a finite number.
+    pub fn number(&self, c: usize) -> Result<f64, (String, String)> {
+        let s = self.cells[c];
+        let v: f64 = s
+            .parse()
+            .map_err(|_| (self.column(c), format!("'{s}' is not a number")))?;
+        if !v.is_finite() {
+            return Err((self.column(c), format!("'{s}' is not finite")));
+        }
+        Ok(v)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -138,27 +138,8 @@ pub fn file_for(dir: &Path, d: &str, program: &Program) -> PathBuf {
     dir.join(format!("{}.{ext}", program.header.program_name))
 }
 
-/// The events of a program as the plan says: M = move (with S when a support pose, B when it
-/// ends in a blend), P = the operator's pause.
-fn planned_events(p: &Program) -> Vec<String> {
-    let mut ev = Vec::new();
-    for m in &p.moves {
-        if m.remove_before {
-            ev.push("P".to_string());
-        }
-        ev.push(format!(
-            "M{}{}",
-            if m.support { "S" } else { "" },
-            if m.blend_mm > 0.0 { "B" } else { "" }
-        ));
-        if m.mount_after {
-            ev.push("P".to_string());
-        }
-    }
-    ev.push("P".to_string());
-    ev
-}
-
+/// The events a dialect's reader finds in a written program: M = move (with S when a support
+/// pose, B when it ends in a blend), P = the operator's pause, D = a dwell (s).
 fn read_events(parsed: &dialect::Parsed) -> Vec<String> {
     parsed
         .lines
@@ -180,9 +161,10 @@ fn read_events(parsed: &dialect::Parsed) -> Vec<String> {
         .collect()
 }
 
-/// A stop-and-measure plan's events: every measurement pose's move ends in an exact stop and
-/// its dwell follows (at a section's first pose, after the mount pause).
-fn planned_dwell_events(p: &Program) -> Vec<String> {
+/// A plan's events: moves (support, blended), pauses, and in a stop-and-measure program the
+/// dwell after every measurement pose's exact stop (at a section's first pose, after the
+/// mount pause).
+fn planned_events(p: &Program) -> Vec<String> {
     let mut ev = Vec::new();
     for m in &p.moves {
         if m.remove_before {
@@ -228,7 +210,7 @@ fn every_dialect_of_a_stop_and_measure_program_is_golden_and_reads_back_its_dwel
             .read(text, &map)
             .unwrap_or_else(|e| panic!("{label}: {e}"));
         let events = read_events(&parsed);
-        assert_eq!(events, planned_dwell_events(program), "{label}");
+        assert_eq!(events, planned_events(program), "{label}");
         // Every measurement pose is dwelt at, each dwell after an exact stop or the mount.
         let dwells = events.iter().filter(|e| e.starts_with('D')).count();
         assert_eq!(dwells, program.header.poses, "{label}");

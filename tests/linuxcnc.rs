@@ -621,3 +621,172 @@ fn verify_trace_checks_the_recorded_path() {
         r.stderr
     );
 }
+
+/// The program's dwells, read from its text independently of edbbgen's readers: the joint
+/// values of the motion line before each `G4 P` (controller axes, deg) and its seconds.
+fn dwells(text: &str) -> Vec<([f64; 6], f64)> {
+    let mut at = [f64::NAN; 6];
+    let mut out = Vec::new();
+    for l in text.lines() {
+        let code = l.split('(').next().unwrap_or("").trim();
+        if code.starts_with("G0 ") || code.starts_with("G1 ") {
+            for w in code.split_whitespace() {
+                if let Some(i) = "XYZABC".find(&w[..1]) {
+                    at[i] = w[1..].parse().unwrap();
+                }
+            }
+        } else if let Some(p) = code.strip_prefix("G4 P") {
+            out.push((at, p.parse().unwrap()));
+        }
+    }
+    out
+}
+
+/// Issue 23: a stop-and-measure (`--dwell 2`) program on LinuxCNC's own planner and motion
+/// controller. From the recorded trace (the commanded joints every servo period): every dwell
+/// is an exact stop at its measurement pose (every joint at the pose's value, standing) for
+/// the dwell (at least 85 % of it in servo periods, which a loaded host misses), in the
+/// program's order; `verify --trace` passes with every pose met.
+/// Then the bar's log of that run: the length of a robot with geometric errors at the
+/// executed joints, 1 µm noise, at 50 Hz on the bar's own clock (7.25 s offset, 120 ppm) —
+/// and `calibrate --bar-log --program` matches every plateau to its pose, none missing.
+#[test]
+fn linuxcnc_executes_every_dwell_as_an_exact_stop_and_the_bar_log_of_the_run_matches() {
+    use rand::{Rng, SeedableRng};
+    let c = crate::dialects::dwell_cell();
+    let text = c.text("ngc");
+    let header = &c.compiled.program.header;
+    let want = dwells(text);
+    assert_eq!(want.len(), header.poses);
+    let dir = tempdir();
+    let trace = simulate("nj130_dwell", dir.path(), text, &c.robot);
+    let rows: Vec<(f64, [f64; 6])> = std::fs::read_to_string(&trace)
+        .unwrap()
+        .lines()
+        .skip(1)
+        .map(|l| {
+            let v: Vec<f64> = l.split(',').map(|x| x.parse().unwrap()).collect();
+            (v[0], std::array::from_fn(|i| v[i + 1]))
+        })
+        .collect();
+    let dt = rows[1].0 - rows[0].0;
+    // Each dwell in order: the first sample at the pose after the previous dwell, and how
+    // long every joint stays there.
+    let mut from = 0;
+    let mut shortest = f64::INFINITY;
+    for (k, (pose, s)) in want.iter().enumerate() {
+        let at = |q: &[f64; 6]| (0..6).all(|i| (q[i] - pose[i]).abs() <= 1e-6);
+        let first = (from..rows.len())
+            .find(|&i| at(&rows[i].1))
+            .unwrap_or_else(|| {
+                panic!(
+                    "pose {}/{}: never reached after t = {} s",
+                    k + 1,
+                    want.len(),
+                    rows[from].0
+                )
+            });
+        let last = (first..rows.len())
+            .take_while(|&i| at(&rows[i].1))
+            .last()
+            .unwrap();
+        // The trace counts servo periods: on a loaded host LinuxCNC's uspace servo thread
+        // misses some while the task times the dwell on the wall clock (a full test run on
+        // the 2-core CI machine saw a 2 s dwell as 1.77 s of periods). The same allowance as
+        // the executed-time check of the cells above: 15 %.
+        let stood = (last - first) as f64 * dt;
+        assert!(
+            stood >= 0.85 * s - dt,
+            "pose {}/{}: stood {stood} s at t = {} s, the dwell is {s} s",
+            k + 1,
+            want.len(),
+            rows[first].0
+        );
+        shortest = shortest.min(stood);
+        from = last + 1;
+    }
+    let program = dir.path().join("nj130_dwell.nc");
+    std::fs::write(&program, text).unwrap();
+    let r = edbbgen([
+        "verify".to_string(),
+        c.robot_path.display().to_string(),
+        program.display().to_string(),
+        "--cell".into(),
+        c.cell_path.display().to_string(),
+        "--trace".into(),
+        trace.display().to_string(),
+        "--json".into(),
+    ]);
+    assert_eq!(r.code, 0, "verify --trace: {}", r.stderr);
+    let v: serde_json::Value = serde_json::from_str(&r.stdout).unwrap();
+    let worst = v["trace"]["worst_miss_mm"].as_f64().unwrap();
+    assert!(worst <= 1e-3, "a measurement pose missed by {worst} mm");
+    assert_eq!(v["trace"]["poses"].as_array().unwrap().len(), header.poses);
+
+    // The bar's log of the run: a robot with geometric errors, its length at the executed
+    // joints (the controller's axes back to the model's), on the bar's clock.
+    let model = &c.compiled.model;
+    let dl = edbbgen::dialect::by_name("ngc").unwrap();
+    let map = edbbgen::controller::ControllerMap::resolve(
+        c.opts.cell.controller.as_ref(),
+        &dl.defaults(),
+        "ngc",
+        &c.robot,
+    )
+    .unwrap();
+    let mut p = model.nominal.to_array();
+    p[edbbgen::model::A + 1] += 0.15e-3;
+    p[edbbgen::model::THETA + 2] += 0.01f64.to_radians();
+    p[edbbgen::model::D + 3] -= 0.08e-3;
+    let truth = edbbgen::model::Params::from_array(&p);
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(23);
+    let every = (0.02 / dt).round().max(1.0) as usize;
+    let mut bar = String::from("t_s,length_mm\n");
+    for (t, axes) in rows.iter().step_by(every) {
+        let q: [f64; 6] = map.undo(axes).map(f64::to_radians);
+        let (u1, u2): (f64, f64) = (rng.random_range(1e-12..1.0), rng.random());
+        let noise = 1e-6 * (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos();
+        let l = model.length(&truth, &q) + noise;
+        bar += &format!("{:.4},{:.5}\n", 7.25 + (1.0 + 120e-6) * t, l * 1e3);
+    }
+    let bar_path = dir.path().join("bar.csv");
+    std::fs::write(&bar_path, bar).unwrap();
+    let json = dir.path().join("cal.json");
+    let r = edbbgen([
+        "calibrate".to_string(),
+        c.robot_path.display().to_string(),
+        "--bar-log".into(),
+        bar_path.display().to_string(),
+        "--program".into(),
+        program.display().to_string(),
+        "-o".into(),
+        dir.path().join("cal.dh.toml").display().to_string(),
+        "--json".into(),
+        json.display().to_string(),
+    ]);
+    assert_eq!(r.code, 0, "calibrate --bar-log: {}{}", r.stdout, r.stderr);
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let run = &report["runs"][0];
+    assert_eq!(run["missing"], serde_json::json!([]), "{run}");
+    let mut matched: Vec<u64> = run["plateaus"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter_map(|p| p["pose"].as_u64())
+        .collect();
+    matched.sort_unstable();
+    assert_eq!(
+        matched,
+        (1..=header.poses as u64).collect::<Vec<_>>(),
+        "every pose matched once"
+    );
+    let drift = run["clock"]["drift_ppm"].as_f64().unwrap();
+    eprintln!(
+        "LinuxCNC dwell run: {} dwells, the shortest stood {shortest:.3} s (dwell {} s); verify --trace: poses within {worst:.4} mm; bar log: {} of {} poses matched, clock drift {drift:.0} ppm (the bar's 120 ppm and LinuxCNC's moves against the program's times)",
+        want.len(),
+        header.dwell_s,
+        matched.len(),
+        header.poses
+    );
+}

@@ -128,6 +128,8 @@ const REGION_POSES: usize = 2000;
 pub const MIN_ROWS: usize = N_PARAMS + 2;
 /// Held-out blocks of the validation.
 const FOLDS: usize = 8;
+/// Up to this many readings, the model-error factor holds out one reading at a time.
+const LOO_ROWS: usize = 200;
 /// A row is an outlier when it leaves the median of its neighbours by more than this many
 /// robust standard deviations.
 const OUTLIER_SIGMAS: f64 = 8.0;
@@ -216,7 +218,8 @@ pub struct Predicted {
     /// The variance factor Type A carries beyond the white-noise one: the larger of the
     /// residual's integrated autocorrelation time and the held-out residual's mean square
     /// over the one noise alone gives held out (what the held-out data say about model
-    /// error).
+    /// error; only blocks whose complement determines the fit count, and up to 200 readings
+    /// they are single readings).
     pub model_error_factor: f64,
 }
 
@@ -722,7 +725,6 @@ pub fn run(
     let st = accumulate(&problem, &est, &cols, folds);
     let cv_cal = score(&st, &all).3;
     let heldout_cal = (cv_cal / kept_rows as f64).sqrt();
-    let cv_noise = fit::heldout_noise(&st, &all);
     let heldout_nom = {
         let mut e = est.clone();
         e.p[crate::model::ALPHA..MAP].copy_from_slice(&nominal.p[crate::model::ALPHA..MAP]);
@@ -739,10 +741,23 @@ pub fn run(
     // about model error: its mean square over what the noise alone gives held out (the
     // noise plus the variance of predicting a block from the others, which on a few static
     // readings is no model error).
-    let model_factor = if sigma > 0.0 && cv_noise > 0.0 {
-        (cv_cal / (sigma * sigma * cv_noise)).max(1.0)
-    } else {
-        1.0
+    // Only folds whose complement determines the whole fit count: on a few dozen readings
+    // with nearly as many unknowns (a stop-and-measure run's plateau means) blocks of an
+    // eighth leave directions undetermined, so those are held out one reading at a time.
+    let model_factor = {
+        let loo;
+        let st_m = if kept_rows <= LOO_ROWS {
+            loo = accumulate(&problem, &est, &cols, problem.rows());
+            &loo
+        } else {
+            &st
+        };
+        match fit::heldout_determined(st_m, &all) {
+            Some((cv, noise, _)) if sigma > 0.0 && noise > 0.0 => {
+                (cv / (sigma * sigma * noise)).max(1.0)
+            }
+            _ => 1.0,
+        }
     };
     let factor = inflate.max(model_factor);
     let sigma_eff = sigma * factor.sqrt();

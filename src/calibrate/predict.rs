@@ -386,15 +386,87 @@ pub fn expected(
     for r in runs {
         total += &r.normal;
     }
+    finish(
+        model,
+        &total,
+        identifiable,
+        &shared,
+        noise,
+        &|p| prior.of(p),
+        prior.kappa,
+        poses,
+    )
+}
+
+/// The prediction of a calibration from one run as [`super::run`] makes it by default: the
+/// fixture and the tool point (MAP) estimated where the data determine them, each with the
+/// set-up prior `setup` (m) as its yardstick, the length zero given. The structure in
+/// `calibrate`'s preference order (the MAP, the fixture, then the DH in Eq. 6 order: the MAP
+/// takes link 6's place and the fixture d1's and θ1's), then as [`expected`]: the determined
+/// parameters by the same rule, Type A over them, Type B for every other parameter at its
+/// prior, propagated to the MAP over `poses` after a rigid registration.
+pub fn expected_setup_free(
+    model: &MeasurementModel,
+    run: &RunInformation,
+    noise: f64,
+    prior: &Prior,
+    setup: f64,
+    poses: &[[f64; 6]],
+) -> Expected {
+    let all: Vec<usize> = (0..N_PARAMS).collect();
+    let order: Vec<usize> = (crate::model::MAP..N_PARAMS)
+        .chain(crate::model::FIX..crate::model::ALPHA)
+        .chain(crate::model::ALPHA..crate::model::MAP)
+        .collect();
+    let cols = DMatrix::from_fn(run.rows.len(), N_PARAMS, |i, c| run.rows[i][c]);
+    let names: Vec<String> = crate::model::PARAM_NAMES
+        .iter()
+        .map(|s| s.to_string())
+        .collect();
+    let (_, identifiable) =
+        crate::model::identify::classify(&cols, &names, &order, &[false; N_PARAMS]);
+    let prior_of = |p: usize| {
+        if crate::model::is_fixture(p) || crate::model::is_map(p) {
+            setup
+        } else {
+            prior.of(p)
+        }
+    };
+    finish(
+        model,
+        &run.normal,
+        identifiable,
+        &all,
+        noise,
+        &prior_of,
+        prior.kappa,
+        poses,
+    )
+}
+
+/// The common end of [`expected`] and [`expected_setup_free`]: from the summed information
+/// `total` (30 × 30) and the `identifiable` parameters among `shared`, the determined ones
+/// and the two components over `poses`.
+#[allow(clippy::too_many_arguments)]
+fn finish(
+    model: &MeasurementModel,
+    total: &DMatrix<f64>,
+    identifiable: Vec<usize>,
+    shared: &[usize],
+    noise: f64,
+    prior_of: &dyn Fn(usize) -> f64,
+    kappa: f64,
+    poses: &[[f64; 6]],
+) -> Expected {
     let sub =
         |a: &[usize], b: &[usize]| DMatrix::from_fn(a.len(), b.len(), |x, y| total[(a[x], b[y])]);
     // Determined: the prior-scaled information, as calibrate judges it.
-    let scale: Vec<f64> = identifiable.iter().map(|&p| prior.of(p)).collect();
+    let scale: Vec<f64> = identifiable.iter().map(|&p| prior_of(p)).collect();
     let ni = sub(&identifiable, &identifiable);
     let ss = DMatrix::from_fn(ni.nrows(), ni.ncols(), |a, b| {
         ni[(a, b)] * scale[a] * scale[b]
     });
-    let (chosen, _) = super::determined_columns(&ss, noise, prior.kappa);
+    let (chosen, _) = super::determined_columns(&ss, noise, kappa);
     let determined: Vec<usize> = chosen.iter().map(|&k| identifiable[k]).collect();
     let held: Vec<usize> = shared
         .iter()
@@ -418,7 +490,7 @@ pub fn expected(
         let fitted: Vec<Option<usize>> = determined.iter().map(|&p| Some(p)).collect();
         let held_idx: Vec<Option<usize>> = held.iter().map(|&p| Some(p)).collect();
         let w = held_weights(&sub(&both, &both), &fitted, &held_idx);
-        let sd: Vec<f64> = held.iter().map(|&p| prior.of(p)).collect();
+        let sd: Vec<f64> = held.iter().map(|&p| prior_of(p)).collect();
         let cov_b = DMatrix::from_fn(held.len(), held.len(), |a, b| {
             if a == b {
                 sd[a] * sd[a]

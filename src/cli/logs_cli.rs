@@ -343,7 +343,7 @@ fn stop_and_measure(
         .sum();
     let unmatched = sm.report.iter().filter(|r| r.pose.is_none()).count();
     let mut summary = vec![format!(
-        "{}: {} of {} poses matched to plateaus{}{}; clock offset {} s (section 1), drift {} ppm; bar reads nominal + {} mm",
+        "{}: {} of {} poses matched to plateaus{}{}; clock offset {} s (the program's time, its first pause taken out), drift {} ppm; bar reads nominal + {} mm",
         name(bar_path),
         sm.readings.len(),
         tpl.slots.len(),
@@ -364,7 +364,14 @@ fn stop_and_measure(
         } else {
             String::new()
         },
-        fmt_fixed(sm.clock.offset_s, 3),
+        match sm.clock.offset_std_s {
+            Some(u) => format!(
+                "{} +- {}",
+                fmt_fixed(sm.clock.offset_s, 3),
+                fmt_fixed(u, 3)
+            ),
+            None => fmt_fixed(sm.clock.offset_s, 3),
+        },
         match sm.clock.drift_std_ppm {
             Some(s) => format!(
                 "{} +- {}",
@@ -433,11 +440,13 @@ fn continuous(
     };
     let clock = ClockReport {
         reference: "joint_log",
+        t_ref: "the joint log's time stamps".into(),
         offset_s: s.offset,
         offset_std_s: Some(s.offset_std),
         drift_ppm: s.drift * 1e6,
         drift_std_ppm: Some(s.drift_std * 1e6),
-        section_offsets_s: None,
+        pauses_s: None,
+        pauses_std_s: None,
         timeline_rms_s: None,
         length_rms_um: Some(s.rms * 1e6),
         method: format!("the bar's length against the one the joint log predicts ({which} model): coarse offset search, then offset and drift in steps, then least squares on offset, drift and zero over the samples that agree (the bar mounted); uncertainty inflated for the residual's correlation"),

@@ -1383,24 +1383,35 @@ pub(crate) fn score(st: &Stats, sel: &[usize]) -> (f64, usize, f64, f64) {
     (rss, rank, bic, cv)
 }
 
-/// The held-out sum of squares that white noise of unit variance gives a right model on the
-/// folds of `st` (columns `sel`): per fold, its rows plus the variance of its prediction by
-/// the model fitted to the others, tr(N_f · (N − N_f)⁺). Held-out residuals exceed the
-/// in-sample ones by this much without any model error: by little on a long recording, by
-/// a large factor on a few dozen static readings with nearly as many parameters.
-pub(crate) fn heldout_noise(st: &Stats, sel: &[usize]) -> f64 {
-    let (nt, _, _, _) = st.total();
+/// The held-out sum of squares (as [`score`]'s) and what white noise of unit variance gives
+/// a right model there (per fold, its rows plus the variance of its prediction by the model
+/// fitted to the others, tr(N_f · (N − N_f)⁺): by little on a long recording, by a large
+/// factor on a few dozen static readings with nearly as many parameters), over the folds
+/// whose complement determines every direction the whole data do (same rank), and the rows
+/// of those folds; None when no fold does. A fold whose complement leaves a direction undetermined predicts its rows from the
+/// minimum-norm solution there: its held-out error then grows with the robot's true error
+/// along that direction, which is neither noise nor a model error.
+pub(crate) fn heldout_determined(st: &Stats, sel: &[usize]) -> Option<(f64, f64, usize)> {
+    let (nt, bt, _, _) = st.total();
     let k = sel.len();
-    let mut e = 0.0;
+    let (_, _, full) = solve(&nt, &bt, sel);
+    let (mut cv, mut noise, mut rows) = (0.0, 0.0, 0);
     for f in 0..st.n.len() {
         if st.rows[f] == 0 {
             continue;
         }
-        let nf = DMatrix::from_fn(k, k, |a, c| st.n[f][(sel[a], sel[c])]);
-        let rest = DMatrix::from_fn(k, k, |a, c| nt[(sel[a], sel[c])]) - &nf;
-        e += st.rows[f] as f64 + (nf * inverse(&rest)).trace().max(0.0);
+        let (xf, _, rank) = solve(&(&nt - &st.n[f]), &(&bt - &st.b[f]), sel);
+        if rank < full {
+            continue;
+        }
+        let nsel = DMatrix::from_fn(k, k, |a, c| st.n[f][(sel[a], sel[c])]);
+        let bsel = DVector::from_fn(k, |a, _| st.b[f][sel[a]]);
+        cv += (st.rr[f] - 2.0 * xf.dot(&bsel) + xf.dot(&(&nsel * &xf))).max(0.0);
+        let rest = DMatrix::from_fn(k, k, |a, c| nt[(sel[a], sel[c])]) - &nsel;
+        noise += st.rows[f] as f64 + (nsel * inverse(&rest)).trace().max(0.0);
+        rows += st.rows[f];
     }
-    e
+    (rows > 0).then_some((cv, noise, rows))
 }
 
 /// A converged fit: the model's columns (free geometry, then the effects' coefficients), its

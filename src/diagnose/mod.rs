@@ -210,27 +210,27 @@ pub fn effect_report(e: Effect, basis: Basis, coef: &[f64], var: &[f64]) -> Effe
         }
         Effect::Backlash(_) => {
             params.insert("play_deg".into(), round(to_deg(coef[0]), 6).into());
-            std.insert("play_deg".into(), sane(round(to_deg(sd(0)), 6)));
+            std.insert("play_deg".into(), sane(round_std(to_deg(sd(0)), 6)));
         }
         Effect::ServoLag => {
             params.insert("tau_s".into(), round(coef[0], 6).into());
-            std.insert("tau_s".into(), sane(round(sd(0), 6)));
+            std.insert("tau_s".into(), sane(round_std(sd(0), 6)));
             if coef.len() > 1 {
                 // The second-order term: −τ²/2 for a pure delay, −τ² for a first-order loop.
                 params.insert("second_order_s2".into(), round(coef[1], 9).into());
-                std.insert("second_order_s2".into(), sane(round(sd(1), 9)));
+                std.insert("second_order_s2".into(), sane(round_std(sd(1), 9)));
             }
         }
         Effect::ThermalDrift if basis == Basis::Temperature => {
             params.insert("alpha_per_k".into(), round(coef[0], 12).into());
-            std.insert("alpha_per_k".into(), sane(round(sd(0), 12)));
+            std.insert("alpha_per_k".into(), sane(round_std(sd(0), 12)));
         }
         Effect::ThermalDrift => {
             // Lengths scale by 1 + s·(1 − exp(−t/τ)): the scale reached and the time constant.
             params.insert("scale".into(), round(coef[0], 12).into());
             params.insert("time_constant_s".into(), round(coef[1], 3).into());
-            std.insert("scale".into(), sane(round(sd(0), 12)));
-            std.insert("time_constant_s".into(), sane(round(sd(1), 3)));
+            std.insert("scale".into(), sane(round_std(sd(0), 12)));
+            std.insert("time_constant_s".into(), sane(round_std(sd(1), 3)));
         }
         Effect::JointCompliance if basis == Basis::KnownMasses => {
             // Compliance c = 1/k per joint; a stiffness only where c is clearly positive.
@@ -284,7 +284,7 @@ pub fn geometry_report(
         let name = problem.param_name(*q);
         let dev = (est.get(*q) - nominal.get(*q)) / unit;
         params.insert(name.clone(), round(dev, 6).into());
-        std.insert(name, sane(round(var[k].max(0.0).sqrt() / unit, 6)));
+        std.insert(name, sane(round_std(var[k].max(0.0).sqrt() / unit, 6)));
     }
     (params, std)
 }
@@ -376,6 +376,17 @@ fn locate(m: &Measured, r: &[f64]) -> Option<Where> {
         joints_deg,
         peak_um: round(peak_abs * 1e6, 3),
     })
+}
+
+/// A standard uncertainty rounded to `d` decimals, or to two significant digits where that
+/// would print a nonzero one as 0 (a servo lag known to 0.3 µs is not known exactly).
+fn round_std(v: f64, d: i32) -> f64 {
+    let r = round(v, d);
+    if r != 0.0 || v == 0.0 || !v.is_finite() {
+        return r;
+    }
+    let digits = 1 - v.abs().log10().floor() as i32;
+    round(v, digits)
 }
 
 fn round(v: f64, d: i32) -> f64 {
@@ -626,8 +637,21 @@ pub fn select(
         let base_cols = model_cols(&s, &free);
         let mut cols = base_cols.clone();
         let mut moves: Vec<(Move, std::ops::Range<usize>)> = Vec::new();
+        // A model with as many unknowns as readings interpolates them: its residual vanishes,
+        // its BIC runs to −∞ and its held-out folds are fitted on fewer rows than columns. A
+        // move is a candidate only when the model with it keeps at least as many readings
+        // spare as it has unknowns (a general compliance basis of 60 terms is no candidate
+        // for 42 plateau means).
+        let spare = base_cols.len();
         let mut add = |m: Move, cols: &mut Vec<Col>| {
             let c = move_cols(&m);
+            let least = match m {
+                Move::Cyclic(_) => 2,
+                _ => c.len(),
+            };
+            if 2 * (spare + least) > kept {
+                return;
+            }
             moves.push((m, cols.len()..cols.len() + c.len()));
             cols.extend(c);
         };
@@ -969,4 +993,18 @@ fn summary(r: &Report, timed: bool) -> String {
         );
     }
     s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_small_standard_uncertainty_keeps_two_significant_digits() {
+        assert_eq!(round_std(0.001_234_4, 6), 0.001234);
+        assert_eq!(round_std(3.14e-7, 6), 3.1e-7);
+        assert_eq!(round_std(4.9e-7, 6), 4.9e-7);
+        assert_eq!(round_std(0.0, 6), 0.0);
+        assert_eq!(round_std(2.5e-13, 12), 2.5e-13);
+    }
 }

@@ -149,11 +149,25 @@ const PASS1_TIME_LOG: f64 = 0.35;
 /// Floors of the pass-2 scatters: length (m) and time (s) beyond the sampling.
 const LENGTH_FLOOR: f64 = 20e-6;
 const TIME_FLOOR: f64 = 0.01;
+/// Bounds of the share of gaps whose plateau edges moved, and of their scatter (times the
+/// dwell: a plateau's edge cannot move by more than the plateau is long).
+const EDGE_SHARE: (f64, f64) = (0.05, 0.4);
+const EDGE_MAX: f64 = 0.25;
+/// The longest ramp of an industrial robot's stop or start (s): an edge moves by less.
+const EDGE_RAMP: f64 = 0.5;
 /// A verdict is taken when its posterior reaches this.
 pub const SURE: f64 = 0.99;
 /// Student-t degrees of freedom of every residual (heavy tails: one odd pose does not break a
 /// run).
 const NU: f64 = 3.0;
+
+/// The longest plateau a dwell inside a section leaves (s): the dwell, its edges a few samples
+/// and a smooth stop's approach. A longer one holds a stop of the controller at the pose, or
+/// close enough to it that the bar cannot tell; the dwell is then its last `dwell` seconds
+/// (the move away starts when the dwell ends).
+pub fn longest_dwell(dwell: f64, interval: f64) -> f64 {
+    1.15 * dwell + 0.3 + 2.0 * interval
+}
 
 /// ln Γ(x) for x > 0 (Lanczos, g = 7): for the Student-t's normalisation.
 fn ln_gamma(x: f64) -> f64 {
@@ -222,6 +236,9 @@ struct Pass2 {
     /// of the time between consecutive plateaus about that (s).
     move_ratio: f64,
     time_sigma: f64,
+    /// The share of gaps whose plateau edges moved beyond that scatter, and their scatter (s).
+    edge_share: f64,
+    edge_sigma: f64,
 }
 
 impl Scorer<'_> {
@@ -248,7 +265,7 @@ impl Scorer<'_> {
         }
         if !s.after_pause && !s.before_pause {
             // A dwell is as long as programmed; a hold during it makes it longer (rare).
-            let hi = 1.15 * dwell + 0.3 + 2.0 * self.interval;
+            let hi = longest_dwell(dwell, self.interval);
             if dur > hi {
                 score -= 2.0 + (dur - hi) / (0.5 * dwell);
             }
@@ -270,14 +287,20 @@ impl Scorer<'_> {
         score
     }
 
-    /// ln density of a gap's deviation from the program (s) in pass 2: the timing scatter
-    /// (Gaussian); a delay up to half a dwell (a stop too short to leave a plateau) at a small
-    /// rate; anything else only at a tiny one (a longer stop leaves a plateau, and a
-    /// controller is not early).
-    fn ln_timing(&self, delta: f64, sigma: f64) -> f64 {
-        let core =
-            (-0.5 * (delta / sigma).powi(2)).exp() / (sigma * (std::f64::consts::TAU).sqrt());
-        let short = 0.5 * self.tpl.dwell + 3.0 * sigma;
+    /// ln density of a gap's deviation from the program (s) in pass 2, `want` the time the
+    /// program and the controller's move ratio give: the timing scatter (Gaussian); the
+    /// plateau edges' own displacement (a second, wider Gaussian at the share pass 1 found it:
+    /// a smooth stop or start reaches the bar's stillness tolerance early or late by up to its
+    /// ramp, depending on how fast the bar's length changes near the pose); a delay up to half
+    /// a dwell (a stop too short to leave a plateau) at a small rate; anything else only at a
+    /// tiny one (a longer stop leaves a plateau, and a controller is not early).
+    fn ln_timing(&self, p: &Pass2, delta: f64, want: f64) -> f64 {
+        let gauss =
+            |s: f64| (-0.5 * (delta / s).powi(2)).exp() / (s * (std::f64::consts::TAU).sqrt());
+        let sigma = p.time_sigma + TIME_RELATIVE * want;
+        let edge = p.edge_sigma + TIME_RELATIVE * want;
+        let core = (1.0 - p.edge_share) * gauss(sigma) + p.edge_share * gauss(edge);
+        let short = 0.5 * self.tpl.dwell + 3.0 * edge;
         let stop = if delta > 0.0 && delta <= short {
             SHORT_STOP / short
         } else {
@@ -331,16 +354,12 @@ impl Scorer<'_> {
                 Some(p) => {
                     let want = p.move_ratio * moves + dwells;
                     let sigma = p.time_sigma + TIME_RELATIVE * want;
-                    if oa.cut_after || ob.cut_before {
+                    if (oa.cut_after || ob.cut_before) && got - want >= -3.0 * sigma {
                         // A gap hides where the standstill ended (began): the time between
                         // is at most what the log shows.
-                        if got - want >= -3.0 * sigma {
-                            0.0
-                        } else {
-                            self.ln_timing(got - want, sigma) + self.ln_time_range
-                        }
+                        0.0
                     } else {
-                        self.ln_timing(got - want, sigma) + self.ln_time_range
+                        self.ln_timing(p, got - want, want) + self.ln_time_range
                     }
                 }
             };
@@ -828,14 +847,31 @@ pub fn align(
     };
     let errs: Vec<f64> = steps.iter().map(|s| s.0 - move_ratio * s.1 - s.2).collect();
     let time_sigma = mad(&errs).max(TIME_FLOOR + interval);
+    // The gaps beyond 3 sigmas, up to what a ramp can move an edge: plateau edges a smooth
+    // stop moved (beyond that: pass 1's wrong matches, stops); their RMS is the edge scatter,
+    // their share its weight (bounded: a few steps cannot say it is rare, nor make every gap
+    // uncertain).
+    let edge_max = (EDGE_MAX * tpl.dwell).min(EDGE_RAMP);
+    let wide: Vec<f64> = errs
+        .iter()
+        .copied()
+        .filter(|e| e.abs() > 3.0 * time_sigma && e.abs() <= edge_max)
+        .collect();
+    let edge_share =
+        ((wide.len() as f64 + 1.0) / (errs.len() as f64 + 2.0)).clamp(EDGE_SHARE.0, EDGE_SHARE.1);
+    let edge_sigma = (wide.iter().map(|e| e * e).sum::<f64>() / wide.len().max(1) as f64)
+        .sqrt()
+        .clamp(3.0 * time_sigma, edge_max.max(3.0 * time_sigma));
     if std::env::var_os("EDBB_DEBUG").is_some() {
-        eprintln!("pass1 {:?}\nratio {move_ratio} sigma {time_sigma} lscale {length_scale} zero {zero} errs {:?}", first, errs);
+        eprintln!("pass1 {:?}\nratio {move_ratio} sigma {time_sigma} edge {edge_share} {edge_sigma} lscale {length_scale} zero {zero} errs {:?}\nsteps {:?}", first, errs, steps);
     }
     sc.pass2 = Some(Pass2 {
         local_zero,
         length_scale,
         move_ratio,
         time_sigma,
+        edge_share,
+        edge_sigma,
     });
     let timeline = fit_timeline(tpl, obs, &first, sections);
     let post = posterior(&sc);

@@ -139,31 +139,10 @@ fn rows(text: &str) -> impl Iterator<Item = (usize, &str)> {
 
 /// One parsed row: every cell a finite number, as many cells as the header has columns.
 fn cells(line: usize, raw: &str, names: &[&str]) -> Result<Vec<f64>, LogError> {
-    let cells: Vec<&str> = raw.split(',').map(str::trim).collect();
-    if cells.len() != names.len() {
-        return Err(err(
-            line,
-            format!("{}", cells.len().min(names.len()) + 1),
-            format!(
-                "{} cells, the header has {} columns",
-                cells.len(),
-                names.len()
-            ),
-        ));
-    }
-    cells
-        .iter()
-        .enumerate()
-        .map(|(c, s)| {
-            let col = || format!("{} ({})", c + 1, names[c]);
-            let v: f64 = s
-                .parse()
-                .map_err(|_| err(line, col(), format!("'{s}' is not a number")))?;
-            if !v.is_finite() {
-                return Err(err(line, col(), format!("'{s}' is not finite")));
-            }
-            Ok(v)
-        })
+    let at = |(c, m): (String, String)| err(line, c, m);
+    let row = crate::files::csv_row(raw, names).map_err(at)?;
+    (0..names.len())
+        .map(|c| row.number(c).map_err(at))
         .collect()
 }
 

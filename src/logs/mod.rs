@@ -62,19 +62,26 @@ pub struct PlateauReport {
     pub std_um: f64,
 }
 
-/// The clock relation (DESIGN.md: `clock`): t_bar = offset + (1 + drift·1e-6)·t_ref.
+/// The clock relation (DESIGN.md: `clock`): t_bar = offset + (1 + drift·1e-6)·t_ref, the
+/// bar's clock against the controller's.
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct ClockReport {
-    /// What t_ref is: "program" (the program's time, pauses as zero: each section has its own
-    /// offset) or "joint_log".
+    /// What t_ref is: "program" (stop-and-measure: the controller's time running the program,
+    /// see `t_ref`) or "joint_log" (the joint log's time stamps).
     pub reference: &'static str,
+    /// When t_ref is zero, for people.
+    pub t_ref: String,
     pub offset_s: f64,
     pub offset_std_s: Option<f64>,
     pub drift_ppm: f64,
     pub drift_std_ppm: Option<f64>,
-    /// Stop-and-measure: the offset of every section (null where none of its poses matched).
+    /// Stop-and-measure: how long the controller stood between each section and the next
+    /// (the operator's removal and mount pauses, s of t_ref; null where a section has no
+    /// matched pose), with their standard uncertainties. t_ref includes them.
     #[serde(skip_serializing_if = "Option::is_none")]
-    pub section_offsets_s: Option<Vec<Option<f64>>>,
+    pub pauses_s: Option<Vec<Option<f64>>>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub pauses_std_s: Option<Vec<Option<f64>>>,
     /// RMS of the residual the clock was fitted to: plateau edges (s) or lengths (µm).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub timeline_rms_s: Option<f64>,
@@ -82,6 +89,55 @@ pub struct ClockReport {
     pub length_rms_um: Option<f64>,
     /// How it was obtained, for people.
     pub method: String,
+}
+
+/// The stop-and-measure clock from the timeline's per-section offsets (program time with
+/// pauses as zero): one offset, that of the first section (t_ref counts from the program's
+/// start with its first pause taken out: the bar, mounted during it, sees nothing of the
+/// program before it ends), one drift, and the pauses between sections that the later
+/// sections' offsets measure. An offset's uncertainty carries the timeline's and a quarter of
+/// a sample interval (the edges' Type B: a plateau starts and ends between two samples).
+fn program_clock(tl: &Timeline, interval: f64) -> ClockReport {
+    let edge = 0.25 * interval;
+    let with_edge = |s: Option<f64>| s.map(|s| s.hypot(edge));
+    let first = tl.offsets.iter().position(Option::is_some).unwrap_or(0);
+    let rate = 1.0 + tl.drift;
+    let mut pauses = Vec::new();
+    let mut pauses_std = Vec::new();
+    for s in 1..tl.offsets.len() {
+        match (tl.offsets[s - 1], tl.offsets[s]) {
+            (Some(a), Some(b)) => {
+                pauses.push(Some((b - a) / rate));
+                pauses_std.push(
+                    match (with_edge(tl.offset_std[s - 1]), with_edge(tl.offset_std[s])) {
+                        (Some(x), Some(y)) => Some(x.hypot(y) / rate),
+                        _ => None,
+                    },
+                );
+            }
+            _ => {
+                pauses.push(None);
+                pauses_std.push(None);
+            }
+        }
+    }
+    ClockReport {
+        reference: "program",
+        t_ref: if first == 0 {
+            "the controller's time running the program, from its start, with its first pause (the bar's mounting) taken out: the bar sees nothing before it".into()
+        } else {
+            format!("the controller's time running the program, from its start, with every pause up to section {}'s mounting taken out (no pose of the sections before it matched)", first + 1)
+        },
+        offset_s: tl.offsets[first].unwrap_or(0.0),
+        offset_std_s: with_edge(tl.offset_std[first]),
+        drift_ppm: tl.drift * 1e6,
+        drift_std_ppm: tl.drift_std.map(|s| s * 1e6),
+        pauses_s: Some(pauses[first.min(pauses.len())..].to_vec()),
+        pauses_std_s: Some(pauses_std[first.min(pauses_std.len())..].to_vec()),
+        timeline_rms_s: Some(tl.rms),
+        length_rms_um: None,
+        method: "plateau edges against the program's dwell and move times, one offset per section (the pauses' lengths are unknown), one drift, robust least squares; the controller's stops taken out. The drift includes any difference between the controller's and the program's move times".into(),
+    }
 }
 
 /// A stop-and-measure run read from a bar log: the matched readings (in pose order) and
@@ -209,6 +265,16 @@ pub fn stop_and_measure(tpl: &Template, bar: &BarLog) -> Result<StopAndMeasure, 
             cut_after: p.cut_after,
         })
         .collect();
+    if std::env::var_os("EDBB_DEBUG").is_some() {
+        for (j, o) in obs.iter().enumerate() {
+            eprintln!(
+                "plateau {j}: {:.2}..{:.2} {:.3} mm",
+                o.from,
+                o.to,
+                o.mean * 1e3
+            );
+        }
+    }
     let gap = (3.0 * stats.interval).max(0.05);
     let gaps: Vec<(f64, f64)> = bar
         .t
@@ -232,6 +298,23 @@ pub fn stop_and_measure(tpl: &Template, bar: &BarLog) -> Result<StopAndMeasure, 
                 tpl.slots.len()
             )),
         )));
+    }
+    // A plateau inside a section longer than its dwell holds a stop of the controller next to
+    // the pose: the reading is its last dwell, where the robot surely stood at the pose.
+    let mut plateaus = plateaus;
+    for (k, m) in alignment.matched.iter().enumerate() {
+        let (s, Some(j)) = (&tpl.slots[k], *m) else {
+            continue;
+        };
+        let p = &plateaus[j];
+        if !s.after_pause
+            && !s.before_pause
+            && p.to - p.from > align::longest_dwell(dwell, stats.interval)
+        {
+            if let Some(q) = plateau::tail(&bar.t, &bar.length, p, dwell, stats.rate) {
+                plateaus[j] = q;
+            }
+        }
     }
     let t0 = bar.t.first().copied().unwrap_or(0.0);
     let mut pose_of = vec![None; plateaus.len()];
@@ -260,19 +343,7 @@ pub fn stop_and_measure(tpl: &Template, bar: &BarLog) -> Result<StopAndMeasure, 
             std_um: p.std * 1e6,
         })
         .collect();
-    let tl = &alignment.timeline;
-    let first = tl.offsets.iter().position(Option::is_some).unwrap_or(0);
-    let clock = ClockReport {
-        reference: "program",
-        offset_s: tl.offsets[first].unwrap_or(0.0),
-        offset_std_s: tl.offset_std[first],
-        drift_ppm: tl.drift * 1e6,
-        drift_std_ppm: tl.drift_std.map(|s| s * 1e6),
-        section_offsets_s: Some(tl.offsets.clone()),
-        timeline_rms_s: Some(tl.rms),
-        length_rms_um: None,
-        method: "plateau edges against the program's dwell and move times (pauses as zero: one offset per section), robust least squares; the drift includes any difference between the controller's and the program's move times".into(),
-    };
+    let clock = program_clock(&alignment.timeline, stats.interval);
     Ok(StopAndMeasure {
         readings,
         zero: alignment.zero,

@@ -264,6 +264,15 @@ pub fn detect(
     Ok((out, st))
 }
 
+/// The last `span` seconds of plateau `p` of the log (t, l), summarised as a plateau of its
+/// own (the gap flag at its end kept); None when too few samples remain.
+pub fn tail(t: &[f64], l: &[f64], p: &Plateau, span: f64, rate: f64) -> Option<Plateau> {
+    let a = (p.first_row..=p.last_row).find(|&k| t[k] >= p.to - span)?;
+    let mut q = summarise(t, l, a, p.last_row, rate)?;
+    q.cut_after = p.cut_after;
+    Some(q)
+}
+
 /// The plateau over rows a..=b: its core's mean, spread and the mean's uncertainty.
 fn summarise(t: &[f64], l: &[f64], a: usize, b: usize, rate: f64) -> Option<Plateau> {
     let (from, to) = (t[a], t[b]);

@@ -524,7 +524,18 @@ pub fn compile(
     progress.stage("identify");
     // Identifiability over the poses the bar can actually measure: the pool itself.
     let pool_q: Vec<[f64; 6]> = sections.pool.candidates.iter().map(|c| c.q).collect();
-    let mut identifiability = model::analyse(&model.rows(&pool_q), &IdentifyOptions::default());
+    // A stop-and-measure program has one reading per pose to share between the robot and
+    // the set-up, which `calibrate` estimates by default: its poses are chosen for both (a
+    // continuous recording learns the set-up along its moves).
+    let identify = if opts.dwell.is_some() {
+        IdentifyOptions {
+            fixture_known: false,
+            map_known: false,
+        }
+    } else {
+        IdentifyOptions::default()
+    };
+    let mut identifiability = model::analyse(&model.rows(&pool_q), &identify);
     warnings.extend(map_warnings(&model, &identifiability));
     if let Some(focus) = &opts.focus {
         warnings.extend(focus_on(&mut identifiability, focus)?);
@@ -549,6 +560,7 @@ pub fn compile(
     );
     progress.stage("path, predict");
     let predicted = predict(&ck, &identifiability, &path, &planned.plan, opts);
+    warnings.extend(dwell_warning(&predicted, opts));
     let mut base = program::base(&ck, opts, &identifiability, &planned, &path, &predicted);
     if opts.focus.is_some() {
         base.header.notes.push(format!(
@@ -940,7 +952,9 @@ fn dwell_time(opts: &CompileOptions, plan: &Plan) -> f64 {
 /// stop-and-measure program (`--dwell`) is calibrated from one reading per measurement pose,
 /// the mean of a plateau's core ([`crate::logs::plateau_core_samples`] samples, so the noise
 /// falls by its square root); the same program recorded continuously (moves and dwells, with
-/// a synchronous joint log) is predicted alongside.
+/// a synchronous joint log) is predicted alongside. Both as `calibrate` reads them by
+/// default (the fixture and the MAP estimated); a continuous program's prediction keeps the
+/// paper's convention (the set-up known, the identifiable parameters free).
 fn predict(
     ck: &Checker,
     id: &Identifiability,
@@ -979,9 +993,27 @@ fn predict(
         .filter(|(_, w)| !w.support)
         .map(|(q, _)| *q)
         .collect();
+    // Both forms are predicted as `calibrate` reads them by default: the fixture and the
+    // tool point estimated where the data determine them (a stop-and-measure run has one
+    // reading per pose to share between the robot and the set-up; its recording along the
+    // moves is what the synchronous form adds).
+    let calibrated = |info: &p::RunInformation, noise: f64| {
+        let e = p::expected_setup_free(
+            ck.model,
+            info,
+            noise,
+            &p::Prior::default(),
+            crate::calibrate::DEFAULT_PRIOR_SETUP_MM * crate::units::MM,
+            &space,
+        );
+        p::spread(&e.combined)
+    };
     // The continuous recording of the same run also holds every dwell: S seconds at the pose.
     segments.extend(poses.iter().map(|q| (*q, *q, dwell)));
-    let recorded = continuous(&segments);
+    let recorded = calibrated(
+        &p::recording_information(ck.model, &segments, opts.bar_rate),
+        opts.bar_noise,
+    );
     let n = crate::logs::plateau_core_samples(dwell, opts.bar_rate).max(1);
     let rows: Vec<[f64; N_PARAMS]> = poses
         .iter()
@@ -991,13 +1023,10 @@ fn predict(
             row
         })
         .collect();
-    let spread = p::spread(&p::after_readings(
-        ck.model,
-        &rows,
-        &id.identifiable,
+    let spread = calibrated(
+        &p::readings_information(&rows),
         opts.bar_noise / (n as f64).sqrt(),
-        &space,
-    ));
+    );
     Predicted {
         workspace_rms: spread.rms * 1e6,
         workspace_p95: spread.p95 * 1e6,
@@ -1006,6 +1035,22 @@ fn predict(
         plateau_samples: Some(n),
         continuous_workspace_rms: Some(recorded.rms * 1e6),
     }
+}
+
+/// A stop-and-measure program whose plateau means predict more than twice the uncertainty of
+/// the same run recorded synchronously: the dwell is too short for its readings to carry what
+/// the continuous recording adds along the moves (each plateau mean averages the dwell's
+/// core; a longer dwell narrows the gap).
+fn dwell_warning(p: &Predicted, opts: &CompileOptions) -> Option<String> {
+    let (dwell, cont) = (opts.dwell?, p.continuous_workspace_rms?);
+    (p.workspace_rms > 2.0 * cont).then(|| {
+        format!(
+            "--dwell {}: the plateau means predict {} um RMS over the joint space, more than twice the {} um of the same run recorded with a synchronous joint log: a longer dwell averages more of each standstill",
+            crate::units::fmt_fixed(dwell, 2),
+            crate::units::fmt_fixed(p.workspace_rms, 2),
+            crate::units::fmt_fixed(cont, 2)
+        )
+    })
 }
 
 /// The moves a program records: every move made with the bar (not the transits between

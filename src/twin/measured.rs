@@ -199,28 +199,11 @@ pub fn parse_csv(text: &str, min_rows: usize) -> Result<Measured, CsvError> {
                 format!("more than {MAX_ROWS} rows: split the run, or record at a lower rate"),
             ));
         }
-        let cells: Vec<&str> = raw.split(',').map(str::trim).collect();
-        if cells.len() != names.len() {
-            return Err(err(
-                line,
-                format!("{}", cells.len().min(names.len()) + 1),
-                format!(
-                    "{} cells, the header has {} columns",
-                    cells.len(),
-                    names.len()
-                ),
-            ));
-        }
-        let col = |c: usize| format!("{} ({})", c + 1, names[c]);
-        let cell = |c: usize| -> Result<f64, CsvError> {
-            let v: f64 = cells[c]
-                .parse()
-                .map_err(|_| err(line, col(c), format!("'{}' is not a number", cells[c])))?;
-            if !v.is_finite() {
-                return Err(err(line, col(c), format!("'{}' is not finite", cells[c])));
-            }
-            Ok(v)
-        };
+        let at = |(c, m): (String, String)| err(line, c, m);
+        // Only the columns used are read: an extra column may hold anything.
+        let row = crate::files::csv_row(raw, &names).map_err(at)?;
+        let col = |c: usize| row.column(c);
+        let cell = |c: usize| -> Result<f64, CsvError> { row.number(c).map_err(at) };
         let t = if timed {
             let t = cell(idx[0])?;
             if let Some(&prev) = m.t.last() {
@@ -260,7 +243,8 @@ pub fn parse_csv(text: &str, min_rows: usize) -> Result<Measured, CsvError> {
             v.push(s * 1e-6);
         }
         if let (Some(c), Some(v)) = (n_idx, m.samples.as_mut()) {
-            let n = cells[c]
+            let n = row
+                .text(c)
                 .parse::<u32>()
                 .ok()
                 .filter(|n| *n > 0)
@@ -268,7 +252,10 @@ pub fn parse_csv(text: &str, min_rows: usize) -> Result<Measured, CsvError> {
                     err(
                         line,
                         col(c),
-                        format!("'{}' is not a positive whole number of samples", cells[c]),
+                        format!(
+                            "'{}' is not a positive whole number of samples",
+                            row.text(c)
+                        ),
                     )
                 })?;
             v.push(n);
