@@ -2,7 +2,7 @@
 CARGO ?= cargo
 NJ130 := robots/comau_nj130/robot.dh.toml
 
-.PHONY: build run test check fmt clippy doc snapshots bench bench-peers bench-diagnose paper calibration stop-and-measure ci fuzz rapidchecker
+.PHONY: build run test check fmt clippy doc snapshots bench bench-peers bench-diagnose paper calibration pose-selection stop-and-measure ci fuzz rapidchecker
 
 build:
 	$(CARGO) build --release --locked
@@ -49,6 +49,11 @@ bench-diagnose:
 # Fig. 12: sensitivity of the compiled program vs the ISO 230-4 circle test, 20 random robots.
 paper:
 	$(CARGO) run --release --locked --example paper
+
+# Pose selection on static readings: 12 simulated NJ-130s read once at the compiler's 35 poses
+# and at 35 random poses of the same pool (the paper's premise at equal effort).
+pose-selection:
+	$(CARGO) run --release --locked --example pose_selection
 
 # What a program buys: 25 simulated NJ-130s calibrated from the compiled program, the ISO
 # circle and random poses; true MAP error over the joint space next to the prediction.
