@@ -22,8 +22,10 @@
 //!    − nominal) and the robot's scatter about it (MAD), the controller's move-time ratio
 //!    (median) and the scatter of the gaps about it (MAD, at least a sample and a half). The
 //!    reading is then scored against zero + nominal (Student-t, ν = 5, with a 1e-4 chance of
-//!    any length), each gap against ratio·moves + dwells (Gaussian; a delay up to half a dwell
-//!    at 2 %: a stop too short to leave a plateau; anything else at 1e-5). The posterior of
+//!    any length), each gap against ratio·moves + dwells (Gaussian, plus a wider Gaussian at
+//!    the share of pass 1's gaps beyond 3 sigmas and up to 0.5 s: plateau edges that a smooth
+//!    stop or start moves; a delay up to half a dwell at 2 %: a stop too short to leave a
+//!    plateau; anything else at 1e-5). The posterior of
 //!    every (pose, plateau) pair over all alignments (forward–backward): a pose is matched
 //!    when one plateau holds ≥ 99 % of it, missing when "no plateau" does; anything else is a
 //!    refusal naming the pose.
