@@ -53,7 +53,39 @@ pub fn true_points(model: &MeasurementModel, truth: &Truth, qs: &[[f64; 6]]) -> 
 pub fn file_points(path: &Path, qs: &[[f64; 6]]) -> Vec<Vector3<f64>> {
     let robot = load(path);
     let tool = robot.tool.expect("a calibrated file carries the MAP");
-    qs.iter().map(|q| robot.point(q, &tool)).collect()
+    // The robot the file describes at rest: its effects applied, a backlash at the centre of
+    // its play, a thermal drift at its reference state.
+    qs.iter()
+        .map(|q| robot.reached_point(q, &tool, &[0.0; 6], Default::default()))
+        .collect()
+}
+
+/// The true robot of a twin truth at rest (the twin's own formulas): its geometry with a
+/// cyclic error and a compliance on the commanded joints; a backlash at the centre of its play
+/// and a thermal drift at the start of the recording are the geometry.
+pub fn true_points_at_rest(
+    robot: &Robot,
+    model: &MeasurementModel,
+    truth: &Truth,
+    qs: &[[f64; 6]],
+) -> Vec<Vector3<f64>> {
+    let p = truth.params(model);
+    let masses = truth.compliance_masses(robot);
+    qs.iter()
+        .map(|q| {
+            let mut load = *q;
+            if let Some(c) = &truth.cyclic {
+                load[c.joint] += edbbgen::twin::effects::cyclic(c, q[c.joint]);
+            }
+            if let Some(c) = &truth.compliance {
+                let tau = edbbgen::twin::gravity_torques(model, &p, q, &masses);
+                for j in 0..6 {
+                    load[j] += tau[j] / c.stiffness[j];
+                }
+            }
+            model.map_position(&p, &load)
+        })
+        .collect()
 }
 
 /// Registered RMS distance (µm) between two point sets.
@@ -162,7 +194,10 @@ fn round_trip(
         };
     }
     let qs = joint_space(&c.robot, 2000, seed);
-    let err_um = registered_um(&file_points(&out, &qs), &true_points(&c.model, truth, &qs));
+    let err_um = registered_um(
+        &file_points(&out, &qs),
+        &true_points_at_rest(&c.robot, &c.model, truth, &qs),
+    );
     Trip {
         err_um: Some(err_um),
         report,
@@ -275,39 +310,12 @@ fn calibrated_files_reproduce_the_true_robot_within_5_um_with_every_effect() {
     assert!(failures.is_empty(), "{}", failures.join("\n"));
 }
 
-/// The true robot a DH file can hold when joint `j` has the twin's cyclic error: the joint's
-/// zero plus the error's mean over the range the joint was measured in (midpoint rule).
-fn with_cyclic_mean(truth: &Truth, m: &twin::Measured) -> Truth {
-    let mut t = truth.clone();
-    if let Some(c) = &truth.cyclic {
-        let (lo, hi) = m.q.iter().fold((f64::MAX, f64::MIN), |(a, b), q| {
-            (a.min(q[c.joint]), b.max(q[c.joint]))
-        });
-        let n = 10_000;
-        let mean = (0..n)
-            .map(|i| {
-                let q = lo + (hi - lo) * (i as f64 + 0.5) / n as f64;
-                (0..3)
-                    .map(|h| {
-                        let a = (h + 1) as f64 * q;
-                        c.cos[h] * a.cos() + c.sin[h] * a.sin()
-                    })
-                    .sum::<f64>()
-            })
-            .sum::<f64>()
-            / n as f64;
-        t.geometric[THETA + c.joint] += mean;
-    }
-    t
-}
-
 #[test]
 fn a_cyclic_error_of_a_joint_short_of_a_turn_goes_into_its_zero_with_an_honest_uncertainty() {
     // Joint 2 of the NJ-130 turns through ~145°: a once-per-turn cyclic error there looks much
-    // like its zero offset. Only the zero plus the error's mean over the measured range is
-    // observable, and it is the best constant a DH table can hold: the calibrated file holds
-    // it (issue 22; the file used to hold the zero of a convention the data cannot see, and
-    // missed it by tens of micrometres). Its predicted uncertainty covers what it gets wrong.
+    // like its zero offset. The file holds the joint's physical zero and the error's
+    // harmonics; together they are the true robot, and the predicted uncertainty covers what
+    // they get wrong.
     let c = nj130_cell();
     let dir = workdir(&nj130_dh());
     let mut rng = ChaCha8Rng::seed_from_u64(7);
@@ -343,18 +351,17 @@ fn a_cyclic_error_of_a_joint_short_of_a_turn_goes_into_its_zero_with_an_honest_u
     let report: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
     let qs = joint_space(&c.robot, 2000, 7);
-    let effective = with_cyclic_mean(&truth, &m);
+    // The file carries the cyclic error with the physical zero: the robot it describes is
+    // the true one, over the whole range of the joint, not only the one measured.
     let err = registered_um(
         &file_points(&out, &qs),
-        &true_points(&c.model, &effective, &qs),
+        &true_points_at_rest(&c.robot, &c.model, &truth, &qs),
     );
-    let zero_convention =
-        registered_um(&file_points(&out, &qs), &true_points(&c.model, &truth, &qs));
     let pred = report["predicted_position_std_um"]["workspace_rms"]
         .as_f64()
         .unwrap();
     eprintln!(
-        "cyclic error of joint 2: {err:.2} um against the observable robot ({zero_convention:.2} um against a zero with the error's mean left out), predicted {pred:.2} um; effects {}",
+        "cyclic error of joint 2: {err:.2} um against the true robot, predicted {pred:.2} um; effects {}",
         report["effects"]
     );
     assert_eq!(report["effects"][0]["effect"], "cyclic_error");
@@ -697,7 +704,7 @@ fn a_calibrated_dh_file_is_exact_and_keeps_comments_names_and_limits() {
     let mut rng = ChaCha8Rng::seed_from_u64(3);
     let dh = perturbed(&nominal.dh, &mut rng);
     let map = Vector3::new(0.0605, 0.0299, 0.1201);
-    let out = edbbgen::robot::dh::calibrated(&text, &file, &dh, &map, &["one".into()]).unwrap();
+    let out = edbbgen::robot::dh::calibrated(&text, &file, &dh, &map, &["one".into()], "").unwrap();
     let dir = tempdir();
     let path = dir.path().join("cal.dh.toml");
     std::fs::write(&path, &out).unwrap();
@@ -720,7 +727,8 @@ fn a_calibrated_dh_file_is_exact_and_keeps_comments_names_and_limits() {
         out.contains("CORRECTION OF TABLE 1"),
         "the file's own comments are kept"
     );
-    let again = edbbgen::robot::dh::calibrated(&out, &path, &dh, &map, &["two".into()]).unwrap();
+    let again =
+        edbbgen::robot::dh::calibrated(&out, &path, &dh, &map, &["two".into()], "").unwrap();
     assert_eq!(again.matches("edbbgen calibration").count(), 1);
     assert!(again.contains("# two") && !again.contains("# one"));
 }

@@ -40,6 +40,7 @@
 //! The fit starts at the given values and takes only descending steps, so the calibrated model
 //! never explains the recorded data worse than the nominal one.
 
+pub mod delivered;
 mod parts;
 pub mod plot;
 pub mod predict;
@@ -111,6 +112,9 @@ pub struct CalibrateOptions {
     pub kappa: f64,
     /// Steps (a moved fixture, a changed length zero) split off at most, per run.
     pub max_steps: usize,
+    /// Write the adopted effects into the robot file (else the geometry only, and the
+    /// prediction includes what the effects left out do over the joint space).
+    pub write_effects: bool,
     /// Random joint poses of the workspace prediction, and their seed.
     pub workspace_poses: usize,
     pub seed: u64,
@@ -151,6 +155,7 @@ impl Default for CalibrateOptions {
             prior_setup: DEFAULT_PRIOR_SETUP_MM * MM,
             kappa: DEFAULT_KAPPA,
             max_steps: 12,
+            write_effects: true,
             workspace_poses: WORKSPACE_POSES,
             seed: 1,
         }
@@ -195,8 +200,9 @@ pub struct Undetermined {
     pub why: String,
 }
 
-/// Predicted 1σ MAP position uncertainty after rigid registration (µm): combined, and its two
-/// components.
+/// Predicted 1σ MAP position uncertainty after rigid registration (µm) of the robot the written
+/// files deliver: combined, and its components. With every effect in the file it is the
+/// calibrated model's own; an effect left out adds what it does over the joint space.
 #[derive(Clone, Copy, Debug, Serialize)]
 pub struct Predicted {
     /// RMS over the recorded poses.
@@ -224,6 +230,9 @@ pub struct Predicted {
     /// error; only blocks whose complement determines the fit count, and up to 200 readings
     /// they are single readings).
     pub model_error_factor: f64,
+    /// The calibrated model's own workspace RMS (µm), every adopted effect applied: the figure
+    /// above when every effect is delivered.
+    pub model_workspace_rms: f64,
 }
 
 #[derive(Clone, Copy, Debug, Serialize)]
@@ -350,6 +359,21 @@ pub struct Report {
     pub outliers: Vec<OutlierReport>,
     pub candidates: Vec<CandidateReport>,
     pub validation: Validation,
+    /// Each adopted effect's size over the joint space, whether the written files carry it,
+    /// and the prediction without it.
+    pub effect_sizes: Vec<delivered::EffectSize>,
+    /// What the written robot files carry: `geometry and effects` or `geometry only`, and
+    /// the effects they leave out (with why).
+    pub delivered: Delivered,
+}
+
+/// What the written files deliver.
+#[derive(Clone, Debug, Serialize)]
+pub struct Delivered {
+    pub content: &'static str,
+    pub not_delivered: Vec<String>,
+    /// What a thermal drift in the file is referred to.
+    pub thermal_reference: String,
 }
 
 /// A calibration: the report, the calibrated estimate and what the plots need.
@@ -367,13 +391,16 @@ pub struct Calibration {
     pub residual: Vec<f64>,
     /// Per-pose predicted position uncertainty over the workspace (µm), for plots.
     pub workspace_std_um: Vec<f64>,
+    /// The model the robot file holds: the physical geometry and the effects.
+    pub file: delivered::FileModel,
     pub summary: String,
 }
 
 impl Calibration {
-    /// The calibrated parameters (run 1's fixture).
+    /// The calibrated parameters (run 1's fixture) as the robot file holds them: the physical
+    /// geometry (a cyclic error's mean over a turn is zero, its constant part in θ).
     pub fn params(&self) -> Params {
-        self.estimate.params(0)
+        self.file.params
     }
 }
 
@@ -435,7 +462,7 @@ pub fn run(
     let held_out = steps::held_out(&problem, &fitted);
     let u = uncertainty::estimate(model, robot, &problem, &known, &fitted, &held_out, opts);
     Ok(assemble(
-        model, &problem, &known, fitted, &held_out, u, labels, opts,
+        model, robot, &problem, &known, fitted, &held_out, u, labels, opts,
     ))
 }
 
@@ -484,6 +511,7 @@ fn check_effects(problem: &Problem, opts: &CalibrateOptions) -> Result<(), Calib
 #[allow(clippy::too_many_arguments)]
 fn assemble(
     model: &MeasurementModel,
+    robot: &Robot,
     problem: &Problem,
     known: &Known,
     f: steps::Fit,
@@ -502,6 +530,9 @@ fn assemble(
         params.insert(name.clone(), e.into());
     }
     let effect_reports = effects_report(&f.est, &u.var[g..]);
+    let file = delivered::file_model(problem, &f.est, &u.var[g..]);
+    let (effect_sizes, predicted, space_std, delivered) =
+        parts::delivered(model, robot, problem, &f, &u, &file, opts);
     let diag = parts::diagnostics(model, problem, known, &f, &u, opts);
     let residual_nominal = problem.residual(&f.nominal);
     let residual = f.fitted.residual.clone();
@@ -521,7 +552,7 @@ fn assemble(
         noise_um: round(diag.noise_hf * 1e6, 3),
         rms_before_um: round(fit::kept_rms(&residual_nominal, &problem.weight) * 1e6, 3),
         rms_after_um: round(diag.rms_after * 1e6, 3),
-        predicted_position_std_um: u.predicted,
+        predicted_position_std_um: predicted,
         calibrated: is_calibrated,
         verdict,
         effects_mode: f.effects_mode,
@@ -554,6 +585,8 @@ fn assemble(
             ),
             rows: held_out.rows,
         },
+        effect_sizes,
+        delivered,
     };
     let summary = summary(&report);
     Calibration {
@@ -564,7 +597,8 @@ fn assemble(
         t: problem.m.t.clone(),
         residual_nominal,
         residual,
-        workspace_std_um: u.space_std,
+        workspace_std_um: space_std,
+        file,
         summary,
     }
 }
@@ -610,6 +644,23 @@ pub fn summary(r: &Report) -> String {
             effects.join(", ")
         }
     );
+    for e in &r.effect_sizes {
+        let name = match e.joint {
+            Some(j) => format!("{} (joint {j})", e.effect),
+            None => e.effect.to_string(),
+        };
+        let carried = match (e.delivered, e.acts_on) {
+            (true, "motion") => "in the robot file; it moves no pose",
+            (true, _) => "in the robot file",
+            (false, _) => "NOT in the robot file",
+        };
+        s += &format!(
+            "  {name}: {} um RMS, {} um p95 over the joint space ({}); {carried}\n",
+            fmt_fixed(e.workspace_rms_um, 2),
+            fmt_fixed(e.workspace_p95_um, 2),
+            e.at
+        );
+    }
     s += &format!(
         "determined: {} parameters; held at nominal: {}\n",
         r.determined.len(),
@@ -679,6 +730,12 @@ pub fn summary(r: &Report) -> String {
         fmt_fixed(p.workspace_rms, 2),
         fmt_fixed(p.workspace_p95, 2)
     );
+    if r.delivered.content == "geometry only" {
+        s += &format!(
+            "the robot file carries the geometry only: the prediction includes the effects left out (the model with them: {} um RMS over the joint space)\n",
+            fmt_fixed(p.model_workspace_rms, 2)
+        );
+    }
     s += &format!(
         "validation (held out): {} um RMS nominal, {} um RMS calibrated\n",
         fmt_fixed(r.validation.heldout_rms_um.nominal, 3),

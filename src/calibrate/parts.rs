@@ -2,15 +2,19 @@
 //! uncertainty; out = the warnings, the per-run lines, the parameters left undetermined and
 //! why, the segments, outliers and candidates, the tool point and the verdict.
 
+use super::delivered::{self, EffectSize, FileModel};
 use super::steps::{Fit, HeldOutScore};
 use super::uncertainty::{confounding, Uncertainty};
 use super::{
-    prior, round, CalibrateOptions, CandidateReport, Effects, OutlierReport, RunReport,
-    SegmentReport, ToolReport, Undetermined, FLAG_SIGMAS, STEEL_EXPANSION, WRITE_SHARE,
+    predict, prior, round, CalibrateOptions, CandidateReport, Delivered, Effects, OutlierReport,
+    Predicted, RunReport, SegmentReport, ToolReport, Undetermined, FLAG_SIGMAS, STEEL_EXPANSION,
+    WRITE_SHARE,
 };
 use crate::diagnose::fit::{self, accumulate, model_cols, score, structural, Known};
 use crate::diagnose::{self, Basis, Estimate, Param, Problem};
 use crate::model::{MeasurementModel, Status, MAP};
+use crate::robot::effects::ThermalState;
+use crate::robot::Robot;
 use crate::twin::effects::Effect;
 use crate::units::{fmt_fixed, DEG, MM};
 use nalgebra::Vector3;
@@ -470,4 +474,134 @@ pub(super) fn tool(f: &Fit, var: &[f64]) -> ToolReport {
         std_mm: tool_std,
         moved_mm: round((map_fitted - map_given).norm() / MM, 6),
     }
+}
+
+/// Poses of the recorded motion the servo lag is sized along.
+const MOTION_ROWS: usize = 2000;
+
+/// Each adopted effect's size over the joint space, the prediction of what the written files
+/// deliver (an effect they leave out adds its size, pose by pose), the per-pose prediction
+/// (µm) and what is delivered.
+pub(super) fn delivered(
+    model: &MeasurementModel,
+    robot: &Robot,
+    problem: &Problem,
+    f: &Fit,
+    u: &Uncertainty,
+    file: &FileModel,
+    opts: &CalibrateOptions,
+) -> (Vec<EffectSize>, Predicted, Vec<f64>, Delivered) {
+    let adopted: Vec<Effect> = f.est.effects.iter().map(|t| t.effect).collect();
+    // A drift is sized where the runs ended (a lag) or at the logged temperature farthest
+    // from the reference.
+    let drift = match &file.effects.thermal {
+        Some(crate::robot::effects::Thermal::Lag { .. }) => (
+            ThermalState::Elapsed(problem.span()),
+            format!(
+                "the end of the runs (t = {} s)",
+                fmt_fixed(problem.span(), 0)
+            ),
+        ),
+        Some(crate::robot::effects::Thermal::Temperature { reference_c, .. }) => {
+            let far = problem
+                .m
+                .temp
+                .iter()
+                .flatten()
+                .copied()
+                .max_by(|a, b| (a - reference_c).abs().total_cmp(&(b - reference_c).abs()))
+                .unwrap_or(*reference_c);
+            (
+                ThermalState::Temperature(far),
+                format!(
+                    "{} C, the logged temperature farthest from the reference",
+                    fmt_fixed(far, 2)
+                ),
+            )
+        }
+        None => (ThermalState::Reference, String::new()),
+    };
+    let moving: Vec<usize> = (0..problem.rows())
+        .filter(|&k| problem.weight[k] > 0.0 && problem.velocity(k).iter().any(|v| *v != 0.0))
+        .collect();
+    let stride = moving.len().div_ceil(MOTION_ROWS).max(1);
+    let motion: Vec<([f64; 6], [f64; 6])> = moving
+        .iter()
+        .step_by(stride)
+        .map(|&k| (problem.m.q[k], problem.velocity(k)))
+        .collect();
+    let mut sizes = delivered::sizes(
+        model,
+        robot,
+        file,
+        &adopted,
+        &u.space,
+        &u.region,
+        drift,
+        &motion,
+        opts.write_effects,
+    );
+    // The model's own per-pose uncertainty (µm); an effect left out adds its size.
+    let mut space_std = u.space_std.clone();
+    let mut not_delivered = Vec::new();
+    for (effect, per_pose, size) in sizes.iter_mut() {
+        let without: Vec<f64> = u
+            .space_std
+            .iter()
+            .zip(per_pose.iter())
+            .map(|(a, b)| a.hypot(b * 1e6))
+            .collect();
+        if size.acts_on == "pose" {
+            size.prediction_without_um = round(predict::spread(&without).rms, 3);
+        } else {
+            size.prediction_without_um = u.predicted.workspace_rms;
+        }
+        if !opts.write_effects {
+            let name = match effect.joint() {
+                Some(j) => format!("{} (joint {j})", effect.name()),
+                None => effect.name().to_string(),
+            };
+            not_delivered.push(format!(
+                "{name}: left out of the robot file (--geometry-only); {} um RMS over the joint space ({})",
+                fmt_fixed(size.workspace_rms_um, 2),
+                size.at
+            ));
+            if size.acts_on == "pose" {
+                for (s, b) in space_std.iter_mut().zip(per_pose.iter()) {
+                    *s = s.hypot(b * 1e6);
+                }
+            }
+        }
+    }
+    let mut predicted = u.predicted;
+    if !opts.write_effects && !sizes.is_empty() {
+        let space = predict::spread(&space_std);
+        predicted.workspace_rms = round(space.rms, 3);
+        predicted.workspace_p95 = round(space.p95, 3);
+        // Where measured: the model's own, and each effect's RMS there, root-sum-squared.
+        let region_ms = sizes
+            .iter()
+            .filter(|s| s.2.acts_on == "pose")
+            .map(|s| s.2.measured_region_rms_um.powi(2))
+            .sum::<f64>();
+        predicted.measured_region_rms = round(
+            (predicted.measured_region_rms.powi(2) + region_ms).sqrt(),
+            3,
+        );
+    }
+    let delivered = Delivered {
+        content: if opts.write_effects || adopted.is_empty() {
+            "geometry and effects"
+        } else {
+            "geometry only"
+        },
+        not_delivered,
+        thermal_reference: file.reference.clone(),
+    };
+    (
+        sizes.into_iter().map(|s| s.2).collect(),
+        predicted,
+        space_std,
+        delivered,
+    )
 }

@@ -10,6 +10,9 @@ use crate::robot::Robot;
 use crate::twin::effects::Effect;
 use nalgebra::DMatrix;
 
+/// Joint-space poses a compliance's general basis is tidied over.
+const TIDY_POSES: usize = 500;
+
 /// A converged fit: what steps 1-4 leave for the validation, the uncertainty and the report.
 pub(super) struct Fit {
     pub est: Estimate,
@@ -111,6 +114,11 @@ pub(super) fn fit(
         fitted = fit::refit(problem, &mut est, &free);
     }
     let (sigma, rho, inflate) = noise;
+    // A compliance's general basis without the coefficients its dependencies leave free.
+    est.tidy_compliance(
+        problem,
+        &super::predict::workspace(robot, TIDY_POSES, opts.seed),
+    );
     Fit {
         est,
         free,

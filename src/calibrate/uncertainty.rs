@@ -132,6 +132,7 @@ pub(super) fn estimate(
         },
         nominal_workspace_rms: round(nominal_prior_rms * 1e6, 3),
         model_error_factor: round(factor, 3),
+        model_workspace_rms: round(space_spread.rms, 3),
     };
     Uncertainty {
         predicted,

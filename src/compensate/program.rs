@@ -135,9 +135,25 @@ pub fn rewrite(
     if moves.is_empty() {
         return Err(unsupported(0, "the program commands no motion"));
     }
-    let targets: Vec<Target> = moves
+    // Each move comes from the one before: its joints' directions are the approach a
+    // backlash depends on (a joint that does not move keeps its last direction; before its
+    // first motion in the program it is not known).
+    let mut last = [0.0; 6];
+    let mut prev_q: Option<[f64; 6]> = None;
+    let targets: Vec<(Target, [f64; 6])> = moves
         .iter()
-        .map(|m| Target::Joints(m.1.map(|d| d * DEG)))
+        .map(|m| {
+            let q = m.1.map(|d| d * DEG);
+            if let Some(p) = prev_q {
+                for j in 0..6 {
+                    if (q[j] - p[j]).abs() > 1e-9 {
+                        last[j] = (q[j] - p[j]).signum();
+                    }
+                }
+            }
+            prev_q = Some(q);
+            (Target::Joints(q), last)
+        })
         .collect();
     let results: Vec<Compensated> = comp.compensate_all(&targets);
     let refused: Vec<Refused> = moves
@@ -181,7 +197,7 @@ pub fn rewrite(
         let printed: Vec<(String, f64)> = axes.iter().map(|&v| print(v)).collect();
         let values: [f64; 6] = std::array::from_fn(|i| printed[i].1);
         let new_q = map.undo(&values).map(|d| d * DEG);
-        printed_residual.push(comp.residual(&c.target, &new_q));
+        printed_residual.push(comp.residual(&c.target, &new_q, &c.approach));
         let old_q = m.1.map(|d| d * DEG);
         joints.push((m.0, new_q));
         largest_change = (0..6).fold(largest_change, |a, i| a.max((new_q[i] - old_q[i]).abs()));

@@ -219,6 +219,70 @@ impl Estimate {
     }
 }
 
+impl Estimate {
+    /// The general gravity basis of a joint compliance (mass and first moments of every link
+    /// after the joint) holds exact dependencies: links whose frames share an origin give one
+    /// mass column twice. Along such a dependency the fit may leave coefficients of any size
+    /// that cancel (10⁹ seen), which no file can carry: rounding the geometry to a nanometre
+    /// then moves the deflection by micrometres. This replaces them by the smallest
+    /// coefficients that give the same deflections over `poses` (the whole joint space): per
+    /// joint, the columns scaled to unit norm, the coefficients projected on the right
+    /// singular vectors above 1e-10 of the largest singular value.
+    pub fn tidy_compliance(&mut self, problem: &Problem, poses: &[[f64; 6]]) {
+        let p = Params::from_array(&self.p);
+        let Some(t) = self
+            .effects
+            .iter_mut()
+            .find(|t| t.effect == Effect::JointCompliance && t.basis == Basis::Standard)
+        else {
+            return;
+        };
+        let frames: Vec<[crate::robot::Frame; 8]> = poses
+            .iter()
+            .map(|q| chain_frames(&problem.model.base, &p.dh, &problem.model.flange, q))
+            .collect();
+        let cols = effect_cols(Effect::JointCompliance, Basis::Standard);
+        for j in 0..6 {
+            let idx: Vec<usize> = (0..cols.len())
+                .filter(|&n| matches!(cols[n], Col::Comp(jj, ..) if jj == j))
+                .collect();
+            if idx.is_empty() {
+                continue;
+            }
+            let mut a = DMatrix::from_fn(frames.len(), idx.len(), |r, c| match cols[idx[c]] {
+                Col::Comp(jj, i, comp) => gravity_basis(&frames[r], jj, i, comp),
+                _ => 0.0,
+            });
+            // A column that is rounding noise (a mass on the joint's own axis has no torque
+            // about it) carries nothing: its coefficient is zero.
+            let norms: Vec<f64> = (0..idx.len()).map(|c| a.column(c).norm()).collect();
+            let largest = norms.iter().copied().fold(0.0, f64::max);
+            let scale: Vec<f64> = norms
+                .iter()
+                .map(|&n| if n > 1e-9 * largest { n } else { 0.0 })
+                .collect();
+            for (c, sc) in scale.iter().enumerate() {
+                let f = if *sc > 0.0 { 1.0 / sc } else { 0.0 };
+                a.column_mut(c).scale_mut(f);
+            }
+            let svd = a.svd(false, true);
+            let Some(vt) = svd.v_t else { continue };
+            let top = svd.singular_values.iter().copied().fold(0.0, f64::max);
+            let x = DVector::from_fn(idx.len(), |c, _| t.coef[idx[c]] * scale[c]);
+            let mut y = DVector::zeros(idx.len());
+            for (k, sv) in svd.singular_values.iter().enumerate() {
+                if *sv > 1e-10 * top {
+                    let v = vt.row(k).transpose();
+                    y += &v * v.dot(&x);
+                }
+            }
+            for (c, &n) in idx.iter().enumerate() {
+                t.coef[n] = if scale[c] > 0.0 { y[c] / scale[c] } else { 0.0 };
+            }
+        }
+    }
+}
+
 /// The first-order thermal lag at time t since the start of the run: 1 − exp(−t/τ), and its
 /// derivative with respect to τ.
 fn lag(t: f64, tau: f64) -> (f64, f64) {
@@ -594,6 +658,31 @@ impl Problem {
         (sn - ms, cs - mc)
     }
 
+    /// The means of (sin(h·q), cos(h·q)) over joint j's measured range: what the fit's
+    /// harmonics are taken about (the constant part goes to the joint's zero).
+    pub fn harmonic_mean(&self, j: usize, h: usize) -> (f64, f64) {
+        self.harmonic_means[j][h - 1]
+    }
+
+    /// This problem with another's harmonic means: to evaluate an estimate fitted to `other`
+    /// on rows it was not fitted to (its cyclic errors' harmonics are taken about `other`'s).
+    pub fn with_harmonic_means_of(mut self, other: &Problem) -> Self {
+        self.harmonic_means = other.harmonic_means;
+        self
+    }
+
+    /// The joint velocities (rad/s) of row k (zero for a static row).
+    pub fn velocity(&self, k: usize) -> [f64; 6] {
+        self.qdot[k]
+    }
+
+    /// The temperature (°C) of run `r`'s first row, when the runs log one.
+    pub fn first_temperature(&self, r: usize) -> Option<f64> {
+        let t = self.m.temp.as_ref()?;
+        let range = self.ranges.get(r)?;
+        t.get(range.start).copied()
+    }
+
     /// The length zero every run was given (m).
     pub fn with_offset(mut self, offset: f64) -> Self {
         self.offsets_given = vec![offset; self.runs()];
@@ -822,8 +911,30 @@ impl Problem {
     /// estimate.
     fn apply(&self, est: &Estimate, prep: &Prep, k: usize) -> ([f64; 6], Params, f64) {
         let q0 = prep.motor.as_ref().map_or(self.m.q[k], |m| m[k]);
-        let mut p = est.params_group(self.fix_of[k] as usize).to_array();
-        let mut q = q0;
+        let backlash: [f64; 6] =
+            std::array::from_fn(|j| prep.back[j].as_ref().map_or(0.0, |b| b.offset[k]));
+        let thermal = ThermalAt {
+            since: self.since[k],
+            rise: self.temp_rise.as_ref().map_or(0.0, |r| r[k]),
+        };
+        let (q, p) = self.pose_model(est, self.fix_of[k] as usize, &q0, &backlash, thermal);
+        (q, p, est.offsets[self.off_of[k] as usize])
+    }
+
+    /// The model of one pose: the load-side joints and the parameters (fixture group `group`)
+    /// the estimate gives for the motor-side angles `q0`, each backlash joint's load offset
+    /// from its motor (`backlash`, rad) and the thermal state. [`Problem::apply`] evaluates the
+    /// rows with it; a pose that was not recorded can be evaluated with it too.
+    pub fn pose_model(
+        &self,
+        est: &Estimate,
+        group: usize,
+        q0: &[f64; 6],
+        backlash: &[f64; 6],
+        thermal: ThermalAt,
+    ) -> ([f64; 6], Params) {
+        let mut p = est.params_group(group).to_array();
+        let mut q = *q0;
         let mut frames = None;
         for t in &est.effects {
             let c = &t.coef;
@@ -834,15 +945,11 @@ impl Problem {
                         q[j] += c[2 * n] * cs + c[2 * n + 1] * sn;
                     }
                 }
-                Effect::Backlash(j) => {
-                    if let Some(b) = &prep.back[j] {
-                        q[j] += b.offset[k];
-                    }
-                }
+                Effect::Backlash(j) => q[j] += backlash[j],
                 Effect::ThermalDrift => {
                     let f = match t.basis {
-                        Basis::Temperature => c[0] * self.temp_rise.as_ref().map_or(0.0, |r| r[k]),
-                        _ => c[0] * lag(self.since[k], c[1]).0,
+                        Basis::Temperature => c[0] * thermal.rise,
+                        _ => c[0] * lag(thermal.since, c[1]).0,
                     };
                     for i in 0..6 {
                         p[A + i] *= 1.0 + f;
@@ -850,12 +957,8 @@ impl Problem {
                     }
                 }
                 Effect::JointCompliance if t.basis == Basis::KnownMasses => {
-                    let tau = gravity_torques(
-                        &self.model,
-                        &Params::from_array(&est.p),
-                        &q0,
-                        &self.masses,
-                    );
+                    let tau =
+                        gravity_torques(&self.model, &Params::from_array(&est.p), q0, &self.masses);
                     for j in 0..6 {
                         q[j] += c[j] * tau[j];
                     }
@@ -866,7 +969,7 @@ impl Problem {
                             &self.model.base,
                             &Params::from_array(&est.p).dh,
                             &self.model.flange,
-                            &q0,
+                            q0,
                         )
                     });
                     let cols = effect_cols(Effect::JointCompliance, Basis::Standard);
@@ -879,11 +982,7 @@ impl Problem {
                 Effect::Geometric | Effect::ServoLag => {}
             }
         }
-        (
-            q,
-            Params::from_array(&p),
-            est.offsets[self.off_of[k] as usize],
-        )
+        (q, Params::from_array(&p))
     }
 
     /// Fills the regressor values of row k for `cols`; returns the residual measured − model
@@ -998,6 +1097,14 @@ impl Problem {
         let (q, p, _) = self.apply(est, &prep, k);
         (q, p)
     }
+}
+
+/// The thermal state of a pose: the time since its run's start (s) and the logged
+/// temperature's rise since then (K).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct ThermalAt {
+    pub since: f64,
+    pub rise: f64,
 }
 
 /// Per-row joint velocities and accelerations.

@@ -85,13 +85,18 @@ impl Arm {
 
     /// Frames 0..6 (base to flange) at q, every link's translation scaled by `grow`.
     pub fn frames(&self, q: &[f64; 6], grow: f64) -> [Matrix4<f64>; 7] {
+        self.frames_grown(q, &[grow; 6])
+    }
+
+    /// Frames 0..6 at q, link i's translation scaled by `grow[i]`.
+    pub fn frames_grown(&self, q: &[f64; 6], grow: &[f64; 6]) -> [Matrix4<f64>; 7] {
         let mut f = [Matrix4::identity(); 7];
         for i in 0..6 {
             let [alpha, a, d, theta] = self.dh[i];
             f[i + 1] = f[i]
                 * rot_z(theta + q[i])
-                * shift(0.0, 0.0, d * grow)
-                * shift(a * grow, 0.0, 0.0)
+                * shift(0.0, 0.0, d * grow[i])
+                * shift(a * grow[i], 0.0, 0.0)
                 * rot_x(alpha);
         }
         f
@@ -357,6 +362,8 @@ pub struct Physics {
     pub compliance: Option<(Vec<Mass>, [f64; 6])>,
     /// α (1/K), final rise R (K), starting rise T₀ (K), τ (s).
     pub thermal: Option<(f64, f64, f64, f64)>,
+    /// The links (0-based) the thermal drift grows; empty: every link.
+    pub thermal_links: Vec<usize>,
     /// Joint, and (order, amplitude rad, phase rad) per harmonic.
     pub cyclic: Option<(usize, Vec<Harmonic>)>,
     /// Joint, full play (rad).
@@ -428,6 +435,34 @@ impl Truth {
         }
     }
 
+    /// Each link's growth factor at time t: the drift's on the links it grows, 1 elsewhere.
+    fn grow_links(&self, t: f64) -> [f64; 6] {
+        let g = self.grow(t);
+        let links = &self.physics.thermal_links;
+        std::array::from_fn(|i| {
+            if links.is_empty() || links.contains(&i) {
+                g
+            } else {
+                1.0
+            }
+        })
+    }
+
+    /// The true tool point when the controller commands `motor` and stands still: the
+    /// backlash joint's load side at `play_load` (where the play operator left it), the
+    /// other effects on the motor angles, the links as at time t of a recording.
+    pub fn reached(&self, motor: &[f64; 6], play_load: Option<f64>, t: f64) -> Vector3<f64> {
+        let mut m = *motor;
+        if let (Some((j, _)), Some(y)) = (self.physics.backlash, play_load) {
+            m[j] = y;
+        }
+        let load = self.load(&m);
+        apply(
+            &self.arm.frames_grown(&load, &self.grow_links(t))[6],
+            &self.tool,
+        )
+    }
+
     fn fixture_at(&self, t: f64) -> Vector3<f64> {
         match self.physics.slip {
             Some((at, d)) => self.fixture + d * ((t - at) / 0.2).clamp(0.0, 1.0),
@@ -469,7 +504,10 @@ impl Truth {
     /// recording: a thermal drift's robot at the start of the recording is what the
     /// calibration describes (it cannot know the temperature before the data began).
     pub fn point_at(&self, q: &[f64; 6], t: f64) -> Vector3<f64> {
-        apply(&self.arm.frames(q, self.grow(t))[6], &self.tool)
+        apply(
+            &self.arm.frames_grown(q, &self.grow_links(t))[6],
+            &self.tool,
+        )
     }
 }
 
@@ -542,8 +580,7 @@ pub fn record(truth: &Truth, path: &Path, rate: f64, seed: u64) -> Recording {
             motor[j] = y;
         }
         let load = truth.load(&motor);
-        let grow = truth.grow(t);
-        let f = truth.arm.frames(&load, grow);
+        let f = truth.arm.frames_grown(&load, &truth.grow_links(t));
         let p = apply(&f[6], &truth.tool);
         let mut l = (p - truth.fixture_at(t)).norm() + truth.noise * normal(&mut rng);
         if let Some((_, e)) = truth.physics.spikes.iter().find(|(i, _)| *i == k) {
