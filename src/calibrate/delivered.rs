@@ -10,6 +10,7 @@
 //! refers a thermal drift to the start of the runs; both are written as they are.
 
 use super::predict;
+use crate::diagnose::fit::growth_per_link;
 use crate::diagnose::{Basis, Estimate, Problem, Term};
 use crate::model::{MeasurementModel, Params};
 use crate::robot::effects::{
@@ -94,25 +95,28 @@ fn add_term(
                 second_order_std: sd(var, 1),
             })
         }
-        Effect::ThermalDrift if t.basis == Basis::Temperature => {
+        Effect::ThermalDrift if !t.basis.is_lag() => {
             let reference_c = problem.first_temperature(0).unwrap_or(0.0);
             *reference = format!(
                 "the temperature at the start of the runs ({} C, the first temp_c of run 1)",
                 crate::units::fmt_fixed(reference_c, 2)
             );
+            let std: Vec<f64> = (0..c.len()).map(|k| sd(var, k)).collect();
             effects.thermal = Some(Thermal::Temperature {
-                alpha: [c[0]; 6],
-                alpha_std: [sd(var, 0); 6],
+                alpha: growth_per_link(t.basis, c),
+                alpha_std: growth_per_link(t.basis, &std),
                 reference_c,
             });
         }
         Effect::ThermalDrift => {
             *reference = "the start of each run (t = 0 s of its first reading)".into();
+            let n = c.len() - 1;
+            let std: Vec<f64> = (0..c.len()).map(|k| sd(var, k)).collect();
             effects.thermal = Some(Thermal::Lag {
-                scale: [c[0]; 6],
-                scale_std: [sd(var, 0); 6],
-                time_constant: c[1],
-                time_constant_std: sd(var, 1),
+                scale: growth_per_link(t.basis, &c[..n]),
+                scale_std: growth_per_link(t.basis, &std[..n]),
+                time_constant: c[n],
+                time_constant_std: sd(var, n),
             });
         }
         Effect::JointCompliance if t.basis == Basis::KnownMasses => {
@@ -232,14 +236,21 @@ pub fn sizes(
     let mut out = Vec::new();
     for &effect in adopted {
         let e = only(&file.effects, effect);
-        let mut approach = [0.0; 6];
-        for b in &e.backlash {
-            approach[b.joint] = 1.0;
-        }
+        // A backlash moves a pose by half the play against the direction it came from: half
+        // the poses from below, half from above (one flank everywhere would be a constant
+        // joint offset, which a registration removes for joint 1).
+        let approach_of = |k: usize| -> [f64; 6] {
+            let mut a = [0.0; 6];
+            for b in &e.backlash {
+                a[b.joint] = if k % 2 == 0 { 1.0 } else { -1.0 };
+            }
+            a
+        };
         let (state, at, acts_on) = match effect {
             Effect::Backlash(_) => (
                 ThermalState::Reference,
-                "one flank of the play (the arm came from below)".to_string(),
+                "against the centre of the play, half the poses approached from each side"
+                    .to_string(),
                 "pose",
             ),
             Effect::ThermalDrift => (drift_state.0, drift_state.1.clone(), "pose"),
@@ -248,16 +259,16 @@ pub fn sizes(
                 "along the recorded motion (continuous measuring)".to_string(),
                 "motion",
             ),
-            _ => (ThermalState::Reference, "every pose".to_string(), "pose"),
+            _ => (ThermalState::Reference, "at every pose".to_string(), "pose"),
         };
-        let moved = |q: &[f64; 6]| -> Vector3<f64> {
-            let load = e.load(&robot.base, &p.dh, &robot.flange, q, &approach);
+        let moved = |k: usize, q: &[f64; 6]| -> Vector3<f64> {
+            let load = e.load(&robot.base, &p.dh, &robot.flange, q, &approach_of(k));
             let mut ps = *p;
             ps.dh = e.at_state(&p.dh, state);
             model.map_position(&ps, &load)
         };
         let per = |poses: &[[f64; 6]]| -> Vec<f64> {
-            let a: Vec<Vector3<f64>> = poses.iter().map(moved).collect();
+            let a: Vec<Vector3<f64>> = poses.iter().enumerate().map(|(k, q)| moved(k, q)).collect();
             let b: Vec<Vector3<f64>> = poses.iter().map(geometry).collect();
             registered_change(&a, &b)
         };

@@ -8,10 +8,13 @@ use super::{predict, prior, round, shared_columns, CalibrateOptions, Component, 
 use crate::diagnose::fit::{self, accumulate, model_cols, structural, Known};
 use crate::diagnose::{Estimate, Fitted, Param, Problem};
 use crate::model::{MeasurementModel, Params, Status, N_PARAMS};
+use crate::robot::kinematics::chain_frames;
 use crate::robot::Robot;
+use crate::twin::effects::gravity_torques;
 use crate::twin::effects::Effect;
 use crate::units::fmt_fixed;
 use nalgebra::DMatrix;
+use predict::JointTerms;
 
 /// What step 6 leaves for the report.
 pub(super) struct Uncertainty {
@@ -33,6 +36,59 @@ pub(super) struct Uncertainty {
     pub nominal_prior_rms: f64,
     /// Every parameter's structural status at the estimate.
     pub status: Vec<(Param, Status)>,
+}
+
+/// The effects' coefficients of an estimate as quantities that move joints, in the fit's
+/// column order: a harmonic by its (range-centred) value, a compliance term by its gravity
+/// torque, a backlash by half its play (one flank). A thermal drift moves nothing at the
+/// reference state the robot is delivered at, a servo lag nothing at a pose.
+pub(super) struct EffectTerms<'a> {
+    problem: &'a Problem,
+    est: &'a Estimate,
+    cols: Vec<fit::Col>,
+}
+
+impl<'a> EffectTerms<'a> {
+    pub(super) fn new(problem: &'a Problem, est: &'a Estimate) -> Self {
+        let cols = est
+            .effects
+            .iter()
+            .flat_map(|t| fit::effect_cols(t.effect, t.basis))
+            .collect();
+        EffectTerms { problem, est, cols }
+    }
+}
+
+impl predict::JointTerms for EffectTerms<'_> {
+    fn count(&self) -> usize {
+        self.cols.len()
+    }
+
+    fn at(&self, q: &[f64; 6], out: &mut Vec<(usize, f64)>) {
+        use fit::Col;
+        let p = Params::from_array(&self.est.p);
+        let m = &self.problem.model;
+        let needs_frames = self.cols.iter().any(|c| matches!(c, Col::Comp(..)));
+        let fr = needs_frames.then(|| chain_frames(&m.base, &p.dh, &m.flange, q));
+        let needs_torques = self.cols.iter().any(|c| matches!(c, Col::CompKnown(..)));
+        let tau = needs_torques.then(|| gravity_torques(m, &p, q, &self.problem.masses));
+        for c in &self.cols {
+            out.push(match *c {
+                Col::Cyc(j, h, sine) => {
+                    let (sn, cs) = self.problem.harmonic(j, h, q[j]);
+                    (j, if sine { sn } else { cs })
+                }
+                Col::Back(j) => (j, -0.5),
+                Col::Comp(j, i, comp) => (
+                    j,
+                    fr.as_ref()
+                        .map_or(0.0, |fr| fit::gravity_basis(fr, j, i, comp)),
+                ),
+                Col::CompKnown(j) => (j, tau.as_ref().map_or(0.0, |t| t[j])),
+                _ => (0, 0.0),
+            });
+        }
+    }
 }
 
 pub(super) fn estimate(
@@ -64,9 +120,17 @@ pub(super) fn estimate(
     let space = predict::workspace(robot, opts.workspace_poses, opts.seed);
     let shared = shared_columns(free);
     let idx: Vec<usize> = shared.iter().map(|s| s.1).collect();
-    let cov_a = DMatrix::from_fn(shared.len(), shared.len(), |a, b| {
-        cov[(shared[a].0, shared[b].0)]
-    });
+    // Type A covers the effects' coefficients too: the robot delivered applies them, and a
+    // harmonic or a compliance fitted over part of the joint space is only as good elsewhere
+    // as the data make it (its covariance with the joint zero it trades against included).
+    let terms = EffectTerms::new(problem, est);
+    let g = free.len();
+    let rows: Vec<usize> = shared
+        .iter()
+        .map(|s| s.0)
+        .chain(g..g + terms.count())
+        .collect();
+    let cov_a = DMatrix::from_fn(rows.len(), rows.len(), |a, b| cov[(rows[a], rows[b])]);
     let w_a = predict::selection(&idx);
     // Type B: every parameter held at nominal (not by assumption) keeps its prior; through
     // the fit the determined ones absorb K = N_aa⁻¹ N_ah of it, so the MAP moves by
@@ -78,8 +142,8 @@ pub(super) fn estimate(
         .map(|(q, _)| *q)
         .collect();
     let (w_b, cov_b) = held_map(problem, est, free, &held_params, opts);
-    let a_region = predict::position_std(model, &calibrated, &region, &w_a, &cov_a);
-    let a_space = predict::position_std(model, &calibrated, &space, &w_a, &cov_a);
+    let a_region = predict::position_std_with(model, &calibrated, &region, &w_a, &terms, &cov_a);
+    let a_space = predict::position_std_with(model, &calibrated, &space, &w_a, &terms, &cov_a);
     let b_region = predict::position_std(model, &calibrated, &region, &w_b, &cov_b);
     let b_space = predict::position_std(model, &calibrated, &space, &w_b, &cov_b);
     let [m_region, m_space] =

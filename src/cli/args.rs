@@ -665,7 +665,8 @@ pub struct CompensateArgs {
     pub calibration: Option<PathBuf>,
     /// How each target's joints come into it, for a backlash of the calibrated robot, where
     /// the targets file has no `approach` column: order (from the previous row), positive,
-    /// negative, unknown (the centre of the play). A program's moves come from the move before.
+    /// negative, unknown (the centre of the play). A program's moves come from the move before;
+    /// positive or negative says how the robot comes into its first move.
     #[arg(
         long,
         value_name = "order|positive|negative|unknown",

@@ -197,7 +197,7 @@ pub fn compensate(a: &CompensateArgs) -> Result<i32, Error> {
         ))
     })?;
     let mut calibrated = calibrated;
-    let mut notes = effects_setup(a, &mut calibrated, &tcp_c)?;
+    let mut notes = effects_setup(a, approach, &mut calibrated, &tcp_c)?;
     let state = match (a.temperature, a.elapsed) {
         (Some(c), _) => ThermalState::Temperature(c),
         (None, Some(t)) => ThermalState::Elapsed(t),
@@ -266,26 +266,18 @@ pub fn compensate(a: &CompensateArgs) -> Result<i32, Error> {
         let list = targets::to_targets(&file, &map);
         let unknown: Vec<(compensate::Target, [f64; 6])> =
             list.iter().map(|t| (*t, [0.0; 6])).collect();
-        // A backlash needs each target's approach; in file order it follows the nominal
-        // joints, which a Cartesian target has only once solved.
+        // A backlash needs each target's approach; in file order it follows the load-side
+        // joints (a first pass solves them) of the targets the robot will visit: a row that
+        // cannot be compensated is not run, so the next one comes from the row before it.
         let results = if comp.effects().backlash.is_empty() {
             comp.compensate_all(&unknown)
         } else {
-            let nominal: Vec<Option<[f64; 6]>> = match file.kind {
-                targets::Kind::Joints => list
-                    .iter()
-                    .map(|t| match t {
-                        compensate::Target::Joints(q) => Some(*q),
-                        _ => None,
-                    })
-                    .collect(),
-                _ => comp
-                    .compensate_all(&unknown)
-                    .iter()
-                    .map(|c| c.nominal)
-                    .collect(),
-            };
-            let ap = targets::approaches(&file, &map, &nominal, approach);
+            let load: Vec<Option<[f64; 6]>> = comp
+                .compensate_all(&unknown)
+                .iter()
+                .map(|c| c.q.map(|q| comp.load(&q, &[0.0; 6])))
+                .collect();
+            let ap = targets::approaches(&file, &map, &load, approach);
             let with: Vec<(compensate::Target, [f64; 6])> = list.iter().copied().zip(ap).collect();
             comp.compensate_all(&with)
         };
@@ -300,6 +292,11 @@ pub fn compensate(a: &CompensateArgs) -> Result<i32, Error> {
             &comp,
             &crate::timing::Limits::of(&nominal),
             &note,
+            match approach {
+                targets::Approach::Positive => [1.0; 6],
+                targets::Approach::Negative => [-1.0; 6],
+                targets::Approach::Order | targets::Approach::Unknown => [0.0; 6],
+            },
         )
         .map_err(|e| file_err(path, e))?
         {
@@ -588,6 +585,7 @@ fn summary(r: &Report) -> String {
 /// it is applied (and the thermal state, the approach convention, what is not applied).
 fn effects_setup(
     a: &CompensateArgs,
+    approach: targets::Approach,
     calibrated: &mut Robot,
     tcp: &Frame,
 ) -> Result<Vec<String>, Error> {
@@ -653,7 +651,14 @@ fn effects_setup(
             b.joint + 1,
             fmt_fixed(b.play / DEG, 5),
             if a.program.is_some() {
-                "the direction of the program's move into it".to_string()
+                format!(
+                    "the direction of the program's move into it; into the first move {}",
+                    match approach {
+                        targets::Approach::Positive => "from below (--approach positive)",
+                        targets::Approach::Negative => "from above (--approach negative)",
+                        _ => "not known: the centre of the play, up to half of it off (--approach positive or negative says where the robot comes from)",
+                    }
+                )
             } else {
                 format!("the targets' approach column, else --approach {}", a.approach)
             }

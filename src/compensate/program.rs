@@ -109,6 +109,8 @@ fn shortest(dialect: &Dialect, a: &[f64; 6], b: &[f64; 6], lim: &Limits) -> f64 
 
 /// Rewrites `text` (in `dialect`, read with `map`) with compensated joints. `lim` are the
 /// robot file's joint speeds and accelerations (SI); `note` goes into the header comment.
+/// `first` is the direction each joint comes into the program's first move from (+1, −1, 0:
+/// not known), for a backlash; every later move comes from the one before.
 pub fn rewrite(
     text: &str,
     dialect: &Dialect,
@@ -116,6 +118,7 @@ pub fn rewrite(
     comp: &Compensator,
     lim: &Limits,
     note: &str,
+    first: [f64; 6],
 ) -> Result<Outcome, ProgramError> {
     let speeds = &lim.speed;
     let parsed = read(text, dialect, map)?;
@@ -135,26 +138,27 @@ pub fn rewrite(
     if moves.is_empty() {
         return Err(unsupported(0, "the program commands no motion"));
     }
-    // Each move comes from the one before: its joints' directions are the approach a
-    // backlash depends on (a joint that does not move keeps its last direction; before its
-    // first motion in the program it is not known).
-    let mut last = [0.0; 6];
-    let mut prev_q: Option<[f64; 6]> = None;
-    let targets: Vec<(Target, [f64; 6])> = moves
+    // Each move comes from the one before, and a backlash rests on the flank of the direction
+    // the joint's load side last moved in: the approach of each move is the direction from the
+    // load-side joints the move before reaches to the ones this move must reach (where the
+    // nominal program holds a joint, the compensation's own change decides: the play is pushed
+    // to the new angle). Before its first motion a joint comes from `first`. The load-side
+    // targets are the compensation's with the play left out (a first pass).
+    let plain: Vec<(Target, [f64; 6])> = moves
         .iter()
-        .map(|m| {
-            let q = m.1.map(|d| d * DEG);
-            if let Some(p) = prev_q {
-                for j in 0..6 {
-                    if (q[j] - p[j]).abs() > 1e-9 {
-                        last[j] = (q[j] - p[j]).signum();
-                    }
-                }
-            }
-            prev_q = Some(q);
-            (Target::Joints(q), last)
-        })
+        .map(|m| (Target::Joints(m.1.map(|d| d * DEG)), [0.0; 6]))
         .collect();
+    let targets: Vec<(Target, [f64; 6])> = if comp.effects().backlash.is_empty() {
+        plain
+    } else {
+        let load: Vec<Option<[f64; 6]>> = comp
+            .compensate_all(&plain)
+            .iter()
+            .map(|c| c.q.map(|q| comp.load(&q, &[0.0; 6])))
+            .collect();
+        let ap = super::targets::approach_along(&load, first);
+        plain.iter().zip(ap).map(|((t, _), a)| (*t, a)).collect()
+    };
     let results: Vec<Compensated> = comp.compensate_all(&targets);
     let refused: Vec<Refused> = moves
         .iter()

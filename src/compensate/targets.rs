@@ -344,44 +344,53 @@ fn parse_approach(s: &str) -> Option<[f64; 6]> {
 }
 
 /// Each row's approach in model joints: the row's `approach` column, else the convention; with
-/// [`Approach::Order`] the direction from the previous row's nominal joints (`nominal`, model
-/// joints) to the row's, a joint that did not move keeping its last direction.
+/// [`Approach::Order`] the direction from the previous row's load-side joints to the row's
+/// ([`approach_along`]; `load`: the joints the calibrated robot's load side must reach, model
+/// joints; None for a row the robot does not visit).
 pub fn approaches(
     file: &TargetFile,
     map: &ControllerMap,
-    nominal: &[Option<[f64; 6]>],
+    load: &[Option<[f64; 6]>],
     convention: Approach,
 ) -> Vec<[f64; 6]> {
-    let mut last = [0.0; 6];
-    let mut prev: Option<[f64; 6]> = None;
+    let by_order = approach_along(load, [0.0; 6]);
     file.rows
         .iter()
-        .zip(nominal)
-        .map(|(row, qn)| {
-            let by_order = match (prev, qn) {
-                (Some(a), Some(b)) => std::array::from_fn(|j| {
+        .zip(by_order)
+        .map(|(row, by_order)| match (row.approach, convention) {
+            // The file counts the controller's axes: a flipped axis moves its joint the
+            // other way.
+            (Some(a), _) => std::array::from_fn(|j| a[j] * map.sign[j]),
+            (None, Approach::Order) => by_order,
+            (None, Approach::Positive) => [1.0; 6],
+            (None, Approach::Negative) => [-1.0; 6],
+            (None, Approach::Unknown) => [0.0; 6],
+        })
+        .collect()
+}
+
+/// The approach of each of a sequence of poses visited in order: per joint, the direction
+/// from the load-side angle the previous visited pose reaches to this one's (a backlash's load
+/// rests on the flank of the direction it was last pushed in, and to reach a new angle the
+/// play must be pushed towards it); an unchanged angle keeps the last direction; before a
+/// joint's first change, `first` (0: not known). `load`: None for a pose not visited.
+pub fn approach_along(load: &[Option<[f64; 6]>], first: [f64; 6]) -> Vec<[f64; 6]> {
+    let mut last = first;
+    let mut prev: Option<[f64; 6]> = None;
+    load.iter()
+        .map(|q| {
+            if let (Some(a), Some(b)) = (prev, q) {
+                for j in 0..6 {
                     let d = b[j] - a[j];
-                    if d.abs() > 1e-9 {
-                        d.signum()
-                    } else {
-                        last[j]
+                    if d != 0.0 {
+                        last[j] = d.signum();
                     }
-                }),
-                _ => last,
-            };
-            if let Some(q) = qn {
-                prev = Some(*q);
-                last = by_order;
+                }
             }
-            match (row.approach, convention) {
-                // The file counts the controller's axes: a flipped axis moves its joint the
-                // other way.
-                (Some(a), _) => std::array::from_fn(|j| a[j] * map.sign[j]),
-                (None, Approach::Order) => by_order,
-                (None, Approach::Positive) => [1.0; 6],
-                (None, Approach::Negative) => [-1.0; 6],
-                (None, Approach::Unknown) => [0.0; 6],
+            if q.is_some() {
+                prev = *q;
             }
+            last
         })
         .collect()
 }

@@ -74,8 +74,10 @@ impl Param {
 /// general basis (mass and first moments of every link after the joint) times each joint's
 /// compliance. A cyclic error takes the harmonic orders the data support (bit h − 1 of the mask
 /// for order h). A thermal drift is a first-order lag with its own time constant, or linear in
-/// a logged temperature. A servo lag is a delay, or a delay with a second-order term (a
-/// first-order servo loop lags by τ·q̇ − τ²·q̈, a pure delay by τ·q̇ − τ²/2·q̈).
+/// a logged temperature; either one scale for every link, or one per link (bit i of the mask
+/// for DH row i: a link of no length has nothing to grow). A servo lag is a delay, or a delay
+/// with a second-order term (a first-order servo loop lags by τ·q̇ − τ²·q̈, a pure delay by
+/// τ·q̇ − τ²/2·q̈).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Basis {
     Standard,
@@ -83,6 +85,8 @@ pub enum Basis {
     Harmonics(u8),
     Lag,
     Temperature,
+    LagLinks(u8),
+    TemperatureLinks(u8),
     SecondOrder,
 }
 
@@ -99,6 +103,28 @@ impl Basis {
             _ => Vec::new(),
         }
     }
+
+    /// The links (DH rows, 0-based) a per-link thermal drift grows.
+    pub fn links(&self) -> Vec<usize> {
+        match *self {
+            Basis::LagLinks(mask) | Basis::TemperatureLinks(mask) => {
+                (0..6).filter(|i| mask & (1 << i) != 0).collect()
+            }
+            _ => Vec::new(),
+        }
+    }
+
+    /// A thermal drift in the form of a first-order lag (one scale or one per link).
+    pub fn is_lag(&self) -> bool {
+        matches!(self, Basis::Lag | Basis::LagLinks(_))
+    }
+}
+
+/// The DH rows a per-link thermal drift can grow: those with a length (a or d) over 1 mm.
+pub fn grown_links(p: &Params) -> u8 {
+    (0..6)
+        .filter(|&i| p.dh[i].a.abs() + p.dh[i].d.abs() > 1e-3)
+        .fold(0u8, |m, i| m | (1 << i))
 }
 
 /// One effect of the model and its coefficients.
@@ -190,8 +216,8 @@ impl Estimate {
     pub fn add_effect(&mut self, effect: Effect, basis: Basis, tau0: f64) {
         let n = effect_cols(effect, basis).len();
         let mut coef = vec![0.0; n];
-        if effect == Effect::ThermalDrift && basis == Basis::Lag {
-            coef[1] = tau0.clamp(TAU_RANGE.0, TAU_RANGE.1);
+        if effect == Effect::ThermalDrift && basis.is_lag() {
+            coef[n - 1] = tau0.clamp(TAU_RANGE.0, TAU_RANGE.1);
         }
         self.effects.push(Term {
             effect,
@@ -210,12 +236,14 @@ impl Estimate {
             })
     }
 
-    /// The thermal lag's amplitude and time constant, when the model has one.
-    fn lag(&self) -> Option<(f64, f64)> {
-        self.effects
+    /// The thermal lag's amplitude per link and time constant, when the model has one.
+    fn lag(&self) -> Option<([f64; 6], f64)> {
+        let t = self
+            .effects
             .iter()
-            .find(|t| t.effect == Effect::ThermalDrift && t.basis == Basis::Lag)
-            .map(|t| (t.coef[0], t.coef[1]))
+            .find(|t| t.effect == Effect::ThermalDrift && t.basis.is_lag())?;
+        let tau = *t.coef.last()?;
+        Some((growth_per_link(t.basis, &t.coef), tau))
     }
 }
 
@@ -283,6 +311,21 @@ impl Estimate {
     }
 }
 
+/// A thermal drift's coefficients as each link's growth per unit of its time function (the lag
+/// 1 − exp(−t/τ), or the temperature rise): one for every link, or one per link of the mask.
+pub fn growth_per_link(basis: Basis, coef: &[f64]) -> [f64; 6] {
+    match basis {
+        Basis::LagLinks(_) | Basis::TemperatureLinks(_) => {
+            let mut g = [0.0; 6];
+            for (n, i) in basis.links().into_iter().enumerate() {
+                g[i] = coef[n];
+            }
+            g
+        }
+        _ => [coef.first().copied().unwrap_or(0.0); 6],
+    }
+}
+
 /// The first-order thermal lag at time t since the start of the run: 1 − exp(−t/τ), and its
 /// derivative with respect to τ.
 fn lag(t: f64, tau: f64) -> (f64, f64) {
@@ -308,6 +351,9 @@ pub(crate) enum Col {
     ThermTau,
     /// Linear in the logged temperature rise.
     ThermTemp,
+    /// Link i's own lag amplitude, and its own coefficient of the temperature rise.
+    ThermAmpLink(usize),
+    ThermTempLink(usize),
     /// joint j, frame i, component 0 = mass at the origin, 1..3 = first moment along x, y, z.
     Comp(usize, usize, usize),
     /// joint j's compliance times its gravity torque from the known masses.
@@ -340,6 +386,15 @@ pub(crate) fn effect_cols(e: Effect, basis: Basis) -> Vec<Col> {
         Effect::ServoLag if basis == Basis::SecondOrder => vec![Col::Servo, Col::Servo2],
         Effect::ServoLag => vec![Col::Servo],
         Effect::ThermalDrift if basis == Basis::Temperature => vec![Col::ThermTemp],
+        Effect::ThermalDrift if matches!(basis, Basis::TemperatureLinks(_)) => {
+            basis.links().into_iter().map(Col::ThermTempLink).collect()
+        }
+        Effect::ThermalDrift if matches!(basis, Basis::LagLinks(_)) => basis
+            .links()
+            .into_iter()
+            .map(Col::ThermAmpLink)
+            .chain([Col::ThermTau])
+            .collect(),
         Effect::ThermalDrift => vec![Col::ThermAmp, Col::ThermTau],
         Effect::JointCompliance => (0..6)
             .flat_map(|j| (j + 1..=6).flat_map(move |i| (0..4).map(move |c| Col::Comp(j, i, c))))
@@ -652,7 +707,7 @@ impl Problem {
     }
 
     /// sin(h·q) and cos(h·q) less their means over joint j's measured range.
-    fn harmonic(&self, j: usize, h: usize, q: f64) -> (f64, f64) {
+    pub(crate) fn harmonic(&self, j: usize, h: usize, q: f64) -> (f64, f64) {
         let (sn, cs) = (h as f64 * q).sin_cos();
         let (ms, mc) = self.harmonic_means[j][h - 1];
         (sn - ms, cs - mc)
@@ -947,13 +1002,15 @@ impl Problem {
                 }
                 Effect::Backlash(j) => q[j] += backlash[j],
                 Effect::ThermalDrift => {
-                    let f = match t.basis {
-                        Basis::Temperature => c[0] * thermal.rise,
-                        _ => c[0] * lag(thermal.since, c[1]).0,
+                    let g = growth_per_link(t.basis, c);
+                    let f = if t.basis.is_lag() {
+                        lag(thermal.since, c[c.len() - 1]).0
+                    } else {
+                        thermal.rise
                     };
                     for i in 0..6 {
-                        p[A + i] *= 1.0 + f;
-                        p[D + i] *= 1.0 + f;
+                        p[A + i] *= 1.0 + g[i] * f;
+                        p[D + i] *= 1.0 + g[i] * f;
                     }
                 }
                 Effect::JointCompliance if t.basis == Basis::KnownMasses => {
@@ -1013,11 +1070,8 @@ impl Problem {
             Some((v, a)) => (v[k], a[k]),
             None => (self.qdot[k], self.qddot[k]),
         };
-        let sens = || -> f64 {
-            (0..6)
-                .map(|i| est.p[A + i] * j[A + i] + est.p[D + i] * j[D + i])
-                .sum()
-        };
+        let sens_link = |i: usize| -> f64 { est.p[A + i] * j[A + i] + est.p[D + i] * j[D + i] };
+        let sens = || -> f64 { (0..6).map(sens_link).sum() };
         let (fg, og) = (self.fix_of[k] as usize, self.off_of[k] as usize);
         for (o, c) in out.iter_mut().zip(cols) {
             *o = match *c {
@@ -1053,11 +1107,21 @@ impl Problem {
                     Some((_, tau)) => sens() * lag(self.since[k], tau).0,
                     None => 0.0,
                 },
+                Col::ThermAmpLink(i) => match est.lag() {
+                    Some((_, tau)) => sens_link(i) * lag(self.since[k], tau).0,
+                    None => 0.0,
+                },
                 Col::ThermTau => match est.lag() {
-                    Some((amp, tau)) => sens() * amp * lag(self.since[k], tau).1,
+                    Some((amp, tau)) => {
+                        (0..6).map(|i| amp[i] * sens_link(i)).sum::<f64>()
+                            * lag(self.since[k], tau).1
+                    }
                     None => 0.0,
                 },
                 Col::ThermTemp => sens() * self.temp_rise.as_ref().map_or(0.0, |r| r[k]),
+                Col::ThermTempLink(i) => {
+                    sens_link(i) * self.temp_rise.as_ref().map_or(0.0, |r| r[k])
+                }
                 Col::Comp(jj, i, comp) => match &fr {
                     Some(fr) => j[THETA + jj] * gravity_basis(fr, jj, i, comp),
                     None => 0.0,
@@ -1209,7 +1273,7 @@ pub(crate) fn prepare(problem: &Problem, est: &Estimate) -> Prep {
 
 /// Torque about joint j per unit mass (comp 0, mass at frame i's origin) or per unit first
 /// moment along frame i's axis comp (1..3), gravity −z of the base.
-fn gravity_basis(fr: &[crate::robot::Frame; 8], j: usize, i: usize, comp: usize) -> f64 {
+pub(crate) fn gravity_basis(fr: &[crate::robot::Frame; 8], j: usize, i: usize, comp: usize) -> f64 {
     let z = fr[j].r.column(2);
     let f = Vector3::new(0.0, 0.0, -G);
     let arm = if comp == 0 {
@@ -1625,8 +1689,9 @@ fn add_step(est: &mut Estimate, cols: &[Col], x: &DVector<f64>) {
             *v += x[k];
             k += 1;
         }
-        if t.effect == Effect::ThermalDrift && t.basis == Basis::Lag {
-            t.coef[1] = t.coef[1].clamp(TAU_RANGE.0, TAU_RANGE.1);
+        if t.effect == Effect::ThermalDrift && t.basis.is_lag() {
+            let last = t.coef.len() - 1;
+            t.coef[last] = t.coef[last].clamp(TAU_RANGE.0, TAU_RANGE.1);
         }
     }
 }

@@ -340,6 +340,47 @@ pub fn walk(arm: &Arm, w: &Walk) -> Path {
     path
 }
 
+/// A path that stops at every knot in turn (a stop-and-go program: quintic moves with zero
+/// velocity and acceleration at both ends follow the straight joint line between knots), each
+/// move timed by its slowest axis at `speed` of the axis speeds (at least 0.5 s), with
+/// `dwell` seconds at every knot.
+pub fn through(arm: &Arm, knots: &[[f64; 6]], speed: f64, dwell: f64) -> Path {
+    through_dwelling(arm, knots, speed, &vec![dwell; knots.len()])
+}
+
+/// [`through`] with a dwell of its own at each knot (`dwell[k]` seconds after arriving at
+/// knot k).
+pub fn through_dwelling(arm: &Arm, knots: &[[f64; 6]], speed: f64, dwell: &[f64]) -> Path {
+    let mut path = Path {
+        t: vec![0.0],
+        q: vec![knots[0]],
+        v: vec![[0.0; 6]],
+        a: vec![[0.0; 6]],
+    };
+    if dwell.first().is_some_and(|d| *d > 0.0) {
+        path.t.push(dwell[0]);
+        path.q.push(knots[0]);
+        path.v.push([0.0; 6]);
+        path.a.push([0.0; 6]);
+    }
+    for (k, w) in knots.windows(2).enumerate() {
+        let dt = (0..6)
+            .map(|j| (w[1][j] - w[0][j]).abs() / (speed * arm.speed[j]))
+            .fold(0.5, f64::max)
+            * 1.875; // a quintic's peak speed is 1.875 times its mean
+        for (t, q) in [(dt, w[1]), (dwell[k + 1], w[1])] {
+            if t > 0.0 {
+                let t0 = path.duration();
+                path.t.push(t0 + t);
+                path.q.push(q);
+                path.v.push([0.0; 6]);
+                path.a.push([0.0; 6]);
+            }
+        }
+    }
+    path
+}
+
 /// True when the path ends at rest (its last two knots equal).
 fn path_stopped(p: &Path) -> bool {
     let n = p.q.len();
@@ -538,6 +579,12 @@ impl Recording {
 /// follow (servo loop, backlash, cyclic error, compliance), the links grow, the fixture may
 /// slide, and the bar reads the distance with noise and resolution.
 pub fn record(truth: &Truth, path: &Path, rate: f64, seed: u64) -> Recording {
+    record_from(truth, path, rate, seed, 0.0)
+}
+
+/// [`record`] of a path that starts `t0` seconds into the robot's day (its thermal state);
+/// the recording's times still start at 0.
+pub fn record_from(truth: &Truth, path: &Path, rate: f64, seed: u64, t0: f64) -> Recording {
     let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0xba5e);
     let n = (path.duration() * rate).floor() as usize;
     let mut out = Recording::default();
@@ -580,9 +627,9 @@ pub fn record(truth: &Truth, path: &Path, rate: f64, seed: u64) -> Recording {
             motor[j] = y;
         }
         let load = truth.load(&motor);
-        let f = truth.arm.frames_grown(&load, &truth.grow_links(t));
+        let f = truth.arm.frames_grown(&load, &truth.grow_links(t0 + t));
         let p = apply(&f[6], &truth.tool);
-        let mut l = (p - truth.fixture_at(t)).norm() + truth.noise * normal(&mut rng);
+        let mut l = (p - truth.fixture_at(t0 + t)).norm() + truth.noise * normal(&mut rng);
         if let Some((_, e)) = truth.physics.spikes.iter().find(|(i, _)| *i == k) {
             l += e;
         }
