@@ -205,6 +205,7 @@ fn round_trip(
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn calibrated_files_reproduce_the_true_robot_within_5_um_with_every_effect() {
     // (cell, robot file, fixture, --tool)
     let nj = nj130_cell();
@@ -311,6 +312,7 @@ fn calibrated_files_reproduce_the_true_robot_within_5_um_with_every_effect() {
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn a_cyclic_error_of_a_joint_short_of_a_turn_goes_into_its_zero_with_an_honest_uncertainty() {
     // Joint 2 of the NJ-130 turns through ~145°: a once-per-turn cyclic error there looks much
     // like its zero offset. The file holds the joint's physical zero and the error's
@@ -374,6 +376,7 @@ fn a_cyclic_error_of_a_joint_short_of_a_turn_goes_into_its_zero_with_an_honest_u
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn iso_circle_moves_only_what_it_determines_and_never_makes_the_robot_worse() {
     let robot = load(&nj130_dh());
     let fixture = Vector3::new(0.258, 1.468, 0.708);
@@ -482,6 +485,7 @@ fn iso_circle_moves_only_what_it_determines_and_never_makes_the_robot_worse() {
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn a_campaign_at_three_fixtures_calibrates_and_estimates_its_fixtures() {
     let robot = load(&nj130_dh());
     let fixtures_mm = [
@@ -878,6 +882,7 @@ fn calibrate_refuses_bad_input_with_one_line_and_writes_nothing() {
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn calibrated_dh_file_of_a_fixed_dataset_is_golden() {
     let c = nj130_cell();
     let dir = tempdir();
@@ -917,6 +922,7 @@ fn calibrated_dh_file_of_a_fixed_dataset_is_golden() {
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn the_compiler_states_what_its_program_buys_and_the_calibration_delivers_it() {
     // The predicted post-calibration uncertainty in the program header, against what
     // calibrating three simulated robots from that very program achieves.

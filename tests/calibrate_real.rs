@@ -144,6 +144,7 @@ fn score(case: &Case, out: &Path, seed: u64) -> (f64, f64) {
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn every_effect_of_the_library_from_another_simulator_calibrates_within_10_um_as_predicted() {
     let dir = workdir_nj130();
     let masses = vec![
@@ -306,6 +307,7 @@ fn workdir_nj130() -> tempfile::TempDir {
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn a_fixture_slipping_once_mid_run_and_spikes_are_found_and_reported() {
     let dir = workdir_nj130();
     let mut rng = ChaCha8Rng::seed_from_u64(5);
@@ -432,6 +434,7 @@ fn wire_campaign(seed: u64) -> Wire {
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn static_draw_wire_data_reach_the_joint_resolution_floor_without_a_given_tool_or_zero() {
     let dir = tempdir();
     let w = wire_campaign(1);
@@ -755,6 +758,7 @@ fn the_static_form_reads_std_n_and_temperature_and_time_effects_are_refused_with
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn a_campaign_may_hold_a_short_run_and_a_known_zero_is_used() {
     // A long run and a 12-row run of the same robot at a second fixture; the bar's zero is
     // known to be 100 mm (the reading is 100 mm longer than the ball-centre distance).

@@ -943,6 +943,7 @@ fn a_move_at_its_speed_limit_is_slowed_by_the_ratio_of_its_times() {
 // ---- programs the compiler wrote, compensated and verified in their cells --------------------
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn compiled_programs_of_every_dialect_compensated_still_verify_in_their_cells() {
     // The NJ-130 in its cell (DH), and the R-2000iC (URDF) whose FANUC J3 follows J2 through the
     // controller mapping: the compensation works on model joints, the text carries axes.
@@ -1088,6 +1089,7 @@ fn compensated_rows(path: &Path) -> Vec<Option<([f64; 6], [f64; 6])>> {
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn on_a_twin_the_truth_robot_reaches_the_nominal_targets_as_predicted() {
     let c = crate::diagnose::cell_with(load(&nj130_dh()), [258.0, 1468.0, 708.0], None);
     let dir = tempdir();
