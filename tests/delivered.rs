@@ -162,6 +162,7 @@ fn compensated(text: &str) -> Vec<Option<[f64; 6]>> {
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn one_effect_robots_of_another_simulator_get_the_accuracy_calibrate_predicted() {
     let masses = vec![
         (2, nalgebra::Vector3::new(-0.43, 0.02, 0.05), 120.0),
@@ -369,6 +370,7 @@ fn one_effect_robots_of_another_simulator_get_the_accuracy_calibrate_predicted()
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn a_program_compensated_for_a_backlash_lands_every_measurement_pose_from_either_side() {
     // The compiled NJ-130 program, compensated for a robot whose joint 1 has 0.02° of play,
     // then run by the true robot: the play follows the commanded joints move by move, the

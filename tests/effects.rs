@@ -267,6 +267,7 @@ fn round_trip(c: &Cell, robot_file: &Path, seed0: u64) -> Vec<String> {
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn calibrate_written_files_compensate_and_simulate_reproduce_the_fit_to_0_01_um() {
     let mut failures = round_trip(&nj130_cell(), &nj130_dh(), 300);
     failures.extend(round_trip(
