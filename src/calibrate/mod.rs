@@ -374,6 +374,18 @@ pub struct Delivered {
     pub not_delivered: Vec<String>,
     /// What a thermal drift in the file is referred to.
     pub thermal_reference: String,
+    /// Joint zeros the file holds differently from `params`: a cyclic error's harmonics are
+    /// fitted about their mean over the joint's measured range and written about zero (their
+    /// mean over a turn), so the file's θ holds that constant (deg; the same robot).
+    pub zero_shifts: Vec<ZeroShift>,
+}
+
+/// A joint zero the file holds with a cyclic error's constant part.
+#[derive(Clone, Debug, Serialize)]
+pub struct ZeroShift {
+    pub param: String,
+    /// The file's θ less the fit's (deg).
+    pub shift_deg: f64,
 }
 
 /// A calibration: the report, the calibrated estimate and what the plots need.
@@ -466,6 +478,52 @@ pub fn run(
     ))
 }
 
+/// The report's joint zeros as the robot file holds them: a joint with a cyclic error has its
+/// harmonics' mean over the measured range moved into its zero (θ_file = θ_fit − Σ aₖ·cₖ, aₖ
+/// the harmonics' means); its standard uncertainty through the covariance of θ and the
+/// harmonics' coefficients.
+fn physical_zeros(
+    problem: &Problem,
+    f: &steps::Fit,
+    cov: &nalgebra::DMatrix<f64>,
+    values: &mut serde_json::Map<String, serde_json::Value>,
+    stds: &mut serde_json::Map<String, serde_json::Value>,
+) {
+    let g = f.free.len();
+    let mut col = g;
+    for t in &f.est.effects {
+        let n = t.coef.len();
+        if let Effect::CyclicError(j) = t.effect {
+            let theta = Param::Shared(crate::model::THETA + j);
+            if let Some(a) = f.free.iter().position(|q| *q == theta) {
+                // θ_file = θ_fit − Σ_k w_k·coef_k.
+                let mut w = vec![(a, 1.0)];
+                let mut shift = 0.0;
+                for (m, h) in t.basis.orders().into_iter().enumerate() {
+                    let (ms, mc) = problem.harmonic_mean(j, h);
+                    w.push((col + 2 * m, -mc));
+                    w.push((col + 2 * m + 1, -ms));
+                    shift += t.coef[2 * m] * mc + t.coef[2 * m + 1] * ms;
+                }
+                let var: f64 = w
+                    .iter()
+                    .flat_map(|&(x, wx)| w.iter().map(move |&(y, wy)| wx * wy * cov[(x, y)]))
+                    .sum();
+                let name = problem.param_name(theta);
+                if let Some(v) = values.get(&name).and_then(|v| v.as_f64()) {
+                    values.insert(name.clone(), round(v - shift / DEG, 6).into());
+                    stds.insert(name, diagnose_sane(var.max(0.0).sqrt() / DEG));
+                }
+            }
+        }
+        col += n;
+    }
+}
+
+fn diagnose_sane(v: f64) -> serde_json::Value {
+    crate::diagnose::sane(crate::diagnose::round_std(v, 6))
+}
+
 /// A campaign too short to calibrate from is refused before any work.
 fn check_rows(runs: &[Run], labels: &[String]) -> Result<(), CalibrateError> {
     if runs.is_empty() {
@@ -521,7 +579,10 @@ fn assemble(
     opts: &CalibrateOptions,
 ) -> Calibration {
     let g = f.free.len();
-    let (values, stds) = geometry_report(problem, &f.est, &f.free, &u.var[..g]);
+    let (mut values, mut stds) = geometry_report(problem, &f.est, &f.free, &u.var[..g]);
+    if opts.write_effects {
+        physical_zeros(problem, &f, &u.cov, &mut values, &mut stds);
+    }
     let mut params = serde_json::Map::new();
     for (name, v) in &values {
         let mut e = serde_json::Map::new();
@@ -530,9 +591,18 @@ fn assemble(
         params.insert(name.clone(), e.into());
     }
     let effect_reports = effects_report(&f.est, &u.var[g..]);
-    let file = delivered::file_model(problem, &f.est, &u.var[g..]);
+    let mut file = delivered::file_model(problem, &f.est, &u.var[g..]);
     let (effect_sizes, predicted, space_std, delivered) =
         parts::delivered(model, robot, problem, &f, &u, &file, opts);
+    if !opts.write_effects {
+        // The geometry alone: with a cyclic error's constant over the measured range in the
+        // joint zero, the best a table without the harmonics can hold there.
+        file = delivered::FileModel {
+            params: f.est.params(0),
+            effects: Default::default(),
+            reference: file.reference,
+        };
+    }
     let diag = parts::diagnostics(model, problem, known, &f, &u, opts);
     let residual_nominal = problem.residual(&f.nominal);
     let residual = f.fitted.residual.clone();

@@ -589,6 +589,16 @@ pub(super) fn delivered(
             3,
         );
     }
+    let zero_shifts = (0..6)
+        .filter(|_| opts.write_effects)
+        .filter_map(|j| {
+            let d = file.params.dh[j].theta - f.est.params(0).dh[j].theta;
+            (d != 0.0).then(|| super::ZeroShift {
+                param: format!("theta{}", j + 1),
+                shift_deg: round(d / DEG, 9),
+            })
+        })
+        .collect();
     let delivered = Delivered {
         content: if opts.write_effects || adopted.is_empty() {
             "geometry and effects"
@@ -597,6 +607,7 @@ pub(super) fn delivered(
         },
         not_delivered,
         thermal_reference: file.reference.clone(),
+        zero_shifts,
     };
     (
         sizes.into_iter().map(|s| s.2).collect(),

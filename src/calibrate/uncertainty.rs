@@ -19,8 +19,10 @@ use predict::JointTerms;
 /// What step 6 leaves for the report.
 pub(super) struct Uncertainty {
     pub predicted: Predicted,
-    /// The variances of the fit's coefficients (the free parameters, then the effects').
+    /// The variances of the fit's coefficients (the free parameters, then the effects'), and
+    /// their whole covariance (SI).
     pub var: Vec<f64>,
+    pub cov: DMatrix<f64>,
     /// The residual's σ with the model-error factor (m).
     pub sigma_eff: f64,
     /// The calibrated parameters (run 1's fixture).
@@ -201,6 +203,7 @@ pub(super) fn estimate(
     Uncertainty {
         predicted,
         var,
+        cov,
         sigma_eff,
         calibrated,
         region,

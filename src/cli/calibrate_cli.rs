@@ -333,8 +333,12 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
     if kept.iter().any(Option::is_some) {
         for (k, logs) in kept.iter().enumerate() {
             let Some(logs) = logs else { continue };
-            let p = cal.estimate.params(k);
-            let length = |q: &[f64; 6]| model.length(&p, q);
+            // The calibrated robot whole (its effects too: a compliance moves the bar's
+            // length by hundreds of micrometres), run k's fixture.
+            let mut p = cal.file.params;
+            p.fix = cal.estimate.params(k).fix;
+            let fx = &cal.file.effects;
+            let length = |q: &[f64; 6]| model.reached_length(&p, fx, q, &[0.0; 6]);
             let i = k - a.measured.len();
             let (m, extra, summary) = super::logs_cli::resync(logs, &length, program_of(i))?;
             data[k].0 = m;
@@ -401,11 +405,7 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
         header.push(format!("since {}: {}", name(p), d.verdict));
     }
     let p = cal.params();
-    let effects = if a.geometry_only {
-        robot::effects::Effects::default()
-    } else {
-        cal.file.effects.clone()
-    };
+    let effects = cal.file.effects.clone();
     let effects_text = robot::effects::to_toml(&effects, &cal.file.reference);
     // A URDF cannot hold the effects: they go to a sidecar file beside it, named in its header.
     let sidecar = (urdf && !effects_text.is_empty()).then(|| sidecar_path(&a.output));

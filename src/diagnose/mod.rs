@@ -405,7 +405,7 @@ fn locate(m: &Measured, r: &[f64]) -> Option<Where> {
 
 /// A standard uncertainty rounded to `d` decimals, or to two significant digits where that
 /// would print a nonzero one as 0 (a servo lag known to 0.3 µs is not known exactly).
-fn round_std(v: f64, d: i32) -> f64 {
+pub(crate) fn round_std(v: f64, d: i32) -> f64 {
     let r = round(v, d);
     if r != 0.0 || v == 0.0 || !v.is_finite() {
         return r;
