@@ -18,6 +18,7 @@ mod coupling;
 mod determinism;
 mod diagnose;
 mod dialects;
+mod docs;
 mod drift;
 mod fuzz;
 mod header_limits;
