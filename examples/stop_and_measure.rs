@@ -1,4 +1,4 @@
-//! Measuring without a synchronous joint log (`make stop-and-measure`, issue 23): simulated
+//! Measuring without a synchronous joint log (`make stop-and-measure`): simulated
 //! NJ-130s with random geometric errors (±0.2 mm, ±0.02°), 1 µm bar noise at 50 Hz, measured
 //! two ways, each against its synchronous reference:
 //!
