@@ -19,6 +19,7 @@ mod delivered;
 mod determinism;
 mod diagnose;
 mod dialects;
+mod docs;
 mod drift;
 mod effects;
 mod fuzz;
