@@ -22,7 +22,7 @@ use rand_chacha::ChaCha8Rng;
 /// pauses (the operator mounts or removes the bar).
 fn compiled_program(dir: &std::path::Path) -> Vec<([f64; 6], bool)> {
     let prog = dir.join("nj130.nc");
-    let r = edbbgen(&[
+    let r = edbbgen([
         nj130_dh().to_str().unwrap(),
         "--fixture",
         "258,1468,708",
@@ -255,7 +255,7 @@ fn one_effect_robots_of_another_simulator_get_the_accuracy_calibrate_predicted()
         let t_csv = dir.path().join(format!("d{k}.targets.csv"));
         std::fs::write(&t_csv, csv(&qs)).unwrap();
         let c_csv = dir.path().join(format!("d{k}.comp.csv"));
-        let r = edbbgen(&[
+        let r = edbbgen([
             "compensate",
             out.to_str().unwrap(),
             "--nominal",
@@ -397,7 +397,7 @@ fn a_program_compensated_for_a_backlash_lands_every_measurement_pose_from_either
         .iter()
         .any(|e| e["effect"] == "backlash"));
     let comp = dir.path().join("nj130.comp.nc");
-    let r = edbbgen(&[
+    let r = edbbgen([
         "compensate",
         out.to_str().unwrap(),
         "--nominal",

@@ -289,7 +289,7 @@ fn a_urdf_whose_sidecar_is_missing_or_bad_is_refused_with_one_line() {
     );
     let path = dir.path().join("r.urdf");
     std::fs::write(&path, named).unwrap();
-    let r = edbbgen(&["model", path.to_str().unwrap(), "--fixture", "1400,400,700"]);
+    let r = edbbgen(["model", path.to_str().unwrap(), "--fixture", "1400,400,700"]);
     assert_eq!(r.code, 2, "{}", r.stderr);
     assert_eq!(r.stderr.trim().lines().count(), 1, "{}", r.stderr);
     assert!(r.stderr.contains("gone.effects.toml"), "{}", r.stderr);
@@ -298,7 +298,7 @@ fn a_urdf_whose_sidecar_is_missing_or_bad_is_refused_with_one_line() {
         "[effects]\nschema = \"edbbgen.effects/1\"\n[[effects.backlash]]\njoint = 9\nplay_deg = 0.01\n",
     )
     .unwrap();
-    let r = edbbgen(&["model", path.to_str().unwrap(), "--fixture", "1400,400,700"]);
+    let r = edbbgen(["model", path.to_str().unwrap(), "--fixture", "1400,400,700"]);
     assert_eq!(r.code, 2, "{}", r.stderr);
     assert!(r.stderr.contains("joint 9"), "{}", r.stderr);
 }
