@@ -151,7 +151,11 @@ fn score_at(case: &Case, out: &Path, arm: &Arm, qs: &[[f64; 6]]) -> (f64, f64) {
 fn score_measured(case: &Case, out: &Path) -> f64 {
     let arm = Arm::from_file(&nj130_dh());
     let q = &case.recording.q;
-    let qs: Vec<[f64; 6]> = q.iter().step_by(q.len().div_ceil(2000).max(1)).copied().collect();
+    let qs: Vec<[f64; 6]> = q
+        .iter()
+        .step_by(q.len().div_ceil(2000).max(1))
+        .copied()
+        .collect();
     score_at(case, out, &arm, &qs).0
 }
 
@@ -257,11 +261,11 @@ fn every_effect_of_the_library_from_another_simulator_calibrates_within_10_um_as
         let pred_measured = predicted["measured_region_rms"].as_f64().unwrap();
         // An effect's form beyond the joint range measured is a bound the report states, not
         // an estimate: there the prediction is only required not to be optimistic.
-        let extrapolated = report["warnings"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .any(|w| w.as_str().unwrap().contains("extrapolated beyond the range measured"));
+        let extrapolated = report["warnings"].as_array().unwrap().iter().any(|w| {
+            w.as_str()
+                .unwrap()
+                .contains("extrapolated beyond the range measured")
+        });
         if !extrapolated {
             ms_real += err * err;
             ms_pred += pred * pred;

@@ -35,4 +35,5 @@ mod report;
 mod safety;
 mod snapshots;
 mod structure;
+mod ur10_tracker;
 mod zero_length;

@@ -13,7 +13,7 @@ use crate::robot::Robot;
 use crate::twin::effects::gravity_torques;
 use crate::twin::effects::Effect;
 use crate::units::fmt_fixed;
-use nalgebra::DMatrix;
+use nalgebra::{DMatrix, DVector};
 use predict::JointTerms;
 
 /// What step 6 leaves for the report.
@@ -304,9 +304,30 @@ fn effect_model_spread<const N: usize>(
                 }
             }
         }
+        // Where the data did not reach, the form's error is bounded by the effect's own size
+        // (a smooth error whose variance is what the fit found, not more): the largest of the
+        // effect's contributions over the poses, per pose at most that.
+        let own_cols = fit::effect_cols(t.effect, t.basis);
+        let coef = DVector::from_column_slice(&t.coef);
+        let own = EffectTerms::of(problem, est, own_cols);
+        let none = predict::selection(&[]);
+        let size = poses
+            .iter()
+            .map(|set| {
+                let v = predict::position_std_with(
+                    &problem.model,
+                    &p,
+                    set,
+                    &none,
+                    &own,
+                    &(&coef * coef.transpose()),
+                );
+                predict::spread(&v).rms
+            })
+            .fold(0.0f64, f64::max);
         for i in 0..N {
             for (o, x) in out[i].iter_mut().zip(&worst[i]) {
-                *o = o.hypot(*x);
+                *o = o.hypot(x.min(size));
             }
         }
     }
