@@ -29,6 +29,7 @@ mod linuxcnc;
 mod logs;
 mod model_cmd;
 mod othersim;
+mod own_programs;
 mod passive;
 mod place;
 mod report;
