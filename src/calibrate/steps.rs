@@ -236,8 +236,8 @@ fn determine(
 /// others with the standard uncertainty each would have, in units of its prior (in the order
 /// they were ruled out). Pivoted Cholesky takes the best-seen column next while its conditional
 /// uncertainty stays below prior/κ; then any column whose marginal uncertainty exceeds prior/κ
-/// is dropped, worst first. Shared by [`run`] (on fitted data) and
-/// [`predict::expected`] (on the information a planned campaign would collect).
+/// is dropped, worst first. Shared by [`super::run`] (on fitted data) and
+/// [`super::predict::expected`] (on the information a planned campaign would collect).
 pub fn determined_columns(
     ss: &DMatrix<f64>,
     sigma: f64,

@@ -1003,7 +1003,7 @@ impl Problem {
 
     /// The model of one pose: the load-side joints and the parameters (fixture group `group`)
     /// the estimate gives for the motor-side angles `q0`, each backlash joint's load offset
-    /// from its motor (`backlash`, rad) and the thermal state. [`Problem::apply`] evaluates the
+    /// from its motor (`backlash`, rad) and the thermal state. `Problem::apply` evaluates the
     /// rows with it; a pose that was not recorded can be evaluated with it too.
     pub fn pose_model(
         &self,
