@@ -91,8 +91,9 @@ pub struct Case {
     pub given_tool: Vector3<f64>,
 }
 
-pub fn nj130_case(physics: Physics, minutes: f64, seed: u64) -> Case {
-    let arm = Arm::from_file(&nj130_dh());
+/// The true NJ-130 of a case and the set-up it is given: the fixture 50-80 µm and the tool
+/// 0.2 mm off the given ones, DH errors up to 0.2 mm / 0.02°, 1 µm bar noise.
+pub fn nj130_truth(arm: &Arm, physics: Physics, seed: u64) -> (Truth, Vector3<f64>, Vector3<f64>) {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let given_fixture = Vector3::new(0.258, 1.468, 0.708);
     let given_tool = Vector3::new(0.06, 0.03, 0.12);
@@ -106,6 +107,13 @@ pub fn nj130_case(physics: Physics, minutes: f64, seed: u64) -> Case {
         noise: 1e-6,
         resolution: 0.1e-6,
     };
+    (truth, given_fixture, given_tool)
+}
+
+pub fn nj130_case(physics: Physics, minutes: f64, seed: u64) -> Case {
+    let arm = Arm::from_file(&nj130_dh());
+    let (truth, given_fixture, given_tool) = nj130_truth(&arm, physics, seed);
+    let (fixture, tool) = (truth.fixture, truth.tool);
     let path = walk(
         &arm,
         &Walk {
