@@ -149,6 +149,9 @@ pub(super) struct HeldOutScore {
     /// The variance factor Type A carries: the larger of the residual's integrated
     /// autocorrelation time and the held-out residual's mean square over the noise's.
     pub factor: f64,
+    /// The nominal geometry with the set-up fitted alone (the determined set-up parameters
+    /// of the calibration), and that fit: what is delivered when the geometry is not improved.
+    pub setup: (Estimate, Fitted),
 }
 
 pub(super) fn held_out(problem: &Problem, f: &Fit) -> HeldOutScore {
@@ -160,17 +163,17 @@ pub(super) fn held_out(problem: &Problem, f: &Fit) -> HeldOutScore {
     let st = accumulate(problem, est, &cols, folds);
     let cv_cal = score(&st, &all).3;
     let heldout_cal = (cv_cal / kept_rows as f64).sqrt();
-    let heldout_nom = {
+    let (heldout_nom, setup) = {
         let mut e = est.clone();
         e.p[crate::model::ALPHA..crate::model::MAP]
             .copy_from_slice(&f.nominal.p[crate::model::ALPHA..crate::model::MAP]);
         e.effects.clear();
         let setup: Vec<Param> = free.iter().copied().filter(Param::is_setup).collect();
-        fit::refit(problem, &mut e, &setup);
+        let fitted = fit::refit(problem, &mut e, &setup);
         let c = model_cols(&e, &setup);
         let s = accumulate(problem, &e, &c, folds);
         let sel: Vec<usize> = (0..c.len()).collect();
-        (score(&s, &sel).3 / kept_rows as f64).sqrt()
+        ((score(&s, &sel).3 / kept_rows as f64).sqrt(), (e, fitted))
     };
     // Type A's model-error factor: the held-out mean square over what the noise alone gives
     // held out (the noise plus the variance of predicting a block from the others, which on a
@@ -199,6 +202,7 @@ pub(super) fn held_out(problem: &Problem, f: &Fit) -> HeldOutScore {
         folds,
         rows: kept_rows,
         factor: f.inflate.max(model_factor),
+        setup,
     }
 }
 
