@@ -223,6 +223,10 @@ pub struct Predicted {
     /// cyclic error fitted with harmonic orders 1..H to take one or two orders more (which
     /// the data do not reject): a bound on the error of the fitted form.
     pub from_effect_model: Component,
+    /// What the model misses on poses it was not fitted to: the held-out residual (blocks of
+    /// every run in the order taken) beyond the reading noise, times √3 (a reading sees the
+    /// MAP's error along the bar only); the same at every pose.
+    pub from_model_error: Component,
     /// What the priors say of the nominal robot: every parameter of the robot (and the tool
     /// point) off by its prior, after registration, RMS over the joint space. The calibrated
     /// robot must predict better than this to be written.
@@ -716,7 +720,7 @@ fn assemble(
                 calibrated: round(held_out.calibrated * 1e6, 3),
             },
             split: format!(
-                "{} contiguous blocks of the rows in the order taken (time order; the campaign's runs one after the other), each predicted by the model fitted to the others (linearised at the fit to all rows); nominal: the nominal robot with the set-up (tool point, fixtures, length zeros) fitted",
+                "{} contiguous blocks of each run's rows in the order taken, the same block of every run held out together and predicted by the model fitted to the others (linearised at the fit to all rows); nominal: the nominal robot with the set-up (tool point, fixtures, length zeros) fitted",
                 held_out.folds
             ),
             rows: held_out.rows,

@@ -149,6 +149,8 @@ pub(super) struct HeldOutScore {
     /// The variance factor Type A carries: the larger of the residual's integrated
     /// autocorrelation time and the held-out residual's mean square over the noise's.
     pub factor: f64,
+    /// The RMS (m, along the bar) of what the model misses on held-out rows beyond the noise.
+    pub model_error: f64,
     /// The nominal geometry with the set-up fitted alone (the determined set-up parameters
     /// of the calibration), and that fit: what is delivered when the geometry is not improved.
     pub setup: (Estimate, Fitted),
@@ -196,12 +198,37 @@ pub(super) fn held_out(problem: &Problem, f: &Fit) -> HeldOutScore {
             _ => 1.0,
         }
     };
+    // What the model misses on rows it was not fitted to, beyond the reading noise (its
+    // high-frequency estimate) and what predicting from fewer rows costs a right model; only
+    // an excess the noise estimate's own uncertainty (three standard errors of a variance from
+    // n rows) cannot explain counts.
+    let model_error = {
+        let live: Vec<f64> = f
+            .fitted
+            .residual
+            .iter()
+            .zip(&problem.weight)
+            .filter(|(_, w)| **w > 0.0)
+            .map(|(r, _)| *r)
+            .collect();
+        let noise = fit::noise_estimate(&live);
+        match fit::heldout_determined(&st, &all) {
+            Some((cv, units, rows)) if rows > 0 => {
+                let slack = 1.0 + 3.0 * (2.0 / rows as f64).sqrt();
+                ((cv - noise * noise * units * slack) / rows as f64)
+                    .max(0.0)
+                    .sqrt()
+            }
+            _ => 0.0,
+        }
+    };
     HeldOutScore {
         calibrated: heldout_cal,
         nominal: heldout_nom,
         folds,
         rows: kept_rows,
         factor: f.inflate.max(model_factor),
+        model_error,
         setup,
     }
 }
