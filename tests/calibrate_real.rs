@@ -683,6 +683,19 @@ fn a_draw_wire_known_to_a_tape_measure_calibrates_to_the_quantisation_floor_with
             (f - truth.fixture).norm() < 2e-3,
             "axis {axis}: anchor {f:?}"
         );
+        // The joints' 0.1° read from the log, and the wire's own 0.2 mm noise told from the
+        // rounding in the residual: the readings weighted by their own uncertainty.
+        let w = &report["reading_weights"];
+        assert!(
+            w["joint_resolution_deg"][0]
+                .as_array()
+                .unwrap()
+                .iter()
+                .all(|g| g.as_f64() == Some(0.1)),
+            "{w}"
+        );
+        let noise = w["instrument_noise_um"].as_f64().unwrap();
+        assert!((160.0..240.0).contains(&noise), "{w}");
         // The quantisation and noise floor, held out.
         assert!(
             heldout * 1e-6 <= 1.15 * floor,

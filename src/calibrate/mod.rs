@@ -44,6 +44,7 @@ pub mod delivered;
 mod parts;
 pub mod plot;
 pub mod predict;
+pub mod resolution;
 mod steps;
 mod uncertainty;
 
@@ -115,6 +116,9 @@ pub struct CalibrateOptions {
     /// Write the adopted effects into the robot file (else the geometry only, and the
     /// prediction includes what the effects left out do over the joint space).
     pub write_effects: bool,
+    /// The step the joints were logged to (rad; `Some(0.0)`: exact), for every joint; `None`:
+    /// read from each run's logged values ([`resolution::detect`]).
+    pub joint_resolution: Option<f64>,
     /// Random joint poses of the workspace prediction, and their seed.
     pub workspace_poses: usize,
     pub seed: u64,
@@ -159,6 +163,7 @@ impl Default for CalibrateOptions {
             kappa: DEFAULT_KAPPA,
             max_steps: 12,
             write_effects: true,
+            joint_resolution: None,
             workspace_poses: WORKSPACE_POSES,
             seed: 1,
         }
@@ -401,6 +406,22 @@ pub struct Report {
     /// A robot not calibrated: the set-up fitted with the nominal geometry.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub setup: Option<SetupReport>,
+    /// Readings weighted by their own uncertainty (joints logged coarsely).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub reading_weights: Option<ReadingWeights>,
+}
+
+/// How the readings were weighted: the joints' logged resolution and the reading
+/// uncertainties it makes with the instrument's noise.
+#[derive(Clone, Debug, Serialize)]
+pub struct ReadingWeights {
+    /// Per run, per joint (deg; 0: none found or given).
+    pub joint_resolution_deg: Vec<[f64; 6]>,
+    /// The instrument's noise estimated for runs that state none (µm).
+    pub instrument_noise_um: Option<f64>,
+    /// The rounding's share of a reading, RMS and largest over the readings (µm).
+    pub rounding_rms_um: f64,
+    pub rounding_max_um: f64,
 }
 
 /// What the written files deliver.
@@ -496,7 +517,109 @@ fn prior(opts: &CalibrateOptions, q: Param) -> f64 {
 }
 
 /// Calibrates the robot of `model` on a campaign of runs (`labels` name them in the report).
+///
+/// Where the joints were logged coarsely enough that rounding them makes some readings worth
+/// less than others, the campaign is fitted again with each reading weighted by its own
+/// uncertainty: the instrument's noise (a run's stated `std`, or what the first fit's residual
+/// leaves beyond the rounding) combined with the rounding's share at its pose
+/// ([`resolution`]).
 pub fn run(
+    model: &MeasurementModel,
+    robot: &Robot,
+    runs: &[Run],
+    labels: &[String],
+    opts: &CalibrateOptions,
+) -> Result<Calibration, CalibrateError> {
+    let first = run_once(model, robot, runs, labels, opts)?;
+    let steps: Vec<[f64; 6]> = runs
+        .iter()
+        .map(|r| match opts.joint_resolution {
+            Some(g) => [g; 6],
+            None => resolution::detect(r.measured),
+        })
+        .collect();
+    if steps.iter().all(|s| s.iter().all(|g| *g == 0.0)) {
+        return Ok(first);
+    }
+    let rounding: Vec<Vec<f64>> = runs
+        .iter()
+        .enumerate()
+        .map(|(k, r)| {
+            let p = first.estimate.params(k);
+            resolution::rounding_std(model, &p, r.measured, &steps[k])
+        })
+        .collect();
+    // The instrument's noise where no run states it: the residual of those runs less the
+    // rounding's share.
+    let (res, rnd): (Vec<f64>, Vec<f64>) = runs
+        .iter()
+        .enumerate()
+        .filter(|(_, r)| r.measured.std.is_none())
+        .flat_map(|(k, _)| {
+            first.ranges[k]
+                .clone()
+                .zip(&rounding[k])
+                .map(|(i, q)| (first.residual[i], *q))
+        })
+        .unzip();
+    let noise = resolution::instrument_noise(&res, &rnd);
+    // A grid read from the values may be the poses' own (a program's targets in whole
+    // degrees, a designed grid), not a logger's rounding: the residual then says so, being
+    // far below what such rounding would leave.
+    if opts.joint_resolution.is_none() {
+        let all: Vec<f64> = rounding.iter().flatten().copied().collect();
+        let rms = |v: &[f64]| (v.iter().map(|x| x * x).sum::<f64>() / v.len().max(1) as f64).sqrt();
+        let left = resolution::instrument_noise(&first.residual, &[]);
+        if rms(&all) > 1.5 * left {
+            return Ok(first);
+        }
+    }
+    let combined: Vec<f64> = runs
+        .iter()
+        .enumerate()
+        .flat_map(|(k, r)| {
+            let stated = r.measured.std.clone();
+            rounding[k]
+                .iter()
+                .enumerate()
+                .map(move |(i, q)| q.hypot(stated.as_ref().map_or(noise, |s| s[i])))
+        })
+        .collect();
+    let Some(std) = resolution::reading_std(&combined, 0.0) else {
+        return Ok(first);
+    };
+    let mut at = 0;
+    let weighted: Vec<crate::twin::Measured> = runs
+        .iter()
+        .map(|r| {
+            let mut m = r.measured.clone();
+            m.std = Some(std[at..at + m.len()].to_vec());
+            at += m.len();
+            m
+        })
+        .collect();
+    let again: Vec<Run> = weighted
+        .iter()
+        .zip(runs)
+        .map(|(m, r)| Run {
+            measured: m,
+            fixture: r.fixture,
+        })
+        .collect();
+    let mut cal = run_once(model, robot, &again, labels, opts)?;
+    let all_rounding: Vec<f64> = rounding.iter().flatten().copied().collect();
+    let rms = |v: &[f64]| (v.iter().map(|x| x * x).sum::<f64>() / v.len().max(1) as f64).sqrt();
+    cal.report.reading_weights = Some(ReadingWeights {
+        joint_resolution_deg: steps.iter().map(|s| s.map(|g| round(g / DEG, 6))).collect(),
+        instrument_noise_um: (!res.is_empty()).then(|| round(noise * 1e6, 3)),
+        rounding_rms_um: round(rms(&all_rounding) * 1e6, 3),
+        rounding_max_um: round(all_rounding.iter().fold(0.0f64, |a, &b| a.max(b)) * 1e6, 3),
+    });
+    cal.summary = summary(&cal.report);
+    Ok(cal)
+}
+
+fn run_once(
     model: &MeasurementModel,
     robot: &Robot,
     runs: &[Run],
@@ -729,6 +852,7 @@ fn assemble(
         delivered,
         measured_joint_ranges_deg: parts::joint_ranges(problem).map(|r| r.map(|x| round(x / DEG, 3))),
         setup,
+        reading_weights: None,
     };
     let summary = summary(&report);
     Calibration {
@@ -899,6 +1023,25 @@ pub fn summary(r: &Report) -> String {
         fmt_fixed(r.validation.heldout_rms_um.nominal, 3),
         fmt_fixed(r.validation.heldout_rms_um.calibrated, 3)
     );
+    if let Some(w) = &r.reading_weights {
+        s += &format!(
+            "readings weighted by their own uncertainty: joints logged to {} deg; rounding {} um RMS, up to {} um per reading{}\n",
+            w.joint_resolution_deg
+                .first()
+                .map(|g| {
+                    let mut v: Vec<String> = g.iter().map(|x| format!("{x}")).collect();
+                    v.dedup();
+                    v.join("/")
+                })
+                .unwrap_or_default(),
+            fmt_fixed(w.rounding_rms_um, 1),
+            fmt_fixed(w.rounding_max_um, 1),
+            match w.instrument_noise_um {
+                Some(n) => format!(", instrument noise {} um", fmt_fixed(n, 1)),
+                None => String::new(),
+            }
+        );
+    }
     if let Some(set) = r.setup.as_ref().filter(|s| s.delivered) {
         s += &format!(
             "set-up with the nominal geometry: tool point {} mm{}; held out {} um RMS\n",

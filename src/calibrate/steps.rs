@@ -203,13 +203,14 @@ pub(super) fn held_out(problem: &Problem, f: &Fit) -> HeldOutScore {
     // an excess the noise estimate's own uncertainty (three standard errors of a variance from
     // n rows) cannot explain counts.
     let model_error = {
+        // Weighted as the held-out sums are.
         let live: Vec<f64> = f
             .fitted
             .residual
             .iter()
             .zip(&problem.weight)
             .filter(|(_, w)| **w > 0.0)
-            .map(|(r, _)| *r)
+            .map(|(r, w)| r * w)
             .collect();
         let noise = fit::noise_estimate(&live);
         match fit::heldout_determined(&st, &all) {

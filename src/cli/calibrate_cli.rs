@@ -192,6 +192,14 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
         tool_known: a.tool_known,
         length_offset: parse_length_offset(a.length_offset.as_deref())?,
         write_effects: !a.geometry_only,
+        joint_resolution: match a.joint_resolution {
+            Some(g) if !(g.is_finite() && (0.0..=10.0).contains(&g)) => {
+                return Err(usage(format!(
+                    "--joint-resolution: '{g}' is not a step in degrees from 0 to 10"
+                )))
+            }
+            g => g.map(|g| g * DEG),
+        },
         ..CalibrateOptions::default()
     };
     if let Some(p) = &a.prior {
