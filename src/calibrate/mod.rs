@@ -531,73 +531,10 @@ pub fn run(
     opts: &CalibrateOptions,
 ) -> Result<Calibration, CalibrateError> {
     let first = run_once(model, robot, runs, labels, opts)?;
-    let steps: Vec<[f64; 6]> = runs
-        .iter()
-        .map(|r| match opts.joint_resolution {
-            Some(g) => [g; 6],
-            None => resolution::detect(r.measured),
-        })
-        .collect();
-    if steps.iter().all(|s| s.iter().all(|g| *g == 0.0)) {
-        return Ok(first);
-    }
-    let rounding: Vec<Vec<f64>> = runs
-        .iter()
-        .enumerate()
-        .map(|(k, r)| {
-            let p = first.estimate.params(k);
-            resolution::rounding_std(model, &p, r.measured, &steps[k])
-        })
-        .collect();
-    // The instrument's noise where no run states it: the residual of those runs less the
-    // rounding's share.
-    let (res, rnd): (Vec<f64>, Vec<f64>) = runs
-        .iter()
-        .enumerate()
-        .filter(|(_, r)| r.measured.std.is_none())
-        .flat_map(|(k, _)| {
-            first.ranges[k]
-                .clone()
-                .zip(&rounding[k])
-                .map(|(i, q)| (first.residual[i], *q))
-        })
-        .unzip();
-    let noise = resolution::instrument_noise(&res, &rnd);
-    // A grid read from the values may be the poses' own (a program's targets in whole
-    // degrees, a designed grid), not a logger's rounding: the residual then says so, being
-    // far below what such rounding would leave.
-    if opts.joint_resolution.is_none() {
-        let all: Vec<f64> = rounding.iter().flatten().copied().collect();
-        let rms = |v: &[f64]| (v.iter().map(|x| x * x).sum::<f64>() / v.len().max(1) as f64).sqrt();
-        let left = resolution::instrument_noise(&first.residual, &[]);
-        if rms(&all) > 1.5 * left {
-            return Ok(first);
-        }
-    }
-    let combined: Vec<f64> = runs
-        .iter()
-        .enumerate()
-        .flat_map(|(k, r)| {
-            let stated = r.measured.std.clone();
-            rounding[k]
-                .iter()
-                .enumerate()
-                .map(move |(i, q)| q.hypot(stated.as_ref().map_or(noise, |s| s[i])))
-        })
-        .collect();
-    let Some(std) = resolution::reading_std(&combined, 0.0) else {
+    let Some((weighted, how)) = resolution::reweighted(model, runs, &first, opts.joint_resolution)
+    else {
         return Ok(first);
     };
-    let mut at = 0;
-    let weighted: Vec<crate::twin::Measured> = runs
-        .iter()
-        .map(|r| {
-            let mut m = r.measured.clone();
-            m.std = Some(std[at..at + m.len()].to_vec());
-            at += m.len();
-            m
-        })
-        .collect();
     let again: Vec<Run> = weighted
         .iter()
         .zip(runs)
@@ -607,14 +544,7 @@ pub fn run(
         })
         .collect();
     let mut cal = run_once(model, robot, &again, labels, opts)?;
-    let all_rounding: Vec<f64> = rounding.iter().flatten().copied().collect();
-    let rms = |v: &[f64]| (v.iter().map(|x| x * x).sum::<f64>() / v.len().max(1) as f64).sqrt();
-    cal.report.reading_weights = Some(ReadingWeights {
-        joint_resolution_deg: steps.iter().map(|s| s.map(|g| round(g / DEG, 6))).collect(),
-        instrument_noise_um: (!res.is_empty()).then(|| round(noise * 1e6, 3)),
-        rounding_rms_um: round(rms(&all_rounding) * 1e6, 3),
-        rounding_max_um: round(all_rounding.iter().fold(0.0f64, |a, &b| a.max(b)) * 1e6, 3),
-    });
+    cal.report.reading_weights = Some(how);
     cal.summary = summary(&cal.report);
     Ok(cal)
 }

@@ -51,14 +51,7 @@ pub(super) fn diagnostics(
     ) {
         warnings.push(w);
     }
-    let live: Vec<f64> = f
-        .fitted
-        .residual
-        .iter()
-        .zip(&problem.weight)
-        .filter(|(_, w)| **w > 0.0)
-        .map(|(r, _)| *r)
-        .collect();
+    let live = fit::kept_values(&f.fitted.residual, &problem.weight);
     let noise_hf = fit::noise_estimate(&live);
     let rms_after = fit::rms(&live);
     // Structure above the noise: the residual clearly larger than its high-frequency part, or
@@ -526,13 +519,7 @@ pub(super) fn setup(
     let free = &fitted.free;
     // Type A of the set-up-only fit: its residual holds what the nominal geometry leaves,
     // counted as the independent readings it is worth.
-    let kept: Vec<f64> = fitted
-        .residual
-        .iter()
-        .zip(&problem.weight)
-        .filter(|(_, w)| **w > 0.0)
-        .map(|(r, _)| *r)
-        .collect();
+    let kept = fit::kept_values(&fitted.residual, &problem.weight);
     let dof = kept.len().saturating_sub(free.len()).max(1) as f64;
     let s2 = fitted.rss / dof * fit::correlation_time(&kept);
     let cov = fit::inverse(&fitted.normal) * s2;

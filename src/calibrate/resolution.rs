@@ -9,6 +9,8 @@
 //! points along the joint's axis, most where it is tangent to the joint's circle). Readings
 //! where the rounding matters less are worth more.
 
+use super::{round, Calibration, ReadingWeights};
+use crate::diagnose::Run;
 use crate::model::{MeasurementModel, Params};
 use crate::twin::Measured;
 use crate::units::DEG;
@@ -22,6 +24,81 @@ const DISTINCT: usize = 10;
 /// Weighting pays when the readings' uncertainties differ by more than this ratio (RMS of the
 /// larger half over the smaller); below it the fit is the same.
 const SPREAD: f64 = 1.2;
+
+/// The campaign's runs with every reading's standard uncertainty set, and how they were
+/// weighted; `None` when weighting would not change the fit (no joint logged on a grid, the
+/// uncertainties nearly equal) or the residual of the first fit `first` contradicts a grid read
+/// from the values. `given`: the joints' step (rad) for every run, else read per run.
+pub(super) fn reweighted(
+    model: &MeasurementModel,
+    runs: &[Run],
+    first: &Calibration,
+    given: Option<f64>,
+) -> Option<(Vec<Measured>, ReadingWeights)> {
+    let steps: Vec<[f64; 6]> = runs
+        .iter()
+        .map(|r| given.map_or_else(|| detect(r.measured), |g| [g; 6]))
+        .collect();
+    if steps.iter().flatten().all(|g| *g == 0.0) {
+        return None;
+    }
+    let rounding: Vec<Vec<f64>> = runs
+        .iter()
+        .zip(&steps)
+        .enumerate()
+        .map(|(k, (r, s))| rounding_std(model, &first.estimate.params(k), r.measured, s))
+        .collect();
+    let all: Vec<f64> = rounding.iter().flatten().copied().collect();
+    let rounding_rms = (all.iter().map(|x| x * x).sum::<f64>() / all.len().max(1) as f64).sqrt();
+    // A grid read from the values may be the poses' own (a program's targets in whole
+    // degrees, a designed grid), not a logger's rounding: the residual then says so, being
+    // far below what such rounding would leave.
+    if given.is_none() && rounding_rms > 1.5 * instrument_noise(&first.residual, &[]) {
+        return None;
+    }
+    // The instrument's noise where no run states it: the residual of those runs less the
+    // rounding's share.
+    let (res, rnd): (Vec<f64>, Vec<f64>) = runs
+        .iter()
+        .enumerate()
+        .filter(|(_, r)| r.measured.std.is_none())
+        .flat_map(|(k, _)| {
+            first.ranges[k]
+                .clone()
+                .zip(&rounding[k])
+                .map(|(i, q)| (first.residual[i], *q))
+        })
+        .unzip();
+    let noise = instrument_noise(&res, &rnd);
+    let combined: Vec<f64> = runs
+        .iter()
+        .zip(&rounding)
+        .flat_map(|(r, rk)| {
+            let stated = r.measured.std.as_deref();
+            rk.iter()
+                .enumerate()
+                .map(move |(i, q)| q.hypot(stated.map_or(noise, |s| s[i])))
+        })
+        .collect();
+    let std = reading_std(&combined, 0.0)?;
+    let mut at = 0;
+    let weighted = runs
+        .iter()
+        .map(|r| {
+            let mut m = r.measured.clone();
+            m.std = Some(std[at..at + m.len()].to_vec());
+            at += m.len();
+            m
+        })
+        .collect();
+    let how = ReadingWeights {
+        joint_resolution_deg: steps.iter().map(|s| s.map(|g| round(g / DEG, 6))).collect(),
+        instrument_noise_um: (!res.is_empty()).then(|| round(noise * 1e6, 3)),
+        rounding_rms_um: round(rounding_rms * 1e6, 3),
+        rounding_max_um: round(all.iter().fold(0.0f64, |a, &b| a.max(b)) * 1e6, 3),
+    };
+    Some((weighted, how))
+}
 
 /// The step each joint's logged values lie on (rad), 0 where they lie on none of the usual
 /// logging steps, 1° to 0.0001° (logged finer, or computed). A joint with too few distinct

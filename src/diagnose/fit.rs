@@ -904,9 +904,9 @@ impl Problem {
         new
     }
 
-    /// Undoes the last [`Problem::split`] (`group` is what it returned) and drops the new
-    /// segment's set-up from `est`.
-    pub fn unsplit(&mut self, est: &mut Estimate, fixture: bool, group: usize) {
+    /// Undoes the last [`Problem::split`] (`group` is what it returned); an estimate from
+    /// before the split fits the problem again.
+    pub fn unsplit(&mut self, fixture: bool, group: usize) {
         let (groups, of) = if fixture {
             (&mut self.fix_groups, &mut self.fix_of)
         } else {
@@ -921,11 +921,6 @@ impl Problem {
         groups[old].rows.end = g.rows.end;
         for o in &mut of[g.rows.clone()] {
             *o = old as u32;
-        }
-        if fixture {
-            est.fixtures.truncate(group);
-        } else {
-            est.offsets.truncate(group);
         }
     }
 
@@ -1336,9 +1331,7 @@ impl Stats {
 
 pub(crate) const CHUNK: usize = 256;
 
-/// The chunks of the rows: at most [`CHUNK`] rows each, inside fold f's block
-/// [f·n/folds, (f+1)·n/folds): (rows, fold).
-/// The rows in chunks of at most `CHUNK`, in order, each with its fold: fold f is the f-th of
+/// The rows in chunks of at most [`CHUNK`], in order, each with its fold: fold f is the f-th of
 /// `folds` contiguous blocks of every run's rows, so that a fold holds out the same stretch of
 /// each run (runs over the same poses to other fixtures are held out together: the held-out
 /// poses are new to the fit) and leaves every run's set-up determined by the others.
@@ -1811,6 +1804,15 @@ pub fn structural(
 /// RMS of a residual.
 pub fn rms(r: &[f64]) -> f64 {
     (r.iter().map(|v| v * v).sum::<f64>() / r.len().max(1) as f64).sqrt()
+}
+
+/// The values of `r` at the rows that count (weight above zero).
+pub fn kept_values(r: &[f64], weight: &[f64]) -> Vec<f64> {
+    r.iter()
+        .zip(weight)
+        .filter(|(_, w)| **w > 0.0)
+        .map(|(v, _)| *v)
+        .collect()
 }
 
 /// RMS of the rows that count (weight above zero).

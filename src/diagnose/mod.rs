@@ -564,9 +564,8 @@ impl Pending {
         problem: &mut Problem,
         found: &mut Vec<Step>,
     ) -> (Estimate, Vec<Param>, Vec<f64>, f64) {
-        let mut scratch = self.s.clone();
         for &(fixture, group) in self.splits.iter().rev() {
-            problem.unsplit(&mut scratch, fixture, group);
+            problem.unsplit(fixture, group);
         }
         found.truncate(self.found);
         (self.s, self.free, self.residual, self.noise)
@@ -676,14 +675,7 @@ pub fn select(
     }];
     let mut found: Vec<Step> = Vec::new();
 
-    let kept_of = |r: &[f64], w: &[f64]| -> Vec<f64> {
-        r.iter()
-            .zip(w)
-            .filter(|(_, w)| **w > 0.0)
-            .map(|(v, _)| *v)
-            .collect()
-    };
-    let mut noise = noise_estimate(&kept_of(&residual, &problem.weight));
+    let mut noise = noise_estimate(&fit::kept_values(&residual, &problem.weight));
     let (mut effects_added, mut steps_added) = (0, 0);
     // Steps split off but not yet proven: the state before the first of them. Several faults
     // in one run (a zero that jumps twice) leave the residual of the first split as
@@ -691,7 +683,7 @@ pub fn select(
     // after the last.
     let mut pending: Option<Pending> = None;
     while effects_added < opts.max_effects || steps_added < opts.max_steps {
-        let live = kept_of(&residual, &problem.weight);
+        let live = fit::kept_values(&residual, &problem.weight);
         noise = noise.min(noise_estimate(&live));
         let r_now = rms(&live);
         // At the noise level and white: nothing left to explain. The candidates are still
@@ -879,10 +871,13 @@ pub fn select(
                 // proven are judged with this one, from the last proven model.
                 let params = if split.fixture { 4.0 } else { 2.0 };
                 let (before, params) = match &pending {
-                    Some(p) => (kept_of(&p.residual, &problem.weight), p.params + params),
-                    None => (kept_of(&residual, &problem.weight), params),
+                    Some(p) => (
+                        fit::kept_values(&p.residual, &problem.weight),
+                        p.params + params,
+                    ),
+                    None => (fit::kept_values(&residual, &problem.weight), params),
                 };
-                let after = kept_of(&st.residual, &problem.weight);
+                let after = fit::kept_values(&st.residual, &problem.weight);
                 let ss = |r: &[f64]| r.iter().map(|v| v * v).sum::<f64>();
                 let n_eff = after.len() as f64 / fit::correlation_time(&after).max(1.0);
                 let gain = n_eff * (ss(&before) / ss(&after).max(1e-300)).ln()
@@ -994,7 +989,7 @@ pub fn select(
         rss,
         rows,
     };
-    let live = kept_of(&residual, &problem.weight);
+    let live = fit::kept_values(&residual, &problem.weight);
     noise = noise.min(noise_estimate(&live));
     let rms_final = rms(&live);
     let l1 = lag1(&live);
