@@ -42,6 +42,19 @@ pub fn fmt_fixed(v: f64, decimals: usize) -> String {
     }
 }
 
+/// The inverse-time feed word for a move of `seconds`: 60/t rounded *down* to 4 decimals, so
+/// the move never runs faster than planned.
+pub fn inverse_time_feed(seconds: f64) -> String {
+    let f = if seconds > 0.0 { 60.0 / seconds } else { 0.0 };
+    fmt_fixed((f * 1e4 * (1.0 - 1e-12)).floor() / 1e4, 4)
+}
+
+/// `v` rounded *up* to `decimals` (a duration printed this way is never shorter than planned).
+pub fn ceil_fixed(v: f64, decimals: usize) -> String {
+    let k = 10f64.powi(decimals as i32);
+    fmt_fixed((v * k * (1.0 - 1e-12)).ceil() / k, decimals)
+}
+
 #[cfg(test)]
 mod tests {
     #[test]

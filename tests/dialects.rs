@@ -451,7 +451,7 @@ fn every_template_prints_every_header_field() {
         for f in &fields {
             assert!(
                 src.contains(&format!("h.{f}")),
-                "templates/{d}.j2 does not print the header field {f}"
+                "src/dialect/{d}/{d}.j2 does not print the header field {f}"
             );
         }
     }

@@ -261,7 +261,7 @@ proptest! {
     }
 
     #[test]
-    fn user_template(text in mutated(read("templates/ngc.j2"))) {
+    fn user_template(text in mutated(read("src/dialect/ngc/ngc.j2"))) {
         let template = edbbgen::dialect::Template {
             source: text,
             dialect: edbbgen::dialect::by_name("ngc").unwrap(),

@@ -143,7 +143,7 @@ fn a_plan_that_repeats_a_pose_is_named_a_planner_bug_not_emitted() {
     let mut opts = CompileOptions::new(Vector3::new(0.258, 1.468, 0.708));
     opts.step = [20f64.to_radians(); 6];
     opts.max_candidates = 600;
-    let ngc = edbbgen::dialect::BUNDLED[0].1;
+    let ngc = edbbgen::dialect::source("ngc").unwrap();
     let c = pipeline::compile(&robot, &opts, ngc, &edbbgen::sample::NoProgress).unwrap();
     assert_eq!(c.plan.repeated_pose(), None);
     let mut plan = c.plan.clone();
@@ -163,7 +163,7 @@ fn a_plan_that_repeats_a_pose_is_named_a_planner_bug_not_emitted() {
     bad.moves.insert(k + 1, m);
     let (scene, _) = pipeline::build_scene(&robot, &opts.cell, &opts.fixture, &c.cell.map).unwrap();
     let ck = edbbgen::safety::Checker::new(&robot, &c.model, &c.cell, &scene, opts.cell.margin);
-    for (name, source) in edbbgen::dialect::BUNDLED {
+    for (name, source) in edbbgen::dialect::bundled() {
         let t = edbbgen::dialect::Template::from_source(source).unwrap();
         let map = pipeline::controller_map(&robot, &opts, &t).unwrap();
         let e = pipeline::finish(&ck, &robot, &opts, &bad, &t, &map).unwrap_err();

@@ -499,7 +499,7 @@ pub struct LdbbCircleArgs {
     /// Distance kept from every joint limit, deg [default: the cell's, 1].
     #[arg(long, value_name = "DEG")]
     pub joint_margin: Option<String>,
-    /// Output dialect (a template under templates/).
+    /// Output dialect (a bundled template, `edbbgen dialects` lists them).
     #[arg(long, value_name = "NAME", default_value = "ngc")]
     pub dialect: String,
     /// Use this template file instead of a bundled dialect.

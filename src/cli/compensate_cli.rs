@@ -248,7 +248,7 @@ pub fn compensate(a: &CompensateArgs) -> Result<i32, Error> {
     let offsets_rad = joint_offsets.map_or([0.0; 6], |o| o.delta);
     let accuracy = offsets::accuracy(&comp, &offsets_rad, &poses, predicted);
     let mastering = joint_offsets
-        .map(|o| offsets::mastering(&o, &map, dialect.map(|d| d.name.as_str()), pulses.as_ref()));
+        .map(|o| offsets::mastering(&o, &map, dialect.map(|d| d.language()), pulses.as_ref()));
 
     let note = format!(
         "compensated by edbbgen {} for {} (sha256 {}) against {}; joint values of the calibrated robot",

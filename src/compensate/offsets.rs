@@ -21,6 +21,7 @@
 use super::Compensator;
 use crate::calibrate::predict::{self, Spread};
 use crate::controller::{ControllerMap, Units};
+use crate::dialect::{AxisZero, Language};
 use crate::robot::Robot;
 use crate::units::{fmt_fixed, DEG, MM};
 use nalgebra::Vector3;
@@ -156,7 +157,7 @@ pub struct Mastering {
 pub fn mastering(
     offsets: &JointOffsets,
     map: &ControllerMap,
-    family: Option<&str>,
+    family: Option<&dyn Language>,
     pulses_per_deg: Option<&[f64; 6]>,
 ) -> Mastering {
     let to_units = |deg: f64| match map.units {
@@ -188,63 +189,27 @@ pub fn mastering(
         })
         .collect::<Vec<_>>();
     let convention = "delta = how much the axis's reading at a fixed physical position must grow so that the controller's nominal model and the arm agree (the calibrated joint zero offset on that axis); apply it to the controller's zero of that axis".to_string();
-    let line = |f: &dyn Fn(&AxisDelta) -> String| -> Vec<String> { axes.iter().map(f).collect() };
-    let num = |v: f64| fmt_fixed(v, 6);
-    let instructions = match family {
-        Some("krl") => line(&|a: &AxisDelta| {
-            format!(
-                "KUKA $MACHINE.DAT: $MAMES[{}] += {} deg (the axis counter takes $MAMES at the mastering mark)",
-                &a.axis[1..],
-                num(a.delta)
-            )
-        }),
-        Some("fanuc") => line(&|a: &AxisDelta| {
-            match a.master_count_delta {
-            Some(n) => format!(
-                "FANUC $DMR_GRP[1].$MASTER_COUN[{}] += {n} (position = (encoder - master count) / pulses per deg; {} deg)",
-                &a.axis[1..],
-                num(a.delta)
-            ),
+    // The controller family says where it keeps the zeros (its dialect's mastering terms).
+    let instructions = axes
+        .iter()
+        .map(|a| match family {
+            Some(l) => l.mastering(&AxisZero {
+                axis: &a.axis,
+                index: axes.iter().position(|x| x.axis == a.axis).unwrap_or(0),
+                delta: a.delta,
+                master_count_delta: a.master_count_delta,
+            }),
             None => format!(
-                "FANUC {}: {} deg; give [controller] pulses_per_deg for the master count change ($DMR_GRP[1].$MASTER_COUN)",
+                "{}: zero offset {} {}",
                 a.axis,
-                num(a.delta)
+                fmt_fixed(a.delta, 6),
+                a.units
             ),
-        }
-        }),
-        Some("rapid") => line(&|a: &AxisDelta| {
-            format!(
-                "ABB {}: {} deg on the arm side; the motor calibration offset (MOC.cfg, motor side, rad) changes by this times the axis's transmission ratio, with the motor's direction",
-                a.axis,
-                num(a.delta)
-            )
-        }),
-        Some("urscript") => line(&|a: &AxisDelta| {
-            format!(
-                "Universal Robots {}: calibration.conf [mounting] delta_theta += {} rad (the controller's own kinematic calibration)",
-                a.axis,
-                fmt_fixed(a.delta, 9)
-            )
-        }),
-        Some("sinumerik") => line(&|a: &AxisDelta| {
-            format!(
-                "SINUMERIK {}: $MA_REFP_MOVE_DIST_CORR (MD34090, absolute encoder) += {} deg; check the sign on one axis (the offset's sign depends on the encoder's direction)",
-                a.axis,
-                num(a.delta)
-            )
-        }),
-        Some("ngc") => line(&|a: &AxisDelta| {
-            format!(
-                "LinuxCNC [JOINT_{}] HOME_OFFSET += {} (the joint's position at its home switch or index pulse)",
-                axes.iter().position(|x| x.axis == a.axis).unwrap_or(0),
-                num(a.delta)
-            )
-        }),
-        _ => line(&|a: &AxisDelta| format!("{}: zero offset {} {}", a.axis, num(a.delta), a.units)),
-    };
+        })
+        .collect();
     Mastering {
         source: offsets.source,
-        family: family.map(str::to_string),
+        family: family.map(|l| l.name().to_string()),
         controller: map.describe(),
         axes,
         convention,
@@ -385,7 +350,7 @@ mod tests {
         let m = mastering(
             &off,
             &map([1.0, -1.0, 1.0, 1.0, 1.0, 1.0], -1.0, Units::Deg),
-            Some("fanuc"),
+            crate::dialect::language("fanuc"),
             Some(&[1000.0; 6]),
         );
         // Independent: the mapping applied to a pose and to the pose moved by the offsets.
@@ -404,7 +369,7 @@ mod tests {
         let r = mastering(
             &off,
             &map([1.0; 6], 0.0, Units::Rad),
-            Some("urscript"),
+            crate::dialect::language("urscript"),
             None,
         );
         assert!((r.axes[0].delta - 0.01 * DEG).abs() < 1e-15);

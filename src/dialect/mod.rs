@@ -1,46 +1,137 @@
 //! Controller dialects: in = a program text (and the [`ControllerMap`] in force); out =
-//! [`Parsed`], the motions it commands in model joints. The other end of [`crate::emit`]: a
-//! dialect is a template under `templates/` (how [`crate::ir::Program`] is written) and a
-//! reader here (how that text is read back), side by side, one file per language.
+//! [`Parsed`], the motions it commands in model joints and where each value sits in the text.
+//! The other end of [`crate::emit`]: each dialect is one folder here, behind one trait
+//! ([`Language`]): its template (how [`crate::ir::Program`] is written), its reader (how that
+//! text is read back), its writer of new values (what `compensate` changes), its timing and
+//! corner semantics (the template's front matter) and where its controller keeps joint zeros.
 //!
-//! | name | language | file | reader |
+//! | name | language | folder | template |
 //! |---|---|---|---|
-//! | `ngc` | RS274/NGC (LinuxCNC, ISO CNC cores) | `templates/ngc.j2` | [`ngc`] |
-//! | `sinumerik` | SINUMERIK 840D part program | `templates/sinumerik.j2` | [`sinumerik`] |
-//! | `krl` | KUKA KRL (KSS 8.x) | `templates/krl.j2` | [`krl`] |
-//! | `rapid` | ABB RAPID module | `templates/rapid.j2` | [`rapid`] |
-//! | `urscript` | Universal Robots URScript | `templates/urscript.j2` | [`urscript`] |
-//! | `fanuc` | FANUC TP as LS text | `templates/fanuc.j2` | [`fanuc`] |
+//! | `ngc` | RS274/NGC (LinuxCNC, ISO CNC cores) | [`ngc`] | `src/dialect/ngc/ngc.j2` |
+//! | `sinumerik` | SINUMERIK 840D part program | [`sinumerik`] | `src/dialect/sinumerik/sinumerik.j2` |
+//! | `krl` | KUKA KRL (KSS 8.x) | [`krl`] | `src/dialect/krl/krl.j2` |
+//! | `rapid` | ABB RAPID module | [`rapid`] | `src/dialect/rapid/rapid.j2` |
+//! | `urscript` | Universal Robots URScript | [`urscript`] | `src/dialect/urscript/urscript.j2` |
+//! | `fanuc` | FANUC TP as LS text | [`fanuc`] | `src/dialect/fanuc/fanuc.j2` |
 //!
 //! Every bundled template starts with its front matter: TOML inside a leading `{#- dialect`
 //! … `-#}` comment (file extension, axis units and names, the default controller mapping,
-//! program-name rules). A user template (`--template FILE`) declares the dialect it is read
-//! back as with `{% extends "NAME" %}`, and inherits that dialect's front matter and reader.
+//! program-name rules, what a move's time states, the corner model). A user template
+//! (`--template FILE`) declares the dialect it is read back as with `{% extends "NAME" %}`, and
+//! inherits that dialect's front matter and reader.
 //!
 //! Readers are strict: they understand what a joint-space measurement program needs and name
 //! the line of anything else. They never trust comments for motion, only for the header
-//! facts (fixture, MAP, the controller mapping) and the `support` marks.
+//! facts (fixture, MAP, the controller mapping) and the `support` marks. They record where
+//! every value they parsed sits ([`Positions`]), so a writer changes those bytes and nothing
+//! else, and no second tokenizer has to agree with the reader.
 
 pub mod fanuc;
 pub mod krl;
 pub mod ngc;
+mod positions;
 pub mod rapid;
 pub mod sinumerik;
 pub mod urscript;
+
+pub(crate) use positions::{after_line, offset_in, shifted, span, werr, words_replaced};
+pub use positions::{apply, Edit, MoveSpans, NewValues, Positions, WriteError};
 
 use crate::controller::{ControllerDefaults, ControllerMap, Coupling, Units};
 use serde::{Deserialize, Serialize};
 use std::sync::OnceLock;
 
-/// The bundled dialects (name, template source), compiled into the binary.
-pub const BUNDLED: &[(&str, &str)] = &[
-    ("ngc", include_str!("../../templates/ngc.j2")),
-    ("sinumerik", include_str!("../../templates/sinumerik.j2")),
-    ("krl", include_str!("../../templates/krl.j2")),
-    ("rapid", include_str!("../../templates/rapid.j2")),
-    ("urscript", include_str!("../../templates/urscript.j2")),
-    ("fanuc", include_str!("../../templates/fanuc.j2")),
+/// One controller language: everything edbbgen knows about it, in its own folder.
+pub trait Language: Sync {
+    /// The name programs, templates (`{% extends "NAME" %}`) and the command line use.
+    fn name(&self) -> &'static str;
+
+    /// The bundled template: its front matter ([`Dialect`]), then the blocks that write a
+    /// program.
+    fn template(&self) -> &'static str;
+
+    /// Reads a program: its steps in model joints, and where each value sits in `text`.
+    fn read(&self, text: &str, map: &ControllerMap) -> Result<Parsed, ParseError>;
+
+    /// How surely `text` is a program in this language when its file's extension does not
+    /// say: 0 = not, higher = a more specific sign (the highest wins, ties in registry order).
+    /// `first_code` is the text's first line that is not a comment in any bundled language.
+    fn recognises(&self, text: &str, first_code: &str) -> u8;
+
+    /// How the language writes a dwell, as its reader takes it (for messages).
+    fn dwell_instruction(&self) -> &'static str;
+
+    /// Decimals of compensated axis values: as many as the controller resolves, where the
+    /// language carries them (a planned program lives on the 0.001° grid).
+    fn decimals(&self, units: Units) -> usize;
+
+    /// The edits that write `values` (one per move of `parsed`, in order) into `text` (which
+    /// `parsed` was read from, with `map`), and `note` as a header comment. Only the ranges
+    /// the reader recorded change, besides the lines the language needs around them.
+    fn write(
+        &self,
+        text: &str,
+        parsed: &Parsed,
+        values: &[NewValues],
+        note: &str,
+        map: &ControllerMap,
+    ) -> Result<Vec<Edit>, WriteError>;
+
+    /// Where the controller keeps one axis's zero, and by how much to change it.
+    fn mastering(&self, zero: &AxisZero) -> String;
+
+    /// The template's front matter.
+    fn dialect(&self) -> &'static Dialect {
+        all()
+            .iter()
+            .find(|d| d.name == self.name())
+            .unwrap_or_else(|| panic!("{} is not registered in dialect::LANGUAGES", self.name()))
+    }
+
+    /// How the controller times moves: what a time word states and the acceleration of moves
+    /// that blend (front matter `move_time` and `[corner] blend_acceleration`).
+    fn timing(&self) -> ProgramTiming {
+        let d = self.dialect();
+        ProgramTiming {
+            move_time: d.move_time,
+            blend_acceleration: d.corner.blend_acceleration,
+        }
+    }
+}
+
+/// One controller axis's zero offset, for [`Language::mastering`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct AxisZero<'a> {
+    /// The axis's name in the mapping (`A1`, `J1`, `X`, …).
+    pub axis: &'a str,
+    /// Its position among the six axes (0-based).
+    pub index: usize,
+    /// The change of its reading, in the program's units.
+    pub delta: f64,
+    /// The change of the master count (`[controller] pulses_per_deg` given).
+    pub master_count_delta: Option<i64>,
+}
+
+/// Every bundled language, in the order `edbbgen dialects` lists them. A new dialect is a
+/// folder beside these and one entry here.
+pub const LANGUAGES: &[&dyn Language] = &[
+    &ngc::Ngc,
+    &sinumerik::Sinumerik,
+    &krl::Krl,
+    &rapid::Rapid,
+    &urscript::UrScript,
+    &fanuc::Fanuc,
 ];
+
+/// A bundled language by name.
+pub fn language(name: &str) -> Option<&'static dyn Language> {
+    LANGUAGES.iter().copied().find(|l| l.name() == name)
+}
+
+/// The bundled dialects: (name, template source), in registry order.
+pub fn bundled() -> impl Iterator<Item = (&'static str, &'static str)> {
+    LANGUAGES.iter().map(|l| (l.name(), l.template()))
+}
 
 /// A dialect's front matter.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -143,20 +234,14 @@ impl Dialect {
         }
     }
 
+    /// The language this front matter belongs to (its reader, writer, mastering terms).
+    pub fn language(&self) -> &'static dyn Language {
+        language(&self.name).unwrap_or_else(|| panic!("dialect '{}' has no language", self.name))
+    }
+
     /// Reads a program in this dialect.
     pub fn read(&self, text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
-        let mut p = match self.name.as_str() {
-            "ngc" => ngc::parse(text, map),
-            "sinumerik" => sinumerik::parse(text, map),
-            "krl" => krl::parse(text, map),
-            "rapid" => rapid::parse(text, map),
-            "urscript" => urscript::parse(text, map),
-            "fanuc" => fanuc::parse(text, map),
-            other => Err(ParseError {
-                line: 0,
-                msg: format!("no reader for dialect '{other}'"),
-            }),
-        }?;
+        let mut p = self.language().read(text, map)?;
         p.map = map.clone();
         p.timing = ProgramTiming {
             move_time: self.move_time,
@@ -182,14 +267,13 @@ fn front_matter(text: &str) -> Option<&str> {
 pub fn all() -> &'static [Dialect] {
     static ALL: OnceLock<Vec<Dialect>> = OnceLock::new();
     ALL.get_or_init(|| {
-        BUNDLED
-            .iter()
+        bundled()
             .map(|(name, text)| {
                 let fm = front_matter(text)
-                    .unwrap_or_else(|| panic!("templates/{name}.j2 has no front matter"));
+                    .unwrap_or_else(|| panic!("the {name} template has no front matter"));
                 let d: Dialect = toml::from_str(fm)
-                    .unwrap_or_else(|e| panic!("templates/{name}.j2 front matter: {e}"));
-                assert_eq!(&d.name, name, "templates/{name}.j2 names itself {}", d.name);
+                    .unwrap_or_else(|e| panic!("the {name} template's front matter: {e}"));
+                assert_eq!(d.name, name, "the {name} template names itself {}", d.name);
                 d
             })
             .collect()
@@ -202,24 +286,16 @@ pub fn by_name(name: &str) -> Option<&'static Dialect> {
 
 /// How a dialect writes a dwell, as its reader takes it (for messages).
 pub fn dwell_instruction(name: &str) -> &'static str {
-    match name {
-        "ngc" => "G4 P seconds",
-        "sinumerik" => "G4 F seconds",
-        "krl" => "WAIT SEC seconds",
-        "rapid" => "WaitTime seconds;",
-        "urscript" => "sleep(seconds)",
-        "fanuc" => "WAIT seconds(sec)",
-        _ => "a dwell",
-    }
+    language(name).map_or("a dwell", |l| l.dwell_instruction())
 }
 
 pub fn names() -> Vec<&'static str> {
-    BUNDLED.iter().map(|(n, _)| *n).collect()
+    LANGUAGES.iter().map(|l| l.name()).collect()
 }
 
 /// The bundled template source of a dialect.
 pub fn source(name: &str) -> Option<&'static str> {
-    BUNDLED.iter().find(|(n, _)| *n == name).map(|(_, t)| *t)
+    language(name).map(|l| l.template())
 }
 
 /// A template ready to render: its source and the dialect its programs are read back as.
@@ -315,7 +391,7 @@ pub fn detect(path: &std::path::Path, text: &str) -> Option<&'static Dialect> {
             return Some(d);
         }
     }
-    let t = text.trim_start();
+    // The first line that is not a comment (or a KRL attribute line) in any bundled language.
     let first_code = text
         .lines()
         .map(str::trim)
@@ -328,22 +404,14 @@ pub fn detect(path: &std::path::Path, text: &str) -> Option<&'static Dialect> {
                 && !l.starts_with('&')
         })
         .unwrap_or("");
-    let name = if t.starts_with("/PROG") {
-        "fanuc"
-    } else if first_code.to_ascii_uppercase().starts_with("DEF ") {
-        "krl"
-    } else if first_code.to_ascii_uppercase().starts_with("MODULE ") {
-        "rapid"
-    } else if first_code.starts_with("def ") {
-        "urscript"
-    } else if text.contains("G641") || text.contains("G60") && text.contains(';') {
-        "sinumerik"
-    } else if first_code.starts_with('G') || first_code.starts_with('N') {
-        "ngc"
-    } else {
-        return None;
-    };
-    by_name(name)
+    let mut best: Option<(u8, &dyn Language)> = None;
+    for l in LANGUAGES {
+        let sure = l.recognises(text, first_code);
+        if sure > 0 && best.is_none_or(|(b, _)| sure > b) {
+            best = Some((sure, *l));
+        }
+    }
+    by_name(best?.1.name())
 }
 
 // ---- what a reader returns ------------------------------------------------------------------
@@ -441,6 +509,10 @@ pub struct Parsed {
     /// acceleration of moves that blend): the twin runs the program on this timing.
     #[serde(default)]
     pub timing: ProgramTiming,
+    /// Where each value the reader parsed sits in the text (not serialised: it belongs to
+    /// the text it was read from).
+    #[serde(skip)]
+    pub positions: Positions,
 }
 
 /// How a dialect's controller times a program's moves ([`crate::timing`]'s model): what a
@@ -469,6 +541,7 @@ impl Default for Parsed {
             lines: Vec::new(),
             map: ControllerMap::identity(Units::Deg, ["X", "Y", "Z", "A", "B", "C"]),
             timing: ProgramTiming::default(),
+            positions: Positions::default(),
         }
     }
 }
@@ -536,7 +609,7 @@ pub(crate) fn number(line: usize, what: &str, s: &str) -> Result<f64, ParseError
 }
 
 /// Collects header comments into `key: value` lines, joining continuation lines to the line
-/// before: `.. text` after a space, `..text` inside a cut word ([`crate::emit::wrap`] writes
+/// before: `.. text` after a space, `..text` inside a cut word ([`wrap`] writes
 /// them), for languages with short comment lines (FANUC's 32 characters).
 pub fn push_header(header: &mut Vec<String>, comment: &str) {
     let c = comment.trim_end();
@@ -556,6 +629,44 @@ pub fn push_header(header: &mut Vec<String>, comment: &str) {
     header.push(c.to_string());
 }
 
+/// Chunks of at most `width` characters, broken at spaces where possible. Every chunk after
+/// the first starts with `..`: `.. text` continues after a space, `..text` continues a word
+/// that was cut (the readers join them back exactly).
+pub fn wrap(text: String, width: usize) -> Vec<String> {
+    let width = width.max(8);
+    let mut out: Vec<String> = Vec::new();
+    let mut rest = text.as_str();
+    let mut prefix = "";
+    loop {
+        let room = width - prefix.len();
+        if rest.len() <= room {
+            out.push(format!("{prefix}{rest}"));
+            return out;
+        }
+        // Break at the last space that fits, else cut the word.
+        let end = (0..=room + 1)
+            .rev()
+            .find(|&k| rest.is_char_boundary(k))
+            .unwrap_or(0);
+        match rest[..end].rfind(' ').filter(|&k| k > 0) {
+            Some(k) => {
+                out.push(format!("{prefix}{}", &rest[..k]));
+                rest = &rest[k + 1..];
+                prefix = ".. ";
+            }
+            None => {
+                let cut = (1..=room)
+                    .rev()
+                    .find(|&k| rest.is_char_boundary(k))
+                    .unwrap_or(room);
+                out.push(format!("{prefix}{}", &rest[..cut]));
+                rest = &rest[cut..];
+                prefix = "..";
+            }
+        }
+    }
+}
+
 /// A program name the dialect accepts: letters, digits and `_`, a letter first, at most `max`.
 pub fn valid_name(name: &str, max: usize) -> bool {
     !name.is_empty()
@@ -570,7 +681,7 @@ mod tests {
 
     #[test]
     fn every_bundled_template_has_front_matter_and_a_reader() {
-        assert_eq!(all().len(), BUNDLED.len());
+        assert_eq!(all().len(), LANGUAGES.len());
         for d in all() {
             let t = Template::from_source(source(&d.name).unwrap()).unwrap();
             assert_eq!(t.dialect.name, d.name);
@@ -602,6 +713,31 @@ mod tests {
             Template::from_source("{%- extends 'kuka' %}"),
             Err(TemplateError::Unknown(..))
         ));
+    }
+
+    #[test]
+    fn detect_takes_the_language_that_recognises_the_text_most_surely() {
+        let path = std::path::Path::new("program.txt");
+        for (text, name) in [
+            ("/PROG  EDBB\n/MN\n", Some("fanuc")),
+            ("&ACCESS RVP\nDEF edbb( )\nEND\n", Some("krl")),
+            // KRL's DEF in any case: it wins over URScript's lower-case `def`.
+            ("def edbb():\n  halt()\nend\n", Some("krl")),
+            ("! note\nMODULE edbb\nENDMODULE\n", Some("rapid")),
+            ("; note\nG71 G90 G60\nG0 X1=1\n", Some("sinumerik")),
+            ("N10 G641 ADIS=1\n", Some("sinumerik")),
+            ("(note)\nG21 G90\nG0 X1 Y2 Z3 A4 B5 C6\n", Some("ngc")),
+            ("hello\n", None),
+        ] {
+            assert_eq!(
+                detect(path, text).map(|d| d.name.as_str()),
+                name,
+                "{text:?}"
+            );
+        }
+        let d = detect(std::path::Path::new("p.SCRIPT"), "").unwrap();
+        assert_eq!(d.name, "urscript");
+        assert_eq!(d.language().name(), "urscript");
     }
 
     #[test]

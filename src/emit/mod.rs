@@ -1,4 +1,4 @@
-//! Emission: in = a [`Template`] (a dialect under `templates/`, or a user's file extending one)
+//! Emission: in = a [`Template`] (a bundled dialect's, or a user's file extending one)
 //! and a [`Program`]; out = the program text. Dialects are data: the template decides the
 //! syntax, Rust only supplies the values ([`target`] fills what depends on the controller) and
 //! a few number filters, so every dialect rounds the same way. The reader of each dialect, the
@@ -24,15 +24,13 @@ use crate::ir::Program;
 use crate::units::fmt_fixed;
 use minijinja::{Environment, Value};
 
-/// The bundled dialects (name, template source); [`crate::dialect::BUNDLED`].
-pub const DIALECTS: &[(&str, &str)] = crate::dialect::BUNDLED;
-
 /// The template source of a bundled dialect.
 pub fn dialect(name: &str) -> Option<&'static str> {
     crate::dialect::source(name)
 }
 
-pub use crate::units::DEG_DECIMALS;
+pub use crate::dialect::wrap;
+pub use crate::units::{ceil_fixed, inverse_time_feed, DEG_DECIMALS};
 
 /// A joint value (degrees) as the program will carry it: on the 0.001° grid every dialect
 /// prints exactly (FANUC LS positions and SINUMERIK rotary axes resolve 0.001°).
@@ -44,19 +42,6 @@ pub fn round_deg(v: f64) -> f64 {
 /// A joint vector (rad) exactly as the program text will carry it (and `verify` read it back).
 pub fn emitted(q: &[f64; 6]) -> [f64; 6] {
     q.map(|r| round_deg(crate::units::to_deg(r)) * crate::units::DEG)
-}
-
-/// The inverse-time feed word for a move of `seconds`: 60/t rounded *down* to 4 decimals, so
-/// the move never runs faster than planned.
-pub fn inverse_time_feed(seconds: f64) -> String {
-    let f = if seconds > 0.0 { 60.0 / seconds } else { 0.0 };
-    fmt_fixed((f * 1e4 * (1.0 - 1e-12)).floor() / 1e4, 4)
-}
-
-/// `v` rounded *up* to `decimals` (a duration printed this way is never shorter than planned).
-pub fn ceil_fixed(v: f64, decimals: usize) -> String {
-    let k = 10f64.powi(decimals as i32);
-    fmt_fixed((v * k * (1.0 - 1e-12)).ceil() / k, decimals)
 }
 
 /// A speed percentage as controllers take it: an integer, rounded *down* (never faster than
@@ -136,7 +121,7 @@ pub fn render(template: &Template, program: &Program) -> Result<String, String> 
         format!("{:>width$}", v.to_string())
     });
     env.add_filter("ident", |v: String, max: usize| ident(&v, max));
-    for (name, source) in crate::dialect::BUNDLED {
+    for (name, source) in crate::dialect::bundled() {
         env.add_template(name, source).map_err(one_line)?;
     }
     env.add_template("program", &template.source)
@@ -149,44 +134,6 @@ pub fn render(template: &Template, program: &Program) -> Result<String, String> 
     }
     text.push('\n');
     Ok(text)
-}
-
-/// Chunks of at most `width` characters, broken at spaces where possible. Every chunk after
-/// the first starts with `..`: `.. text` continues after a space, `..text` continues a word
-/// that was cut (the readers join them back exactly).
-pub fn wrap(text: String, width: usize) -> Vec<String> {
-    let width = width.max(8);
-    let mut out: Vec<String> = Vec::new();
-    let mut rest = text.as_str();
-    let mut prefix = "";
-    loop {
-        let room = width - prefix.len();
-        if rest.len() <= room {
-            out.push(format!("{prefix}{rest}"));
-            return out;
-        }
-        // Break at the last space that fits, else cut the word.
-        let end = (0..=room + 1)
-            .rev()
-            .find(|&k| rest.is_char_boundary(k))
-            .unwrap_or(0);
-        match rest[..end].rfind(' ').filter(|&k| k > 0) {
-            Some(k) => {
-                out.push(format!("{prefix}{}", &rest[..k]));
-                rest = &rest[k + 1..];
-                prefix = ".. ";
-            }
-            None => {
-                let cut = (1..=room)
-                    .rev()
-                    .find(|&k| rest.is_char_boundary(k))
-                    .unwrap_or(room);
-                out.push(format!("{prefix}{}", &rest[..cut]));
-                rest = &rest[cut..];
-                prefix = "..";
-            }
-        }
-    }
 }
 
 /// An operator message as lines of at most `width` characters for a controller's string

@@ -1,5 +1,6 @@
-//! FANUC LS reader (`templates/fanuc.j2` writes it): in = a teach pendant program as LS text
-//! and the controller mapping; out = the motions, in program order.
+//! FANUC LS reader (`fanuc.j2` beside it writes it): in = a teach pendant program as LS text
+//! and the controller mapping; out = the motions, in program order, and where each move's
+//! joint values (in `/POS`), speed and time, the `/MN` line numbers and `LINE_COUNT` sit.
 //!
 //! The subset a joint-space measurement program needs, strictly:
 //! - `/PROG name`, an optional `/ATTR` block, `/MN` with lines `n:  instruction ;` numbered
@@ -14,12 +15,16 @@
 //!   continue the header's long values), `MESSAGE[…]` (at most 24), `PAUSE`, `WAIT t(sec)`,
 //!   `UFRAME_NUM=n`, `UTOOL_NUM=n`, `END`.
 
-use super::{number, perr, push_header, Line, ParseError, Parsed, Step, Timing};
 use crate::controller::ControllerMap;
+use crate::dialect::{
+    after_line, number, offset_in, perr, push_header, shifted, span, Line, MoveSpans, ParseError,
+    Parsed, Step, Timing,
+};
+use std::ops::Range;
 
 /// FANUC program names: a letter, then letters, digits and `_`, at most 36 characters.
 pub fn valid_name(name: &str) -> bool {
-    super::valid_name(name, 36)
+    crate::dialect::valid_name(name, 36)
 }
 
 struct Motion {
@@ -28,13 +33,167 @@ struct Motion {
     timing: Timing,
     blend: Option<f64>,
     /// CR (up to half of each adjacent move, assumed) rather than CNT (a continuity value).
-    corner: Option<super::CornerKind>,
+    corner: Option<crate::dialect::CornerKind>,
     comment: Option<String>,
+    /// Where its speed percentage's number and its time's number (with one second in its
+    /// unit) sit, relative to the text `motion` was given.
+    percent: Option<Range<usize>>,
+    time: Option<(Range<usize>, f64)>,
+    line_range: Range<usize>,
+}
+
+/// A position of `/POS`: its number, line, joint values and where each value sits.
+struct Position {
+    k: usize,
+    line: usize,
+    joints: [Option<f64>; 6],
+    spans: [Option<Range<usize>>; 6],
 }
 
 enum Item {
     Move(Motion),
     Step(Line),
+}
+
+/// An `/MN` instruction other than a remark (`instr`, without its number and `;`): a motion or
+/// a step, None for one that commands nothing (`MESSAGE`, frame numbers).
+fn instruction(
+    text: &str,
+    raw: &str,
+    line: usize,
+    instr: &str,
+    comment: Option<String>,
+) -> Result<Option<Item>, ParseError> {
+    let upper = instr.to_ascii_uppercase();
+    if let Some(r) = upper.strip_prefix("J ") {
+        let r = r.trim();
+        let mut m = motion(line, r, comment)?;
+        // `upper` has the byte offsets of `instr`.
+        let at = offset_in(text, instr) + offset_in(&upper, r);
+        m.percent = m.percent.map(|p| shifted(at, p));
+        m.time = m.time.map(|(p, unit)| (shifted(at, p), unit));
+        m.line_range = span(text, raw);
+        return Ok(Some(Item::Move(m)));
+    } else if let Some(r) = upper.strip_prefix("MESSAGE[") {
+        let inner = r
+            .strip_suffix(']')
+            .ok_or_else(|| perr(line, "MESSAGE[ without ']'"))?;
+        if inner.chars().count() > 24 {
+            return Err(perr(line, "a MESSAGE holds at most 24 characters"));
+        }
+    } else if upper == "PAUSE" {
+        return Ok(Some(Item::Step(Line {
+            line,
+            step: Step::Pause,
+            comment,
+        })));
+    } else if upper == "END" {
+        return Ok(Some(Item::Step(Line {
+            line,
+            step: Step::End,
+            comment,
+        })));
+    } else if let Some(r) = upper.strip_prefix("WAIT ") {
+        let s = r
+            .trim()
+            .strip_suffix("(SEC)")
+            .ok_or_else(|| perr(line, "WAIT takes a time: WAIT t(sec)"))?;
+        let secs = number(line, "WAIT", s)?;
+        return Ok(Some(Item::Step(Line {
+            line,
+            step: Step::Dwell(secs),
+            comment,
+        })));
+    } else if let Some(r) = upper
+        .strip_prefix("UFRAME_NUM=")
+        .or(upper.strip_prefix("UTOOL_NUM="))
+    {
+        r.trim()
+            .parse::<u32>()
+            .map_err(|_| perr(line, "UFRAME_NUM/UTOOL_NUM take a number"))?;
+    } else {
+        return Err(perr(
+            line,
+            format!("'{instr}' is not an instruction edbbgen reads (J, !, MESSAGE, PAUSE, WAIT)"),
+        ));
+    }
+    Ok(None)
+}
+
+/// A line of `/POS` (`t`, trimmed): a position opens, closes, or gives joint values.
+fn pos_line(
+    text: &str,
+    line: usize,
+    t: &str,
+    open_p: &mut Option<Position>,
+    positions: &mut Vec<Position>,
+) -> Result<(), ParseError> {
+    if let Some(r) = t.strip_prefix("P[") {
+        if open_p.is_some() {
+            return Err(perr(line, "a position starts inside another (no '};')"));
+        }
+        let (idx, rest) = r
+            .split_once(']')
+            .ok_or_else(|| perr(line, "P[ without ']'"))?;
+        let idx = idx.split(':').next().unwrap_or("");
+        let kk: usize = idx
+            .trim()
+            .parse()
+            .map_err(|_| perr(line, format!("P[{idx}]: not a position number")))?;
+        if rest.trim() != "{" {
+            return Err(perr(line, "a position starts with 'P[k]{'"));
+        }
+        if positions.iter().any(|p| p.k == kk) {
+            return Err(perr(line, format!("P[{kk}] defined twice")));
+        }
+        *open_p = Some(Position {
+            k: kk,
+            line,
+            joints: [None; 6],
+            spans: Default::default(),
+        });
+    } else if t == "};" {
+        let p = open_p
+            .take()
+            .ok_or_else(|| perr(line, "'};' without a position"))?;
+        positions.push(p);
+    } else {
+        let p = open_p
+            .as_mut()
+            .ok_or_else(|| perr(line, "text outside a position"))?;
+        if t == "GP1:" || t.starts_with("UF") {
+            return Ok(());
+        }
+        for part in t.split(',').map(str::trim).filter(|s| !s.is_empty()) {
+            let (name, value) = part
+                .split_once('=')
+                .ok_or_else(|| perr(line, format!("'{part}' is not 'Jn = value deg'")))?;
+            let i = match name.trim() {
+                "J1" => 0,
+                "J2" => 1,
+                "J3" => 2,
+                "J4" => 3,
+                "J5" => 4,
+                "J6" => 5,
+                n => {
+                    return Err(perr(
+                        line,
+                        format!("'{n}' is not a joint (J1..J6): joint representation only"),
+                    ))
+                }
+            };
+            let v = value
+                .trim()
+                .strip_suffix("deg")
+                .ok_or_else(|| perr(line, format!("J{} needs 'deg'", i + 1)))?;
+            if p.joints[i].is_some() {
+                return Err(perr(line, format!("J{} given twice", i + 1)));
+            }
+            p.joints[i] = Some(number(line, "joint value", v)?);
+            p.spans[i] = Some(span(text, v.trim()));
+        }
+    }
+    Ok(())
 }
 
 pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
@@ -55,9 +214,10 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
     let mut next_no = 1;
     let mut moved = false;
     let mut remark: Option<String> = None;
-    let mut positions: Vec<(usize, usize, [Option<f64>; 6])> = Vec::new(); // (k, line, joints)
-    let mut open_p: Option<(usize, usize, [Option<f64>; 6])> = None;
+    let mut positions: Vec<Position> = Vec::new();
+    let mut open_p: Option<Position> = None;
     let mut end_line = 0;
+    let mut line_count_seen = false;
     for (k, raw) in text.lines().enumerate() {
         let line = k + 1;
         let t = raw.trim();
@@ -87,6 +247,8 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
             "/ATTR" if sec == Sec::Attr => continue,
             "/MN" if sec == Sec::Attr => {
                 sec = Sec::Mn;
+                // Header comments go after the /MN line.
+                out.positions.header_at = Some(after_line(text, raw));
                 continue;
             }
             "/POS" if sec == Sec::Mn => {
@@ -119,6 +281,13 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                         "an /ATTR line ends with ';' (or ',' inside TCD)",
                     ));
                 }
+                if let Some(rest) = t.strip_prefix("LINE_COUNT").filter(|_| !line_count_seen) {
+                    line_count_seen = true;
+                    let n = rest.trim().trim_start_matches('=').trim();
+                    if let Ok(v) = n.trim_end_matches(';').trim().parse::<usize>() {
+                        out.positions.line_count = Some((span(text, raw), v));
+                    }
+                }
             }
             Sec::Mn => {
                 let (no, rest) = t
@@ -131,6 +300,11 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                 if no != next_no {
                     return Err(perr(line, format!("line number {no}, expected {next_no}")));
                 }
+                // The number with the indent before it: renumbered when lines are inserted.
+                let line_at = offset_in(text, raw);
+                out.positions
+                    .line_numbers
+                    .push((line_at..offset_in(text, t) + t.find(':').unwrap_or(0), no));
                 next_no += 1;
                 let instr = rest
                     .trim_end()
@@ -157,114 +331,12 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                     continue;
                 }
                 let comment = remark.take();
-                let upper = instr.to_ascii_uppercase();
-                if let Some(r) = upper.strip_prefix("J ") {
-                    items.push(Item::Move(motion(line, r.trim(), comment)?));
-                    moved = true;
-                } else if let Some(r) = upper.strip_prefix("MESSAGE[") {
-                    let inner = r
-                        .strip_suffix(']')
-                        .ok_or_else(|| perr(line, "MESSAGE[ without ']'"))?;
-                    if inner.chars().count() > 24 {
-                        return Err(perr(line, "a MESSAGE holds at most 24 characters"));
-                    }
-                } else if upper == "PAUSE" {
-                    items.push(Item::Step(Line {
-                        line,
-                        step: Step::Pause,
-                        comment,
-                    }));
-                } else if upper == "END" {
-                    items.push(Item::Step(Line {
-                        line,
-                        step: Step::End,
-                        comment,
-                    }));
-                } else if let Some(r) = upper.strip_prefix("WAIT ") {
-                    let s = r
-                        .trim()
-                        .strip_suffix("(SEC)")
-                        .ok_or_else(|| perr(line, "WAIT takes a time: WAIT t(sec)"))?;
-                    let secs = number(line, "WAIT", s)?;
-                    items.push(Item::Step(Line {
-                        line,
-                        step: Step::Dwell(secs),
-                        comment,
-                    }));
-                } else if let Some(r) = upper
-                    .strip_prefix("UFRAME_NUM=")
-                    .or(upper.strip_prefix("UTOOL_NUM="))
-                {
-                    r.trim()
-                        .parse::<u32>()
-                        .map_err(|_| perr(line, "UFRAME_NUM/UTOOL_NUM take a number"))?;
-                } else {
-                    return Err(perr(line, format!("'{instr}' is not an instruction edbbgen reads (J, !, MESSAGE, PAUSE, WAIT)")));
+                if let Some(item) = instruction(text, raw, line, instr, comment)? {
+                    moved |= matches!(item, Item::Move(_));
+                    items.push(item);
                 }
             }
-            Sec::Pos => {
-                if let Some(r) = t.strip_prefix("P[") {
-                    if open_p.is_some() {
-                        return Err(perr(line, "a position starts inside another (no '};')"));
-                    }
-                    let (idx, rest) = r
-                        .split_once(']')
-                        .ok_or_else(|| perr(line, "P[ without ']'"))?;
-                    let idx = idx.split(':').next().unwrap_or("");
-                    let kk: usize = idx
-                        .trim()
-                        .parse()
-                        .map_err(|_| perr(line, format!("P[{idx}]: not a position number")))?;
-                    if rest.trim() != "{" {
-                        return Err(perr(line, "a position starts with 'P[k]{'"));
-                    }
-                    if positions.iter().any(|p| p.0 == kk) {
-                        return Err(perr(line, format!("P[{kk}] defined twice")));
-                    }
-                    open_p = Some((kk, line, [None; 6]));
-                } else if t == "};" {
-                    let p = open_p
-                        .take()
-                        .ok_or_else(|| perr(line, "'};' without a position"))?;
-                    positions.push(p);
-                } else {
-                    let p = open_p
-                        .as_mut()
-                        .ok_or_else(|| perr(line, "text outside a position"))?;
-                    if t == "GP1:" || t.starts_with("UF") {
-                        continue;
-                    }
-                    for part in t.split(',').map(str::trim).filter(|s| !s.is_empty()) {
-                        let (name, value) = part.split_once('=').ok_or_else(|| {
-                            perr(line, format!("'{part}' is not 'Jn = value deg'"))
-                        })?;
-                        let i = match name.trim() {
-                            "J1" => 0,
-                            "J2" => 1,
-                            "J3" => 2,
-                            "J4" => 3,
-                            "J5" => 4,
-                            "J6" => 5,
-                            n => {
-                                return Err(perr(
-                                    line,
-                                    format!(
-                                        "'{n}' is not a joint (J1..J6): joint representation only"
-                                    ),
-                                ))
-                            }
-                        };
-                        let v = value
-                            .trim()
-                            .strip_suffix("deg")
-                            .ok_or_else(|| perr(line, format!("J{} needs 'deg'", i + 1)))?;
-                        if p.2[i].is_some() {
-                            return Err(perr(line, format!("J{} given twice", i + 1)));
-                        }
-                        p.2[i] = Some(number(line, "joint value", v)?);
-                    }
-                }
-            }
+            Sec::Pos => pos_line(text, line, t, &mut open_p, &mut positions)?,
         }
     }
     if sec != Sec::End {
@@ -277,15 +349,23 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
         match it {
             Item::Step(l) => out.lines.push(l),
             Item::Move(m) => {
-                let (_, pl, j) = positions
+                let pos = positions
                     .iter()
-                    .find(|p| p.0 == m.p)
+                    .find(|p| p.k == m.p)
                     .ok_or_else(|| perr(m.line, format!("P[{}] is not in /POS", m.p)))?;
                 let mut axes = [0.0; 6];
                 for i in 0..6 {
-                    axes[i] =
-                        j[i].ok_or_else(|| perr(*pl, format!("P[{}] lacks J{}", m.p, i + 1)))?;
+                    axes[i] = pos.joints[i]
+                        .ok_or_else(|| perr(pos.line, format!("P[{}] lacks J{}", m.p, i + 1)))?;
                 }
+                out.positions.moves.push(MoveSpans {
+                    line: m.line,
+                    axes: pos.spans.iter().flatten().cloned().collect(),
+                    time: m.time.as_ref().map(|t| t.0.clone()),
+                    time_per_s: m.time.as_ref().map_or(1.0, |t| t.1),
+                    percent: m.percent.clone(),
+                    line_range: m.line_range.clone(),
+                });
                 out.lines.push(Line {
                     line: m.line,
                     step: Step::Move {
@@ -322,9 +402,16 @@ fn motion(line: usize, s: &str, comment: Option<String>) -> Result<Motion, Parse
         .parse()
         .map_err(|_| perr(line, format!("P[{idx}]: not a position number")))?;
     let words: Vec<&str> = rest.split_whitespace().collect();
-    let (speed, term) = match words.as_slice() {
-        [sp, term] => (sp.to_string(), *term),
-        [n, unit, term] if *unit == "SEC" || *unit == "MSEC" => (format!("{n}{unit}"), *term),
+    // The speed word, its number (where the number sits in `s`) and the termination.
+    let (speed, number_text, term) = match words.as_slice() {
+        [sp, term] => {
+            let n = ["%", "MSEC", "SEC"]
+                .iter()
+                .find_map(|u| sp.strip_suffix(u))
+                .unwrap_or(sp);
+            (sp.to_string(), n, *term)
+        }
+        [n, unit, term] if *unit == "SEC" || *unit == "MSEC" => (format!("{n}{unit}"), *n, *term),
         _ => {
             return Err(perr(
                 line,
@@ -371,7 +458,17 @@ fn motion(line: usize, s: &str, comment: Option<String>) -> Result<Motion, Parse
     };
     // No available FANUC document says what CR's distance bounds: up to half of each adjacent
     // move (the dialect's cap) is assumed, not a TCP distance.
-    let corner = term.starts_with("CR").then_some(super::CornerKind::Moves);
+    let corner = term
+        .starts_with("CR")
+        .then_some(crate::dialect::CornerKind::Moves);
+    let at = span(s, number_text);
+    let (percent, time) = if speed.ends_with('%') {
+        (Some(at), None)
+    } else if speed.ends_with("MSEC") {
+        (None, Some((at, 1000.0)))
+    } else {
+        (None, Some((at, 1.0)))
+    };
     Ok(Motion {
         line,
         p,
@@ -379,6 +476,9 @@ fn motion(line: usize, s: &str, comment: Option<String>) -> Result<Motion, Parse
         blend,
         corner,
         comment,
+        percent,
+        time,
+        line_range: 0..0,
     })
 }
 

@@ -1,5 +1,6 @@
-//! Universal Robots URScript reader (`templates/urscript.j2` writes it): in = a `.script`
-//! program and the controller mapping; out = the motions, in program order.
+//! Universal Robots URScript reader (`urscript.j2` beside it writes it): in = a `.script`
+//! program and the controller mapping; out = the motions, in program order, and where each
+//! movej's joint list and `t=` sit in the text.
 //!
 //! The subset a joint-space measurement program needs, strictly:
 //! - one `def name():` … `end`; comments after `#`; one call or assignment per line, no
@@ -11,8 +12,10 @@
 //! - `popup(…, blocking=True)` (the operator's pause: a popup that does not block is refused),
 //!   `sleep(t)` (dwell), `halt()` (end), `set_tcp(p[…])`, `textmsg(…)`, `set_payload(…)`.
 
-use super::{number, perr, push_header, Line, ParseError, Parsed, Step, Timing};
 use crate::controller::ControllerMap;
+use crate::dialect::{
+    after_line, number, perr, push_header, span, Line, MoveSpans, ParseError, Parsed, Step, Timing,
+};
 
 /// Splits a line into code and the comment after `#` (outside strings).
 fn split(raw: &str) -> (&str, Option<&str>) {
@@ -119,6 +122,106 @@ fn assignment(code: &str) -> Option<(&str, &str)> {
     (ident && !rhs.starts_with('=')).then_some((lhs, rhs.trim()))
 }
 
+/// The first line, `def name():`.
+fn def_line(line: usize, code: &str) -> Result<(), ParseError> {
+    let rest = code
+        .strip_prefix("def ")
+        .ok_or_else(|| perr(line, "a URScript program starts with def name():"))?;
+    let name = rest.trim().strip_suffix("():").unwrap_or("");
+    if !crate::dialect::valid_name(name, 64) {
+        return Err(perr(
+            line,
+            format!("def {}: not 'def name():'", rest.trim()),
+        ));
+    }
+    Ok(())
+}
+
+/// `movej(q, a, v, t, r)` (its arguments `a`): the move, and where its joint list and a named
+/// `t`'s number sit in the text.
+fn movej(
+    text: &str,
+    raw: &str,
+    line: usize,
+    a: &[&str],
+    vars: &[(String, Value)],
+    map: &ControllerMap,
+) -> Result<(Step, MoveSpans), ParseError> {
+    let named = |key: &str| {
+        a.iter().find_map(|x| {
+            x.split_once('=')
+                .filter(|(k, _)| k.trim() == key)
+                .map(|(_, v)| v.trim())
+        })
+    };
+    let axes = joints(line, a.first().copied().unwrap_or(""), vars)?;
+    // Positional a, v, t, r after q, or named.
+    let positional: Vec<&str> = a[1..]
+        .iter()
+        .copied()
+        .filter(|x| !x.contains('='))
+        .collect();
+    for x in a[1..].iter().filter(|x| x.contains('=')) {
+        let key = x.split('=').next().unwrap_or("").trim();
+        if !["a", "v", "t", "r"].contains(&key) {
+            return Err(perr(line, format!("movej has no argument '{key}'")));
+        }
+    }
+    if positional.len() > 4 {
+        return Err(perr(line, "movej takes q, a, v, t, r"));
+    }
+    let arg = |key: &str, idx: usize, default: f64| -> Result<f64, ParseError> {
+        match named(key).or(positional.get(idx).copied()) {
+            Some(s) => {
+                let x = scalar(line, key, s, vars)?;
+                if x < 0.0 {
+                    return Err(perr(line, format!("movej {key} must be >= 0")));
+                }
+                Ok(x)
+            }
+            None => Ok(default),
+        }
+    };
+    let (acc, speed, t, r) = (
+        arg("a", 0, 1.4)?,
+        arg("v", 1, 1.05)?,
+        arg("t", 2, 0.0)?,
+        arg("r", 3, 0.0)?,
+    );
+    if acc <= 0.0 || speed <= 0.0 {
+        return Err(perr(line, "movej a and v must be positive"));
+    }
+    let timing = if t > 0.0 {
+        Timing::Duration(t)
+    } else {
+        Timing::LeadSpeed(speed)
+    };
+    let blend = (r > 0.0).then_some(r * 1e3);
+    // Where the joint list and a named t's number sit (a variable holds values
+    // other moves may share).
+    let q = a.first().copied().unwrap_or("");
+    let list = q.starts_with('[').then(|| span(text, q));
+    let time = named("t")
+        .filter(|v| v.parse::<f64>().is_ok())
+        .map(|v| span(text, v));
+    let step = Step::Move {
+        target: map.undo(&axes),
+        axes,
+        timing,
+        blend,
+        corner: None,
+    };
+    let spans = MoveSpans {
+        line,
+        axes: list.into_iter().collect(),
+        time,
+        time_per_s: 1.0,
+        percent: None,
+        line_range: span(text, raw),
+    };
+    Ok((step, spans))
+}
+
 pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
     let mut out = Parsed {
         map: map.clone(),
@@ -140,17 +243,10 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
             return Err(perr(line, "code after the program's end"));
         }
         if !in_def {
-            let rest = code
-                .strip_prefix("def ")
-                .ok_or_else(|| perr(line, "a URScript program starts with def name():"))?;
-            let name = rest.trim().strip_suffix("():").unwrap_or("");
-            if !super::valid_name(name, 64) {
-                return Err(perr(
-                    line,
-                    format!("def {}: not 'def name():'", rest.trim()),
-                ));
-            }
+            def_line(line, code)?;
             in_def = true;
+            // Header comments go after the def line.
+            out.positions.header_at = Some(after_line(text, raw));
             continue;
         }
         if code == "end" {
@@ -193,60 +289,13 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
         let comment = comment.map(str::to_string);
         match name.trim() {
             "movej" => {
-                let axes = joints(line, a.first().copied().unwrap_or(""), &vars)?;
-                // Positional a, v, t, r after q, or named.
-                let positional: Vec<&str> = a[1..]
-                    .iter()
-                    .copied()
-                    .filter(|x| !x.contains('='))
-                    .collect();
-                for x in a[1..].iter().filter(|x| x.contains('=')) {
-                    let key = x.split('=').next().unwrap_or("").trim();
-                    if !["a", "v", "t", "r"].contains(&key) {
-                        return Err(perr(line, format!("movej has no argument '{key}'")));
-                    }
-                }
-                if positional.len() > 4 {
-                    return Err(perr(line, "movej takes q, a, v, t, r"));
-                }
-                let arg = |key: &str, idx: usize, default: f64| -> Result<f64, ParseError> {
-                    match named(key).or(positional.get(idx).copied()) {
-                        Some(s) => {
-                            let x = scalar(line, key, s, &vars)?;
-                            if x < 0.0 {
-                                return Err(perr(line, format!("movej {key} must be >= 0")));
-                            }
-                            Ok(x)
-                        }
-                        None => Ok(default),
-                    }
-                };
-                let (acc, speed, t, r) = (
-                    arg("a", 0, 1.4)?,
-                    arg("v", 1, 1.05)?,
-                    arg("t", 2, 0.0)?,
-                    arg("r", 3, 0.0)?,
-                );
-                if acc <= 0.0 || speed <= 0.0 {
-                    return Err(perr(line, "movej a and v must be positive"));
-                }
-                let timing = if t > 0.0 {
-                    Timing::Duration(t)
-                } else {
-                    Timing::LeadSpeed(speed)
-                };
-                let blend = (r > 0.0).then_some(r * 1e3);
+                let (step, spans) = movej(text, raw, line, &a, &vars, map)?;
                 out.lines.push(Line {
                     line,
-                    step: Step::Move {
-                        target: map.undo(&axes),
-                        axes,
-                        timing,
-                        blend,
-                        corner: None,
-                    },
+                    step,
                     comment,
                 });
+                out.positions.moves.push(spans);
                 moved = true;
             }
             "popup" => {

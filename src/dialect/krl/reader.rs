@@ -1,5 +1,6 @@
-//! KUKA KRL reader (`templates/krl.j2` writes it): in = a `.src` program and the controller
-//! mapping; out = the motions, in program order.
+//! KUKA KRL reader (`krl.j2` beside it writes it): in = a `.src` program and the controller
+//! mapping; out = the motions, in program order, and where each PTP's axis aggregate and the
+//! DEF line sit in the text.
 //!
 //! The subset a joint-space measurement program needs, strictly:
 //! - `&` attribute lines, then `DEF name( )` … `END`; declarations (`DECL type name[…]`, DECL
@@ -14,8 +15,10 @@
 //!   arriving together), `$ACC_AXIS[i]`, `$APO.CDIS`, `$ADVANCE`, `$TOOL`, `$BASE`;
 //! - `HALT` (pause), `WAIT SEC t` (dwell), message calls (`Set_KrlMsg`), comments after `;`.
 
-use super::{number, perr, push_header, Line, ParseError, Parsed, Step, Timing};
 use crate::controller::ControllerMap;
+use crate::dialect::{
+    after_line, number, perr, push_header, span, Line, MoveSpans, ParseError, Parsed, Step, Timing,
+};
 
 /// Types whose variables hold joint values (an E6AXIS's external axes E1..E6 are not read).
 const AXIS_TYPES: &[&str] = &["AXIS", "E6AXIS"];
@@ -96,19 +99,222 @@ fn axis_aggregate(line: usize, agg: &str) -> Result<[Option<f64>; 6], ParseError
     Ok(out)
 }
 
+/// What a program has set so far: its declarations and the values its moves depend on.
+#[derive(Default)]
+struct State {
+    /// Declared names.
+    declared: Vec<String>,
+    /// Declared names with their types.
+    types: Vec<(String, String)>,
+    /// The values axis variables hold (latest last).
+    axis_vars: Vec<(String, [Option<f64>; 6])>,
+    /// The axes after the last move.
+    pos: [Option<f64>; 6],
+    /// `$VEL_AXIS[1..6]`.
+    vel: [Option<f64>; 6],
+    /// `$APO.CDIS`.
+    cdis: Option<f64>,
+}
+
+/// `PTP {A1 …}` or `PTP name`, with `C_DIS` or nothing (`rest`, after the word): the move
+/// at the speeds in force, and where its aggregate sits in the text.
+fn ptp(
+    text: &str,
+    raw: &str,
+    line: usize,
+    rest: &str,
+    st: &mut State,
+    map: &ControllerMap,
+) -> Result<(Step, MoveSpans), ParseError> {
+    // Where the aggregate sits: a declared variable's values are not the move's own.
+    let mut agg_span = Vec::new();
+    let (axis, tail) = if rest.starts_with('{') {
+        let close = rest
+            .rfind('}')
+            .ok_or_else(|| perr(line, "PTP needs an axis aggregate {A1 …, A6 …}"))?;
+        let (agg, tail) = rest.split_at(close + 1);
+        agg_span.push(span(text, agg));
+        (axis_aggregate(line, agg)?, tail)
+    } else {
+        // A declared axis variable.
+        let (name, tail) = rest.split_once(char::is_whitespace).unwrap_or((rest, ""));
+        let name = name.to_ascii_uppercase();
+        let axis = match st.axis_vars.iter().rev().find(|(n, _)| *n == name) {
+            Some((_, a)) if a.iter().all(Option::is_some) => *a,
+            Some(_) => return Err(perr(line, format!("{name} does not give all six axes A1..A6"))),
+            None => {
+                return Err(perr(line, match st.types.iter().find(|(n, _)| *n == name) {
+                    Some((_, ty)) if AXIS_TYPES.contains(&ty.as_str()) => format!("{name} has no value yet"),
+                    Some((_, ty)) => format!("PTP {name}: a {ty} is a Cartesian target; edbbgen reads axis targets (an E6AXIS or AXIS, or {{A1 …, A6 …}})"),
+                    None => format!("PTP {name}: not a declared E6AXIS or AXIS (a target in $config.dat or a .dat file is not read)"),
+                }))
+            }
+        };
+        (axis, tail)
+    };
+    let blend = match tail.trim().to_ascii_uppercase().as_str() {
+        "" => None,
+        "C_DIS" => Some(st.cdis.ok_or_else(|| perr(line, "C_DIS before $APO.CDIS is set"))?),
+        "C_PTP" => {
+            return Err(perr(line, "C_PTP approximates by a percentage of the axis angle, which edbbgen cannot check: use C_DIS with $APO.CDIS"))
+        }
+        t => return Err(perr(line, format!("'{t}' after PTP is not supported (C_DIS or nothing)"))),
+    };
+    let mut target = [0.0; 6];
+    for i in 0..6 {
+        target[i] = match (axis[i], st.pos[i]) {
+            (Some(v), _) => v,
+            (None, Some(p)) => p,
+            (None, None) => {
+                return Err(perr(
+                    line,
+                    format!("the first PTP must give all six axes (A{} missing)", i + 1),
+                ))
+            }
+        };
+        st.pos[i] = Some(target[i]);
+    }
+    let mut pct = [0.0; 6];
+    for i in 0..6 {
+        pct[i] = st.vel[i].ok_or_else(|| perr(line, format!("PTP before $VEL_AXIS[{}] is set: its speed would be whatever the controller had", i + 1)))?;
+    }
+    let step = Step::Move {
+        target: map.undo(&target),
+        axes: target,
+        timing: Timing::AxisPercent(pct),
+        blend,
+        corner: None,
+    };
+    let spans = MoveSpans {
+        line,
+        axes: agg_span,
+        time: None,
+        time_per_s: 1.0,
+        percent: None,
+        line_range: span(text, raw),
+    };
+    Ok((step, spans))
+}
+
+/// An assignment `lhs = rhs` (`code`): the speeds, the approximation distance, an axis
+/// variable's new value; other declared variables and system variables checked only.
+fn assignment(line: usize, code: &str, st: &mut State) -> Result<(), ParseError> {
+    // Assignments.
+    let Some((lhs, rhs)) = code.split_once('=') else {
+        return Err(perr(
+            line,
+            format!(
+                "'{code}' is not a statement edbbgen reads (PTP, HALT, WAIT SEC, an assignment)"
+            ),
+        ));
+    };
+    let lhs = lhs.trim().to_ascii_uppercase();
+    let rhs = rhs.trim();
+    if let Some(idx) = lhs
+        .strip_prefix("$VEL_AXIS[")
+        .and_then(|r| r.strip_suffix(']'))
+    {
+        let i: usize = idx
+            .trim()
+            .parse()
+            .map_err(|_| perr(line, "$VEL_AXIS index must be 1..6"))?;
+        let v: i64 = rhs
+            .parse()
+            .map_err(|_| perr(line, format!("$VEL_AXIS is an INT percentage, not '{rhs}'")))?;
+        if !(1..=6).contains(&i) || !(1..=100).contains(&v) {
+            return Err(perr(line, "$VEL_AXIS[1..6] takes 1..100 %"));
+        }
+        st.vel[i - 1] = Some(v as f64);
+    } else if let Some(idx) = lhs
+        .strip_prefix("$ACC_AXIS[")
+        .and_then(|r| r.strip_suffix(']'))
+    {
+        let i: usize = idx
+            .trim()
+            .parse()
+            .map_err(|_| perr(line, "$ACC_AXIS index must be 1..6"))?;
+        let v: i64 = rhs
+            .parse()
+            .map_err(|_| perr(line, format!("$ACC_AXIS is an INT percentage, not '{rhs}'")))?;
+        if !(1..=6).contains(&i) || !(1..=100).contains(&v) {
+            return Err(perr(line, "$ACC_AXIS[1..6] takes 1..100 %"));
+        }
+    } else if lhs == "$APO.CDIS" {
+        let v = number(line, "$APO.CDIS", rhs)?;
+        if v < 0.0 {
+            return Err(perr(line, "$APO.CDIS must be >= 0 mm"));
+        }
+        st.cdis = Some(v);
+    } else if lhs == "$ADVANCE" {
+        let v: i64 = rhs
+            .parse()
+            .map_err(|_| perr(line, "$ADVANCE is an INT 0..5"))?;
+        if !(0..=5).contains(&v) {
+            return Err(perr(line, "$ADVANCE takes 0..5"));
+        }
+    } else if lhs == "$TOOL" || lhs == "$BASE" || lhs == "$APO.CPTP" {
+        if rhs.is_empty() {
+            return Err(perr(line, format!("{lhs} needs a value")));
+        }
+    } else {
+        let name = base_name(&lhs);
+        if name.starts_with('$') {
+            return Err(perr(
+                line,
+                format!("{name} is not a system variable edbbgen reads"),
+            ));
+        }
+        if !st.declared.contains(&name) {
+            return Err(perr(
+                line,
+                format!("'{name}' is not declared (DECL before the first statement)"),
+            ));
+        }
+        if st
+            .types
+            .iter()
+            .any(|(n, ty)| *n == name && AXIS_TYPES.contains(&ty.as_str()))
+        {
+            // An axis variable takes the components given; the others keep their values.
+            if lhs.trim() != name {
+                return Err(perr(
+                    line,
+                    format!("{lhs}: edbbgen reads whole axis aggregates assigned to {name}"),
+                ));
+            }
+            let new = axis_aggregate(line, rhs)?;
+            let mut value = st
+                .axis_vars
+                .iter()
+                .rev()
+                .find(|(n, _)| *n == name)
+                .map_or([None; 6], |(_, a)| *a);
+            for (v, n) in value.iter_mut().zip(new) {
+                if n.is_some() {
+                    *v = n;
+                }
+            }
+            st.axis_vars.push((name, value));
+            return Ok(());
+        }
+        if rhs.is_empty()
+            || rhs.matches('{').count() != rhs.matches('}').count()
+            || rhs.matches('(').count() != rhs.matches(')').count()
+            || rhs.matches('"').count() % 2 != 0
+        {
+            return Err(perr(line, format!("the value of {name} is not balanced")));
+        }
+    }
+    Ok(())
+}
+
 pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
     let mut out = Parsed {
         map: map.clone(),
         ..Parsed::default()
     };
-    let mut declared: Vec<String> = Vec::new();
-    // Declared names with their types, and the values axis variables hold (latest last).
-    let mut types: Vec<(String, String)> = Vec::new();
-    let mut axis_vars: Vec<(String, [Option<f64>; 6])> = Vec::new();
+    let mut st = State::default();
     let (mut in_def, mut statements, mut ended, mut moved) = (false, false, false, false);
-    let mut pos: [Option<f64>; 6] = [None; 6];
-    let mut vel: [Option<f64>; 6] = [None; 6];
-    let mut cdis: Option<f64> = None;
     for (k, raw) in text.lines().enumerate() {
         let line = k + 1;
         let (code, comment) = split(raw);
@@ -138,6 +344,8 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                 ));
             }
             in_def = true;
+            // Header comments go after the DEF line.
+            out.positions.header_at = Some(after_line(text, raw));
             continue;
         }
         if upper == "END" {
@@ -182,75 +390,22 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                     ));
                 }
                 if let (Some(v), true) = (value, AXIS_TYPES.contains(&ty.as_str())) {
-                    axis_vars.push((name.clone(), axis_aggregate(line, v)?));
+                    st.axis_vars.push((name.clone(), axis_aggregate(line, v)?));
                 }
-                declared.push(name.clone());
-                types.push((name, ty.clone()));
+                st.declared.push(name.clone());
+                st.types.push((name, ty.clone()));
             }
             continue;
         }
         statements = true;
         if let Some(rest) = upper.strip_prefix("PTP ").map(|_| code[4..].trim()) {
-            let (axis, tail) = if rest.starts_with('{') {
-                let close = rest
-                    .rfind('}')
-                    .ok_or_else(|| perr(line, "PTP needs an axis aggregate {A1 …, A6 …}"))?;
-                let (agg, tail) = rest.split_at(close + 1);
-                (axis_aggregate(line, agg)?, tail)
-            } else {
-                // A declared axis variable.
-                let (name, tail) = rest.split_once(char::is_whitespace).unwrap_or((rest, ""));
-                let name = name.to_ascii_uppercase();
-                let axis = match axis_vars.iter().rev().find(|(n, _)| *n == name) {
-                    Some((_, a)) if a.iter().all(Option::is_some) => *a,
-                    Some(_) => return Err(perr(line, format!("{name} does not give all six axes A1..A6"))),
-                    None => {
-                        return Err(perr(line, match types.iter().find(|(n, _)| *n == name) {
-                            Some((_, ty)) if AXIS_TYPES.contains(&ty.as_str()) => format!("{name} has no value yet"),
-                            Some((_, ty)) => format!("PTP {name}: a {ty} is a Cartesian target; edbbgen reads axis targets (an E6AXIS or AXIS, or {{A1 …, A6 …}})"),
-                            None => format!("PTP {name}: not a declared E6AXIS or AXIS (a target in $config.dat or a .dat file is not read)"),
-                        }))
-                    }
-                };
-                (axis, tail)
-            };
-            let blend = match tail.trim().to_ascii_uppercase().as_str() {
-                "" => None,
-                "C_DIS" => Some(cdis.ok_or_else(|| perr(line, "C_DIS before $APO.CDIS is set"))?),
-                "C_PTP" => {
-                    return Err(perr(line, "C_PTP approximates by a percentage of the axis angle, which edbbgen cannot check: use C_DIS with $APO.CDIS"))
-                }
-                t => return Err(perr(line, format!("'{t}' after PTP is not supported (C_DIS or nothing)"))),
-            };
-            let mut target = [0.0; 6];
-            for i in 0..6 {
-                target[i] = match (axis[i], pos[i]) {
-                    (Some(v), _) => v,
-                    (None, Some(p)) => p,
-                    (None, None) => {
-                        return Err(perr(
-                            line,
-                            format!("the first PTP must give all six axes (A{} missing)", i + 1),
-                        ))
-                    }
-                };
-                pos[i] = Some(target[i]);
-            }
-            let mut pct = [0.0; 6];
-            for i in 0..6 {
-                pct[i] = vel[i].ok_or_else(|| perr(line, format!("PTP before $VEL_AXIS[{}] is set: its speed would be whatever the controller had", i + 1)))?;
-            }
+            let (step, spans) = ptp(text, raw, line, rest, &mut st, map)?;
             out.lines.push(Line {
                 line,
-                step: Step::Move {
-                    target: map.undo(&target),
-                    axes: target,
-                    timing: Timing::AxisPercent(pct),
-                    blend,
-                    corner: None,
-                },
+                step,
                 comment: comment.map(str::to_string),
             });
+            out.positions.moves.push(spans);
             moved = true;
             continue;
         }
@@ -274,105 +429,7 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
             });
             continue;
         }
-        // Assignments.
-        let Some((lhs, rhs)) = code.split_once('=') else {
-            return Err(perr(line, format!("'{code}' is not a statement edbbgen reads (PTP, HALT, WAIT SEC, an assignment)")));
-        };
-        let lhs = lhs.trim().to_ascii_uppercase();
-        let rhs = rhs.trim();
-        if let Some(idx) = lhs
-            .strip_prefix("$VEL_AXIS[")
-            .and_then(|r| r.strip_suffix(']'))
-        {
-            let i: usize = idx
-                .trim()
-                .parse()
-                .map_err(|_| perr(line, "$VEL_AXIS index must be 1..6"))?;
-            let v: i64 = rhs
-                .parse()
-                .map_err(|_| perr(line, format!("$VEL_AXIS is an INT percentage, not '{rhs}'")))?;
-            if !(1..=6).contains(&i) || !(1..=100).contains(&v) {
-                return Err(perr(line, "$VEL_AXIS[1..6] takes 1..100 %"));
-            }
-            vel[i - 1] = Some(v as f64);
-        } else if let Some(idx) = lhs
-            .strip_prefix("$ACC_AXIS[")
-            .and_then(|r| r.strip_suffix(']'))
-        {
-            let i: usize = idx
-                .trim()
-                .parse()
-                .map_err(|_| perr(line, "$ACC_AXIS index must be 1..6"))?;
-            let v: i64 = rhs
-                .parse()
-                .map_err(|_| perr(line, format!("$ACC_AXIS is an INT percentage, not '{rhs}'")))?;
-            if !(1..=6).contains(&i) || !(1..=100).contains(&v) {
-                return Err(perr(line, "$ACC_AXIS[1..6] takes 1..100 %"));
-            }
-        } else if lhs == "$APO.CDIS" {
-            let v = number(line, "$APO.CDIS", rhs)?;
-            if v < 0.0 {
-                return Err(perr(line, "$APO.CDIS must be >= 0 mm"));
-            }
-            cdis = Some(v);
-        } else if lhs == "$ADVANCE" {
-            let v: i64 = rhs
-                .parse()
-                .map_err(|_| perr(line, "$ADVANCE is an INT 0..5"))?;
-            if !(0..=5).contains(&v) {
-                return Err(perr(line, "$ADVANCE takes 0..5"));
-            }
-        } else if lhs == "$TOOL" || lhs == "$BASE" || lhs == "$APO.CPTP" {
-            if rhs.is_empty() {
-                return Err(perr(line, format!("{lhs} needs a value")));
-            }
-        } else {
-            let name = base_name(&lhs);
-            if name.starts_with('$') {
-                return Err(perr(
-                    line,
-                    format!("{name} is not a system variable edbbgen reads"),
-                ));
-            }
-            if !declared.contains(&name) {
-                return Err(perr(
-                    line,
-                    format!("'{name}' is not declared (DECL before the first statement)"),
-                ));
-            }
-            if types
-                .iter()
-                .any(|(n, ty)| *n == name && AXIS_TYPES.contains(&ty.as_str()))
-            {
-                // An axis variable takes the components given; the others keep their values.
-                if lhs.trim() != name {
-                    return Err(perr(
-                        line,
-                        format!("{lhs}: edbbgen reads whole axis aggregates assigned to {name}"),
-                    ));
-                }
-                let new = axis_aggregate(line, rhs)?;
-                let mut value = axis_vars
-                    .iter()
-                    .rev()
-                    .find(|(n, _)| *n == name)
-                    .map_or([None; 6], |(_, a)| *a);
-                for (v, n) in value.iter_mut().zip(new) {
-                    if n.is_some() {
-                        *v = n;
-                    }
-                }
-                axis_vars.push((name, value));
-                continue;
-            }
-            if rhs.is_empty()
-                || rhs.matches('{').count() != rhs.matches('}').count()
-                || rhs.matches('(').count() != rhs.matches(')').count()
-                || rhs.matches('"').count() % 2 != 0
-            {
-                return Err(perr(line, format!("the value of {name} is not balanced")));
-            }
-        }
+        assignment(line, code, &mut st)?;
     }
     if !in_def {
         return Err(perr(0, "no DEF line: not a KRL program"));

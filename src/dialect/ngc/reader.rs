@@ -1,6 +1,6 @@
-//! RS274/NGC reader (`templates/ngc.j2` writes it): in = program text and the controller
+//! RS274/NGC reader (`ngc.j2` beside it writes it): in = program text and the controller
 //! mapping; out = the motions it commands ([`Line`]s), in program order, with the modal state
-//! that shapes each one.
+//! that shapes each one, and where each move's axis and F words sit in the text.
 //!
 //! This reader is deliberately independent of the emitter: `verify` and `simulate` must judge a
 //! program by its text, not by what the compiler meant. It understands the subset of RS274/NGC
@@ -15,8 +15,9 @@
 //!   `%` lines; the safe-start words G17, G40, G49, G54, G80 (no effect on joint moves);
 //! - G21 only (millimetre mode; G20 is refused: degrees do not scale with inches).
 
-use super::{Line, ParseError, Parsed, Step, Timing};
 use crate::controller::ControllerMap;
+use crate::dialect::{offset_in, Line, MoveSpans, ParseError, Parsed, Positions, Step, Timing};
+use std::ops::Range;
 
 const AXES: &str = "XYZABC";
 
@@ -29,15 +30,118 @@ enum FeedMode {
 }
 
 /// Parses a program. Positions start unknown: the first move must name all six joints.
+/// What a line says: its words, with the modal state they set for the lines after it.
+#[derive(Default)]
+struct Block {
+    axis: [Option<f64>; 6],
+    /// Where the line's axis words and its F word sit in the text.
+    axis_spans: Vec<Range<usize>>,
+    f_span: Option<Range<usize>>,
+    /// Some(true) = G0, Some(false) = G1.
+    g_motion: Option<bool>,
+    dwell: bool,
+    p_word: Option<f64>,
+    m_word: Option<u32>,
+    /// Some(true) = G64, Some(false) = G61.
+    blend_cmd: Option<bool>,
+}
+
+/// The modal state that carries from line to line.
+struct Modal {
+    absolute: bool,
+    feed_mode: FeedMode,
+    feed: Option<f64>,
+}
+
+/// The words of line `line` (starting at byte `at` of the text): what they command, the modal
+/// state they set, and a G91 in `positions` (the values after it cannot be rewritten).
+fn block(
+    line: usize,
+    at: usize,
+    words: Vec<(char, f64, Range<usize>)>,
+    modal: &mut Modal,
+    positions: &mut Positions,
+) -> Result<Block, ParseError> {
+    let err = |msg: String| ParseError { line, msg };
+    let mut b = Block::default();
+    for (letter, value, r) in words {
+        let r = at + r.start..at + r.end;
+        match letter {
+            'N' => {}
+            'G' => {
+                match gcode(value) {
+                    Some(0) => b.g_motion = Some(true),
+                    Some(1) => b.g_motion = Some(false),
+                    Some(4) => b.dwell = true,
+                    // Modal states a CNC's safe-start line sets that do nothing to joint
+                    // moves: XY plane, no cutter compensation, no tool length offset, the
+                    // first work offset (as without any), no canned cycle.
+                    Some(17 | 21 | 40 | 49 | 54 | 80) => {}
+                    Some(20) => {
+                        return Err(err(
+                            "G20 (inch) is not supported: joint values are degrees, use G21".into(),
+                        ))
+                    }
+                    Some(61) => b.blend_cmd = Some(false),
+                    Some(64) => b.blend_cmd = Some(true),
+                    Some(90) => modal.absolute = true,
+                    Some(91) => {
+                        modal.absolute = false;
+                        // The values that follow are increments: new absolute values cannot
+                        // be written over them.
+                        positions.unwritable.get_or_insert(ParseError {
+                        line,
+                        msg: "G91 (incremental) is not rewritten: write absolute joint values (G90)".into(),
+                    });
+                    }
+                    Some(93) => modal.feed_mode = FeedMode::InverseTime,
+                    Some(94) => modal.feed_mode = FeedMode::UnitsPerMinute,
+                    _ => {
+                        return Err(err(format!(
+                            "G{} is not supported in a joint-space program",
+                            fmt_num(value)
+                        )))
+                    }
+                }
+            }
+            'M' => match gcode(value) {
+                Some(m @ (0 | 1 | 2 | 30)) => b.m_word = Some(m),
+                _ => return Err(err(format!("M{} is not supported", fmt_num(value)))),
+            },
+            'F' => {
+                if !(value.is_finite() && value > 0.0) {
+                    return Err(err(format!("F{} must be positive", fmt_num(value))));
+                }
+                modal.feed = Some(value);
+                b.f_span = Some(r);
+            }
+            'P' => b.p_word = Some(value),
+            'Q' => {}
+            c if AXES.contains(c) => {
+                let i = AXES.find(c).unwrap_or(0);
+                if b.axis[i].is_some() {
+                    return Err(err(format!("{c} given twice")));
+                }
+                b.axis[i] = Some(value);
+                b.axis_spans.push(r);
+            }
+            c => return Err(err(format!("word {c} is not supported"))),
+        }
+    }
+    Ok(b)
+}
+
 pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
     let mut out = Parsed {
         map: map.clone(),
         ..Parsed::default()
     };
     let mut pos: [Option<f64>; 6] = [None; 6];
-    let mut absolute = true;
-    let mut feed_mode = FeedMode::UnitsPerMinute;
-    let mut feed: Option<f64> = None;
+    let mut modal = Modal {
+        absolute: true,
+        feed_mode: FeedMode::UnitsPerMinute,
+        feed: None,
+    };
     let mut blend: Option<f64> = None;
     let mut motion: Option<bool> = None; // Some(true) = G0 modal, Some(false) = G1 modal
     let mut seen_code = false;
@@ -45,8 +149,9 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
 
     for (k, raw) in text.lines().enumerate() {
         let line = k + 1;
+        let at = offset_in(text, raw);
         let err = |msg: String| ParseError { line, msg };
-        let (code, comment) = split_comment(raw).map_err(|m| err(m.to_string()))?;
+        let (code, chars, comment) = split_comment(raw).map_err(|m| err(m.to_string()))?;
         let code = code.trim();
         // `%` opens and closes a program file (RS274/NGC, LinuxCNC): no code.
         if code.is_empty() || code == "%" {
@@ -61,70 +166,14 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
             return Err(err("code after the program end (M2/M30)".into()));
         }
         seen_code = true;
-        let words = words(code).map_err(err)?;
-        let mut axis: [Option<f64>; 6] = [None; 6];
-        let mut g_motion: Option<bool> = None;
-        let mut dwell = false;
-        let mut p_word: Option<f64> = None;
-        let mut m_word: Option<u32> = None;
-        let mut blend_cmd: Option<bool> = None; // Some(true) = G64, Some(false) = G61
-        for (letter, value) in words {
-            match letter {
-                'N' => {}
-                'G' => match gcode(value) {
-                    Some(0) => g_motion = Some(true),
-                    Some(1) => g_motion = Some(false),
-                    Some(4) => dwell = true,
-                    // Modal states a CNC's safe-start line sets that do nothing to joint
-                    // moves: XY plane, no cutter compensation, no tool length offset, the
-                    // first work offset (as without any), no canned cycle.
-                    Some(17 | 21 | 40 | 49 | 54 | 80) => {}
-                    Some(20) => {
-                        return Err(err(
-                            "G20 (inch) is not supported: joint values are degrees, use G21".into(),
-                        ))
-                    }
-                    Some(61) => blend_cmd = Some(false),
-                    Some(64) => blend_cmd = Some(true),
-                    Some(90) => absolute = true,
-                    Some(91) => absolute = false,
-                    Some(93) => feed_mode = FeedMode::InverseTime,
-                    Some(94) => feed_mode = FeedMode::UnitsPerMinute,
-                    _ => {
-                        return Err(err(format!(
-                            "G{} is not supported in a joint-space program",
-                            fmt_num(value)
-                        )))
-                    }
-                },
-                'M' => match gcode(value) {
-                    Some(m @ (0 | 1 | 2 | 30)) => m_word = Some(m),
-                    _ => return Err(err(format!("M{} is not supported", fmt_num(value)))),
-                },
-                'F' => {
-                    if !(value.is_finite() && value > 0.0) {
-                        return Err(err(format!("F{} must be positive", fmt_num(value))));
-                    }
-                    feed = Some(value);
-                }
-                'P' => p_word = Some(value),
-                'Q' => {}
-                c if AXES.contains(c) => {
-                    let i = AXES.find(c).unwrap_or(0);
-                    if axis[i].is_some() {
-                        return Err(err(format!("{c} given twice")));
-                    }
-                    axis[i] = Some(value);
-                }
-                c => return Err(err(format!("word {c} is not supported"))),
-            }
-        }
+        let words = words(&chars).map_err(err)?;
+        let b = block(line, at, words, &mut modal, &mut out.positions)?;
         let comment_text = comment;
-        if let Some(b) = blend_cmd {
-            blend = if b {
+        if let Some(g64) = b.blend_cmd {
+            blend = if g64 {
                 // P is LinuxCNC's path tolerance on X Y Z; without it the planner keeps the best
                 // speed. Either way a corner may take up to half of each move (the corner model).
-                let p = p_word.unwrap_or(0.0);
+                let p = b.p_word.unwrap_or(0.0);
                 if !(p.is_finite() && p >= 0.0) {
                     return Err(err("G64 P must be a tolerance >= 0".into()));
                 }
@@ -133,8 +182,8 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                 None
             };
         }
-        if dwell {
-            let p = p_word.ok_or_else(|| err("G4 needs P (seconds)".into()))?;
+        if b.dwell {
+            let p = b.p_word.ok_or_else(|| err("G4 needs P (seconds)".into()))?;
             if !(p.is_finite() && p >= 0.0) {
                 return Err(err("G4 P must be >= 0 seconds".into()));
             }
@@ -144,16 +193,16 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                 comment: comment_text.clone(),
             });
         }
-        if let Some(g) = g_motion {
+        if let Some(g) = b.g_motion {
             motion = Some(g);
         }
-        if axis.iter().any(Option::is_some) {
+        if b.axis.iter().any(Option::is_some) {
             let rapid =
                 motion.ok_or_else(|| err("axis words without a motion mode (G0 or G1)".into()))?;
             let mut target = [0.0; 6];
             for i in 0..6 {
-                target[i] = match (axis[i], pos[i]) {
-                    (Some(v), Some(p)) if !absolute => p + v,
+                target[i] = match (b.axis[i], pos[i]) {
+                    (Some(v), Some(p)) if !modal.absolute => p + v,
                     (Some(v), _) => v,
                     (None, Some(p)) => p,
                     (None, None) => {
@@ -171,8 +220,10 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
             let timing = if rapid {
                 Timing::Rapid
             } else {
-                let f = feed.ok_or_else(|| err("G1 without a feed rate F".into()))?;
-                match feed_mode {
+                let f = modal
+                    .feed
+                    .ok_or_else(|| err("G1 without a feed rate F".into()))?;
+                match modal.feed_mode {
                     FeedMode::InverseTime => Timing::Duration(60.0 / f),
                     FeedMode::UnitsPerMinute => Timing::PathFeed(f),
                 }
@@ -188,14 +239,23 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                 },
                 comment: comment_text.clone(),
             });
-            if feed_mode == FeedMode::InverseTime && !rapid {
+            out.positions.moves.push(MoveSpans {
+                line,
+                axes: b.axis_spans,
+                // The whole F word: the writer writes the letter too.
+                time: b.f_span,
+                time_per_s: 1.0,
+                percent: None,
+                line_range: at..at + raw.len(),
+            });
+            if modal.feed_mode == FeedMode::InverseTime && !rapid {
                 // RS274: in G93 every G1 needs its own F.
-                feed = None;
+                modal.feed = None;
             }
-        } else if g_motion.is_some() && !dwell && blend_cmd.is_none() {
+        } else if b.g_motion.is_some() && !b.dwell && b.blend_cmd.is_none() {
             // G0/G1 alone just sets the mode.
         }
-        match m_word {
+        match b.m_word {
             Some(0 | 1) => out.lines.push(Line {
                 line,
                 step: Step::Pause,
@@ -228,17 +288,22 @@ fn fmt_num(v: f64) -> String {
     }
 }
 
-/// Splits a line into code and the text of its comments (parentheses or ';').
-fn split_comment(raw: &str) -> Result<(String, Option<String>), &'static str> {
+/// The characters of a line's code that are not white space, each with its byte offset.
+type Chars = Vec<(usize, char)>;
+
+/// Splits a line into code, the code's characters that are not white space (with their byte
+/// offsets in the line) and the text of its comments (parentheses or ';').
+fn split_comment(raw: &str) -> Result<(String, Chars, Option<String>), &'static str> {
     let mut code = String::with_capacity(raw.len());
+    let mut kept: Chars = Vec::with_capacity(raw.len());
     let mut comments: Vec<String> = Vec::new();
-    let mut chars = raw.chars();
-    while let Some(c) = chars.next() {
+    let mut chars = raw.char_indices();
+    while let Some((k, c)) = chars.next() {
         match c {
             '(' => {
                 let mut text = String::new();
                 loop {
-                    match chars.next() {
+                    match chars.next().map(|(_, ch)| ch) {
                         Some(')') => break,
                         Some('(') => return Err("nested comment"),
                         Some(ch) => text.push(ch),
@@ -248,10 +313,22 @@ fn split_comment(raw: &str) -> Result<(String, Option<String>), &'static str> {
                 comments.push(text.trim().to_string());
             }
             ';' => {
-                comments.push(chars.by_ref().collect::<String>().trim().to_string());
+                comments.push(
+                    chars
+                        .by_ref()
+                        .map(|(_, ch)| ch)
+                        .collect::<String>()
+                        .trim()
+                        .to_string(),
+                );
                 break;
             }
-            _ => code.push(c),
+            _ => {
+                code.push(c);
+                if !c.is_whitespace() {
+                    kept.push((k, c));
+                }
+            }
         }
     }
     let comment = if comments.is_empty() {
@@ -259,29 +336,32 @@ fn split_comment(raw: &str) -> Result<(String, Option<String>), &'static str> {
     } else {
         Some(comments.join(" "))
     };
-    Ok((code, comment))
+    Ok((code, kept, comment))
 }
 
-/// Words of a code line: letter + number, spaces allowed between them.
-fn words(code: &str) -> Result<Vec<(char, f64)>, String> {
-    let s: Vec<char> = code.chars().filter(|c| !c.is_whitespace()).collect();
+/// Words of a code line (its characters that are not white space, with their offsets): a
+/// letter and a number, spaces allowed between them; each with its byte range in the line,
+/// from the letter to the number's last character.
+fn words(s: &[(usize, char)]) -> Result<Vec<(char, f64, Range<usize>)>, String> {
     let mut out = Vec::new();
     let mut i = 0;
     while i < s.len() {
-        let letter = s[i].to_ascii_uppercase();
+        let (from, c) = s[i];
+        let letter = c.to_ascii_uppercase();
         if !letter.is_ascii_alphabetic() {
-            return Err(format!("unexpected '{}'", s[i]));
+            return Err(format!("unexpected '{c}'"));
         }
         i += 1;
         let start = i;
-        while i < s.len() && (s[i].is_ascii_digit() || matches!(s[i], '.' | '-' | '+')) {
+        while i < s.len() && (s[i].1.is_ascii_digit() || matches!(s[i].1, '.' | '-' | '+')) {
             i += 1;
         }
-        let num: String = s[start..i].iter().collect();
+        let num: String = s[start..i].iter().map(|(_, c)| c).collect();
         let value: f64 = num
             .parse()
             .map_err(|_| format!("{letter} needs a number, got '{num}'"))?;
-        out.push((letter, value));
+        let (last, ch) = s[i - 1];
+        out.push((letter, value, from..last + ch.len_utf8()));
     }
     Ok(out)
 }
