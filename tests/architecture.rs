@@ -107,3 +107,71 @@ fn no_module_imports_in_a_circle() {
         "cell takes nothing from pipeline"
     );
 }
+
+/// The code outside `src/dialect/` (not its tests), file by file.
+fn code_outside_dialects() -> Vec<(std::path::PathBuf, String)> {
+    let mut out = Vec::new();
+    let mut stack = vec![root().join("src")];
+    while let Some(dir) = stack.pop() {
+        for e in std::fs::read_dir(&dir).unwrap() {
+            let path = e.unwrap().path();
+            if path.is_dir() {
+                if !path.ends_with("dialect") {
+                    stack.push(path);
+                }
+            } else if path.extension().is_some_and(|x| x == "rs") {
+                let text = std::fs::read_to_string(&path).unwrap();
+                let code = text.split("#[cfg(test)]").next().unwrap_or("").to_string();
+                out.push((path, code));
+            }
+        }
+    }
+    out
+}
+
+#[test]
+fn a_dialect_is_known_in_its_folder_only() {
+    // The dialects take nothing from the stages that write, rewrite or check programs.
+    let g = imports();
+    for dep in ["compensate", "emit", "verify", "pipeline", "cli"] {
+        assert!(
+            !g.get("dialect").is_some_and(|d| d.contains(dep)),
+            "dialect imports {dep}"
+        );
+    }
+    // No code outside src/dialect/ chooses by a dialect's name: a match arm or a comparison
+    // with a registered name is controller knowledge outside its folder.
+    let names = edbbgen::dialect::names();
+    assert_eq!(names.len(), 6, "{names:?}");
+    for (path, code) in code_outside_dialects() {
+        for name in &names {
+            for form in [
+                format!("\"{name}\" =>"),
+                format!("\"{name}\" |"),
+                format!("Some(\"{name}\")"),
+                format!("== \"{name}\""),
+            ] {
+                assert!(
+                    !code.contains(&form),
+                    "{} chooses by the dialect name: {form}",
+                    path.display()
+                );
+            }
+        }
+    }
+    // compensate rewrites a program through its reader's positions: it has no tokenizer.
+    let program = std::fs::read_to_string(root().join("src/compensate/program.rs")).unwrap();
+    let program = program.split("#[cfg(test)]").next().unwrap_or("");
+    for scan in [
+        ".find(",
+        ".rfind(",
+        "split_whitespace",
+        "char_indices",
+        ".as_bytes()",
+    ] {
+        assert!(
+            !program.contains(scan),
+            "src/compensate/program.rs looks into the text: {scan}"
+        );
+    }
+}
