@@ -81,7 +81,7 @@ fn unsupported(line: usize, msg: impl Into<String>) -> ProgramError {
     }
 }
 
-/// One move of the program as read: its line, model joints (deg), controller axes, timing.
+/// One move of the program as read: its line, model joints (deg) and timing.
 struct Move {
     line: usize,
     target: [f64; 6],

@@ -66,8 +66,9 @@ pub trait Language: Sync {
     fn decimals(&self, units: Units) -> usize;
 
     /// The edits that write `values` (one per move of `parsed`, in order) into `text` (which
-    /// `parsed` was read from, with `map`), and `note` as a header comment. Only the ranges
-    /// the reader recorded change, besides the lines the language needs around them.
+    /// `parsed` was read from, with `map`; its lines end with `\n`, the last one too), and
+    /// `note` as a header comment. Only the ranges the reader recorded change, besides whole
+    /// lines the language needs around them.
     fn write(
         &self,
         text: &str,
