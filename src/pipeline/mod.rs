@@ -774,9 +774,12 @@ impl Planned {
     }
 }
 
-/// Selects, orders and makes the path safe; poses no safe move reaches (and the poses of
-/// sections too small to be worth a remount) are taken out of the pool and the selection is
-/// redone, so that reachable poses replace them, for at most [`REPAIR_ROUNDS`] rounds.
+/// Selects, orders and makes the path safe, in one round: the selection measures every
+/// section with at least [`MIN_POSES_PER_SECTION`] poses or not at all (a constraint of the
+/// elimination, [`select::run_grouped`]), and the planner reaches every pose of a section
+/// through the section's roadmap ([`safepath::plan_sections`]). Should a pose still be dropped
+/// (no safe move reached it), it is taken out of the pool and the selection redone, for at
+/// most [`REPAIR_ROUNDS`] rounds.
 fn select_order_plan(
     ck: &Checker,
     sections: &Sections,
@@ -786,7 +789,7 @@ fn select_order_plan(
 ) -> Result<Planned, PipelineError> {
     let pool = &sections.pool.candidates;
     let speeds = ck.robot.max_speeds();
-    // The rounds plan mostly the same moves: the planner checks each once.
+    // Repair rounds plan mostly the same moves: the planner checks each once.
     let memo = LineMemo::default();
     let planner = ck.remembering(&memo);
     let mut usable: Vec<usize> = (0..pool.len()).collect();
@@ -797,20 +800,20 @@ fn select_order_plan(
         let sub = Pool {
             candidates: usable.iter().map(|&i| pool[i]).collect(),
         };
-        let selection = select::run(
+        let label: Vec<usize> = usable.iter().map(|&i| sections.group[i]).collect();
+        let mut selection = select::run_grouped(
             ck.model,
             &sub,
             &id.identifiable,
             &SelectConfig { poses: opts.poses },
+            Some(select::Groups {
+                label: &label,
+                min: MIN_POSES_PER_SECTION,
+            }),
         )?;
+        // Indices into the pool, not into this round's part of it.
         let chosen: Vec<usize> = selection.indices.iter().map(|&k| usable[k]).collect();
-        let lonely = sections.lonely(&chosen);
-        if !lonely.is_empty() && round < REPAIR_ROUNDS && usable.len() > id.count() + lonely.len() {
-            round += 1;
-            replaced += lonely.len();
-            usable.retain(|i| !lonely.contains(i));
-            continue;
-        }
+        selection.indices.clone_from(&chosen);
         progress.stage("order");
         // The tour cost: each move with its acceleration ramps, or Eq. 7 as in the paper.
         let accel = ck.robot.max_accelerations();
@@ -836,9 +839,10 @@ fn select_order_plan(
             });
         }
         round += 1;
+        // The plan holds the poses as the program carries them.
         let unreachable: Vec<[f64; 6]> = plan.dropped.iter().map(|d| d.q).collect();
         replaced += unreachable.len();
-        usable.retain(|&i| !unreachable.contains(&pool[i].q));
+        usable.retain(|&i| !unreachable.contains(&emit::emitted(&pool[i].q)));
     }
 }
 
