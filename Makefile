@@ -2,7 +2,7 @@
 CARGO ?= cargo
 NJ130 := robots/comau_nj130/robot.dh.toml
 
-.PHONY: build run test check fmt clippy doc snapshots bench bench-peers bench-diagnose paper calibration pose-selection stop-and-measure ci fuzz rapidchecker
+.PHONY: build run test test-fast test-deps test-tools check fmt clippy doc snapshots bench bench-peers bench-diagnose paper calibration pose-selection stop-and-measure ci fuzz rapidchecker
 
 build:
 	$(CARGO) build --release --locked
@@ -11,15 +11,70 @@ build:
 run: build
 	target/release/edbbgen $(NJ130) --fixture 258,1468,708 -o nj130.nc
 
+# ---- What the tests run besides cargo: installed by `make test` itself -----------------------
+# Each step checks first and installs only what is missing, so on a machine that has it all
+# `make test-deps` takes well under a second.
+#
+# Debian packages: linuxcnc-uspace (LinuxCNC's rs274 interpreter reads every ngc program; its
+# simulated machine runs them, tests/linuxcnc.rs), chromium (renders every HTML report,
+# tests/report.rs), python3-venv (the RAPID checker's venv below). Through apt-get, as root or
+# with sudo; elsewhere the missing packages are named and the target fails.
+SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
+APT := $(SUDO) env DEBIAN_FRONTEND=noninteractive apt-get
+test-tools:
+	@missing=""; \
+	{ command -v rs274 && command -v linuxcnc && command -v halcmd; } >/dev/null 2>&1 \
+	  || missing="$$missing linuxcnc-uspace"; \
+	{ command -v chromium || command -v chromium-browser || command -v google-chrome; } >/dev/null 2>&1 \
+	  || missing="$$missing chromium"; \
+	python3 -c "import ensurepip, venv" >/dev/null 2>&1 || missing="$$missing python3 python3-venv"; \
+	[ -x /usr/bin/python3 ] || missing="$$missing python3"; \
+	if [ -n "$$missing" ]; then \
+	  command -v apt-get >/dev/null 2>&1 \
+	    || { echo "make test-tools: the tests need (Debian package names):$$missing" >&2; exit 1; }; \
+	  echo "make test-tools: installing$$missing (apt-get)"; \
+	  $(APT) update -qq && $(APT) install -y -qq --no-install-recommends $$missing >/dev/null; \
+	fi
+
 # ABB's RAPID grammar checker (PyPI: rapidchecker) in a venv under target/, where the tests look
 # for it (tests/dialects.rs; in CI a missing checker fails the test).
 RAPIDCHECKER_VENV := target/rapidchecker-venv
-rapidchecker:
-	test -x $(RAPIDCHECKER_VENV)/bin/python || python3 -m venv $(RAPIDCHECKER_VENV)
-	$(RAPIDCHECKER_VENV)/bin/python -c "import rapidchecker" 2>/dev/null || $(RAPIDCHECKER_VENV)/bin/pip install -q rapidchecker==0.1.5
+rapidchecker: test-tools
+	@test -x $(RAPIDCHECKER_VENV)/bin/python || python3 -m venv $(RAPIDCHECKER_VENV)
+	@$(RAPIDCHECKER_VENV)/bin/python -c "import rapidchecker" 2>/dev/null || $(RAPIDCHECKER_VENV)/bin/pip install -q rapidchecker==0.1.5
 
-# The test command the README gives.
-test:
+test-deps: test-tools rapidchecker
+
+# ---- The tests: one test binary, two tiers --------------------------------------------------
+# `make test` (the README's command; CI) runs everything: the unit tests, every integration test
+# of tests/main.rs with the slow tier included (`-- --include-ignored`), the doc tests (from a
+# fresh clone under /tmp, niced, load 6-7: 20.6 min to build with the third-party crates already
+# built, 13.3 min to test). One slow test alone: `cargo test --test main NAME -- --include-ignored`.
+# `make test-fast` (the loop to wait for: 92 s wall from a warm build at load 7.5 on the 2
+# cores, 44 s CPU) runs the unit tests and the fast integration tests. It is plain
+# `cargo test`: each slow test carries `#[ignore = "slow tier: `make test` runs it"]`.
+#
+# The split is by measured time: `cargo nextest run` (every test in a process of its own),
+# load 7-10 on the 2 cores. Slow is an integration test that took 5 s or more there, or that
+# starts chromium or LinuxCNC's simulated machine: 72 of the 152, 2,843 s of their 2,919 s.
+# That is the LinuxCNC runs (tests/linuxcnc.rs), the 200-run randomised matching
+# (tests/logs.rs), the chromium reports (report, place, ldbb), the calibration sweeps
+# (calibrate, calibrate_real, place), determinism over thread counts, the random cells
+# (safety), and every test that needs all shipped cells compiled in every dialect (the cache of
+# tests/dialects.rs, ~35 s, used by dialects, corners, compensate and linuxcnc). One test over
+# 5 s stays fast: the golden NJ-130 program (snapshots, 11 s), the shipped program that must
+# stay byte-identical. The unit tests (src/) are all fast by definition (the longest, order's
+# local search, took 27 s).
+# A new test that takes seconds gets the same attribute.
+#
+# Why #[ignore] and not a cargo feature or a second test binary: a feature changes the
+# library's fingerprint, so each switch between the tiers would rebuild the whole crate (2-3
+# min, more than the fast tier itself); a second binary would move tests out of their topic
+# files and compile the shared helpers (common, the dialects cache) twice.
+test: test-deps
+	$(CARGO) test --locked -- --include-ignored
+
+test-fast: test-deps
 	$(CARGO) test --locked
 
 fmt:

@@ -412,8 +412,8 @@ fn main() {
 
     // End to end: the release binary, wall time and peak memory, on every shared robot in its
     // test cell, the NJ-130 at the default grid and at 5 deg, a 6R arm whose joints all turn
-    // +-360 deg, and a UR10 URDF with collision meshes, every joint +-360 deg (issue 13's and
-    // issue 21's targets: < 3 s at the default grid, NJ-130 at 5 deg < 10 s, < 300 MB).
+    // +-360 deg, and a UR10 URDF with collision meshes, every joint +-360 deg (the targets
+    // in BENCHMARKS.md: < 3 s at the default grid, NJ-130 at 5 deg < 10 s, < 300 MB).
     let mut e2e = Vec::new();
     let mut cases: Vec<(String, Vec<String>)> = vec![
         (

@@ -4,7 +4,7 @@
 //! - `cargo run --release --example order_timing nj130 [n ...]`: the TSP instances of `make bench`
 //!   (NJ-130 pools built exactly as `examples/bench.rs` builds them, pose 0 the fixed start; by
 //!   default 35, 200, 1000 and 3400 poses), best of 3 like the bench, with the gap to the LKH-3
-//!   cost of the same instance (BENCHMARKS.md, issue 13 table). The pools are cached in
+//!   cost of the same instance (the LKH-3 costs in BENCHMARKS.md). The pools are cached in
 //!   `target/tsp-pools/` (exact f64 bits) because sampling them takes longer than the tours.
 //!   `TSP_REPS=k` in the environment times k runs instead of 3.
 
@@ -21,8 +21,8 @@ use std::time::Instant;
 const ROOT: &str = env!("CARGO_MANIFEST_DIR");
 
 /// LKH-3 (elkai 2.0.1, runs=1) tour costs of the bench instances, from the edbbgen costs and
-/// ratios in BENCHMARKS.md (issue 13 table: 12.8510 +0.000 %, 52.2494 +0.146 %, 178.5687
-/// +0.186 %, 466.3317 +0.344 %).
+/// ratios of a `make bench-peers` run (CHANGELOG.md, performance history: 12.8510 +0.000 %,
+/// 52.2494 +0.146 %, 178.5687 +0.186 %, 466.3317 +0.344 %).
 const LKH: [(usize, f64); 4] = [
     (35, 12.8510),
     (200, 52.2494 / 1.00146),

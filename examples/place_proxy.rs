@@ -2,7 +2,7 @@
 //! the full estimate (a compile there) over the fully estimated candidates of a `place --json`
 //! report, for proxy settings STEP:POSES (joint grid step in degrees, admitted pool). Two proxy
 //! predictions are compared: from the greedy selection (what `place` uses) and from the whole
-//! admitted pool. Not part of `make test`; the figures are quoted in README and `src/place/`.
+//! admitted pool. Not part of `make test`; the figures are on docs/validation.md.
 //!
 //! ```sh
 //! edbbgen place robots/comau_nj130/robot.dh.toml --cell robots/comau_nj130/cell.toml --top 40 --json top40.json -q

@@ -1,4 +1,4 @@
-//! Measuring without a synchronous joint log (`make stop-and-measure`, issue 23): simulated
+//! Measuring without a synchronous joint log (`make stop-and-measure`): simulated
 //! NJ-130s with random geometric errors (±0.2 mm, ±0.02°), 1 µm bar noise at 50 Hz, measured
 //! two ways, each against its synchronous reference:
 //!
@@ -29,7 +29,8 @@ use rand::{Rng, SeedableRng};
 const DEG: f64 = std::f64::consts::PI / 180.0;
 const ROBOTS: u64 = 10;
 /// The dwell (s): long enough that the plateau means carry what the continuous recording of
-/// the same run adds along its moves to within 2x (the compiler predicts both; see README).
+/// the same run adds along its moves to within 2x (the compiler predicts both; the figures are
+/// on docs/validation.md).
 const DWELL: f64 = 5.0;
 
 fn median(mut v: Vec<f64>) -> f64 {

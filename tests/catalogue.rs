@@ -966,6 +966,7 @@ fn cases(f: &Fixtures) -> Vec<Case> {
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn every_bad_input_exits_2_with_one_line_naming_it_and_writes_nothing() {
     let dir = tempdir();
     let f = Fixtures::new(dir.path());

@@ -184,6 +184,7 @@ fn negative_values_reach_the_value_check() {
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn negative_coordinates_are_accepted_in_every_form() {
     let dir = tempdir();
     let out = dir.path().join("p.nc");

@@ -19,6 +19,7 @@ fn compile(robot: &std::path::Path, extra: &[&str], out: &std::path::Path) -> Ru
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn nj130_urdf_compiles_to_a_program_inside_the_shell() {
     let dir = tempdir();
     let out = dir.path().join("nj130.nc");
@@ -33,6 +34,7 @@ fn nj130_urdf_compiles_to_a_program_inside_the_shell() {
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn every_shared_robot_compiles_with_a_fixture_in_reach() {
     for name in SHARED_ROBOTS {
         let dir = tempdir();
@@ -101,6 +103,7 @@ fn a_map_on_the_joint6_axis_compiles_with_a_warning_and_fewer_parameters() {
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn check_mode_compares_and_writes_nothing() {
     let dir = tempdir();
     let out = dir.path().join("golden.nc");

@@ -195,31 +195,37 @@ fn hand_made_corner_fails(d: &str) {
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn ngc_corner_is_checked_as_linuxcnc_blends() {
     hand_made_corner_fails("ngc");
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn sinumerik_corner_is_checked_as_adis_on_the_axis_path() {
     hand_made_corner_fails("sinumerik");
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn krl_corner_is_checked_as_c_dis_approximates() {
     hand_made_corner_fails("krl");
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn rapid_corner_is_checked_as_its_zone() {
     hand_made_corner_fails("rapid");
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn urscript_blend_is_refused() {
     hand_made_corner_fails("urscript");
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn fanuc_cnt_corner_is_refused() {
     hand_made_corner_fails("fanuc");
 }
@@ -437,6 +443,7 @@ fn old(kind: CornerKind, d: &str) -> dialect::Corner {
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn krl_c_dis_is_not_capped_at_half_a_move() {
     // $APO.CDIS 200 mm on 240 mm moves: the MAP stays within it past the moves' middle.
     refused_where_the_old_model_passed(
@@ -450,6 +457,7 @@ fn krl_c_dis_is_not_capped_at_half_a_move() {
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn rapid_zone_is_enlarged_and_not_capped_at_half_a_move() {
     refused_where_the_old_model_passed(
         "rapid",
@@ -462,6 +470,7 @@ fn rapid_zone_is_enlarged_and_not_capped_at_half_a_move() {
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn sinumerik_adis_may_take_more_than_half_a_block() {
     // ADIS = 80 % of the shorter block's axis path: the rounding is limited by the block alone.
     refused_where_the_old_model_passed(
@@ -475,6 +484,7 @@ fn sinumerik_adis_may_take_more_than_half_a_block() {
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn urscript_movej_blend_is_refused_even_where_its_sphere_is_clear() {
     // A 20 mm blend radius whose TCP-distance region is clear of everything: refused all the
     // same (UR: a movej-to-movej blend may leave the waypoints' course).
@@ -489,6 +499,7 @@ fn urscript_movej_blend_is_refused_even_where_its_sphere_is_clear() {
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn fanuc_cr_is_checked_as_half_of_each_move() {
     // CR20 read as a 20 mm TCP distance before; no FANUC document says so.
     refused_where_the_old_model_passed(

@@ -60,6 +60,7 @@ fn rapid_axes(text: &str) -> Vec<[f64; 6]> {
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn rapid_couples_j3_to_j2_on_a_parallel_arm_robot_and_says_so() {
     let dir = tempdir();
     let (ngc, rapid) = (dir.path().join("p.ngc"), dir.path().join("p.mod"));

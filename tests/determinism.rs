@@ -218,6 +218,7 @@ fn run_all(dir: &Path, threads: &str) -> BTreeMap<String, Vec<u8>> {
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn every_output_is_byte_identical_on_any_thread_count_and_run() {
     let (a, b, c) = (tempdir(), tempdir(), tempdir());
     let one = run_all(a.path(), "1");

@@ -188,6 +188,7 @@ fn hidden_cases() -> Vec<Hidden> {
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn hidden_effects_are_named_with_their_joint() {
     let cells = [nj130_cell(), urdf_cell()];
     let mut total = 0;
@@ -236,6 +237,7 @@ fn hidden_effects_are_named_with_their_joint() {
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn geometric_errors_only_name_no_further_effect() {
     let c = nj130_cell();
     for seed in 0..4 {
@@ -319,6 +321,7 @@ fn malformed_csv_exits_2_naming_line_and_column() {
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn compile_simulate_diagnose_through_the_cli() {
     let dir = common::tempdir();
     let p = |n: &str| dir.path().join(n);

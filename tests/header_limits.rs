@@ -24,6 +24,7 @@ fn verify(program: &std::path::Path, extra: &[&str]) -> Run {
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn verify_takes_the_bar_range_margins_and_blend_from_the_header_in_every_dialect() {
     let dir = tempdir();
     for (dialect, ext) in DIALECTS {
@@ -104,6 +105,7 @@ fn verify_takes_the_bar_range_margins_and_blend_from_the_header_in_every_dialect
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn a_header_that_states_less_than_the_program_does_fails() {
     // The header is read, not ignored: a bar range or a corner blend edited below what the
     // program's moves do fails a plain verify, naming the limit.
@@ -143,6 +145,7 @@ fn a_header_that_states_less_than_the_program_does_fails() {
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn a_tcp_blend_above_the_header_s_corner_blend_fails() {
     // KRL's C_DIS is a TCP distance (mm at the MAP), the header's kind of corner blend: a
     // header edited below the program's C_DIS fails, naming the limit.
@@ -181,6 +184,7 @@ fn a_tcp_blend_above_the_header_s_corner_blend_fails() {
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn verify_reads_the_header_s_joint_accelerations_and_names_a_difference() {
     // The header states the accelerations the program's times assume (per controller axis):
     // verify checks with the robot's, lists them, and says where the header's differ.

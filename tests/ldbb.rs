@@ -574,6 +574,7 @@ fn ldbb_circle(setup: &Path, out: &Path, extra: &[&str]) -> Run {
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn ldbb_circle_program_is_verified_read_back_golden_and_interpreted() {
     let dir = tempdir();
     let setup = short_setup(dir.path());
@@ -719,6 +720,7 @@ fn ldbb_circle_program_is_verified_read_back_golden_and_interpreted() {
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn report_json_is_golden_and_the_html_draws_in_a_browser() {
     let dir = tempdir();
     let setup = dir.path().join("setup.toml");

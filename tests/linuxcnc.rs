@@ -428,6 +428,7 @@ fn all_blended(text: &str) -> String {
 /// the executed time is within 15 % of the estimate — for the program as written and for a
 /// variant that blends every corner. The runs go in parallel, each on a machine of its own.
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn linuxcnc_executes_every_shipped_cells_program_as_verified_and_in_the_estimated_time() {
     let cells = crate::dialects::cells();
     let dir = tempdir();
@@ -651,6 +652,7 @@ fn dwells(text: &str) -> Vec<([f64; 6], f64)> {
 /// executed joints, 1 µm noise, at 50 Hz on the bar's own clock (7.25 s offset, 120 ppm) —
 /// and `calibrate --bar-log --program` matches every plateau to its pose, none missing.
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn linuxcnc_executes_every_dwell_as_an_exact_stop_and_the_bar_log_of_the_run_matches() {
     use rand::{Rng, SeedableRng};
     let c = crate::dialects::dwell_cell();

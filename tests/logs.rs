@@ -126,6 +126,7 @@ fn the_program_lists_its_measurement_poses_and_every_dwell_follows_an_exact_stop
 /// must be the right standstill; a lost plateau must be reported missing; a refusal must name
 /// a pose. 200 runs.
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn randomised_runs_are_matched_right_or_refused_naming_the_pose() {
     let d = dwell_program();
     let traj = Trajectory::from_program(&d.robot, &d.model, &d.parsed).unwrap();
@@ -405,6 +406,7 @@ fn rms_um(a: &[Vector3<f64>], b: &[Vector3<f64>]) -> f64 {
 /// inside its stated uncertainty's reach), and the calibrated robot the synchronous one within
 /// 1 µm RMS over the joint space. The continuous program, its logs written by the twin.
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn a_joint_log_synchronises_to_a_fraction_of_a_millisecond() {
     let dir = tempdir();
     let robot = load(&nj130_dh());

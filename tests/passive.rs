@@ -136,6 +136,7 @@ fn along(poses: &[[f64; 6]], step: f64) -> Vec<[f64; 6]> {
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn the_abb_program_keeps_the_margin_around_the_balancing_cylinder_on_the_meshes() {
     let urdf = shared_robot("abb_irb6700_200_260");
     let cell = crate::safety::test_cell("abb_irb6700_200_260");
@@ -368,6 +369,7 @@ fn a_mimic_lever_that_hits_the_base_is_avoided_and_caught() {
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn joint_margin_keeps_every_program_off_the_limits_and_verify_checks_it() {
     // Every shipped cell's program stays ≥ 1° (the default margin) from every joint limit.
     let mut cells = vec![(nj130_dh(), crate::safety::nj130_cell())];

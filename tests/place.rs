@@ -58,6 +58,7 @@ fn f(v: &Value) -> f64 {
 const PAPER: [f64; 3] = [258.0, 1468.0, 708.0];
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn the_papers_fixture_is_ranked_and_the_joint1_axis_and_the_edge_of_reach_rank_poorly() {
     let dir = tempdir();
     let axis = [0.0, 0.0, 1400.0];
@@ -191,6 +192,7 @@ fn simulate(program: &str, geometric: [f64; 30], fixture_mm: [f64; 3], seed: u64
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn a_three_fixture_campaign_beats_the_best_single_fixture_and_calibrate_confirms_it() {
     let dir = tempdir();
     let prefix = dir.path().join("camp");
@@ -339,6 +341,7 @@ fn a_three_fixture_campaign_beats_the_best_single_fixture_and_calibrate_confirms
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn the_report_is_golden_and_the_same_on_any_thread_count_and_draws_in_a_browser() {
     let dir = tempdir();
     let run = |threads: &str| {
@@ -387,6 +390,7 @@ fn the_report_is_golden_and_the_same_on_any_thread_count_and_draws_in_a_browser(
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn a_urdf_robot_places_and_names_its_obstacles() {
     // The KR 120's convex hulls, a table across part of the region: positions over the table
     // have no room for the stand (named), the others are scored.
@@ -433,6 +437,7 @@ fn a_urdf_robot_places_and_names_its_obstacles() {
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn bad_input_exits_2_with_one_line_and_writes_nothing() {
     let dir = tempdir();
     let json = dir.path().join("r.json");

@@ -189,6 +189,7 @@ pub fn assert_page_draws(page: &Path, name: &str, figures: &[&str]) {
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn compile_report_draws_in_a_browser() {
     let dir = tempdir();
     let page = dir.path().join("nj130.html");
@@ -224,6 +225,7 @@ fn compile_report_draws_in_a_browser() {
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn a_figure_missing_its_series_fails_the_check() {
     // The checker must be able to fail: a page whose figure claims one series more than drawn.
     let dir = tempdir();

@@ -53,6 +53,7 @@ fn compile_and_verify(robot: &Path, cell: &Path, fast: &[&str]) -> String {
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn every_shipped_cell_compiles_to_a_program_that_verifies() {
     let text = compile_and_verify(&nj130_dh(), &nj130_cell(), &["--step", "15"]);
     assert!(text.contains("safety margin: 10.0 mm; joint margin: 1.0 deg)"));
@@ -289,6 +290,7 @@ fn hand_made_unsafe_programs_fail_verify_naming_the_violation() {
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn a_move_that_leaves_the_shell_gets_support_poses_and_verifies() {
     let s = nj130_setup();
     let text = compile_and_verify(&nj130_dh(), &nj130_cell(), &["--step", "15"]);
@@ -327,6 +329,7 @@ fn a_move_that_leaves_the_shell_gets_support_poses_and_verifies() {
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn a_urdf_without_joint_speeds_asks_for_them_or_takes_them_from_the_cell() {
     let dir = tempdir();
     let text = std::fs::read_to_string(shared_robot("kuka_kr120_r2500pro")).unwrap();
@@ -396,6 +399,7 @@ fn regex_free_strip_velocity(text: &str) -> String {
 }
 
 #[test]
+#[ignore = "slow tier: `make test` runs it"]
 fn random_cells_verify_clean_or_fail_with_a_clear_reason() {
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(2026);
     let robots: Vec<(PathBuf, f64)> = std::iter::once((nj130_dh(), 1.9))

@@ -40,19 +40,23 @@
 //! The fit starts at the given values and takes only descending steps, so the calibrated model
 //! never explains the recorded data worse than the nominal one.
 
+pub mod delivered;
+mod parts;
 pub mod plot;
 pub mod predict;
+mod steps;
+mod uncertainty;
 
-use crate::diagnose::fit::{self, accumulate, model_cols, score, structural, Known};
+pub use steps::determined_columns;
+
+use crate::diagnose::fit::{self, Known};
 use crate::diagnose::{
-    self, effects_report, geometry_report, noise_variance, start, Basis, DiagnoseOptions,
-    EffectReport, Estimate, Fitted, Param, Problem, Run,
+    effects_report, geometry_report, EffectReport, Estimate, Param, Problem, Run,
 };
-use crate::model::{MeasurementModel, Params, Status, MAP, N_PARAMS};
+use crate::model::{MeasurementModel, Params, N_PARAMS};
 use crate::robot::Robot;
 use crate::twin::effects::Effect;
 use crate::units::{fmt_fixed, DEG, MM};
-use nalgebra::{DMatrix, Vector3};
 use serde::Serialize;
 
 /// Which effects the calibration fits together with the geometry.
@@ -108,6 +112,9 @@ pub struct CalibrateOptions {
     pub kappa: f64,
     /// Steps (a moved fixture, a changed length zero) split off at most, per run.
     pub max_steps: usize,
+    /// Write the adopted effects into the robot file (else the geometry only, and the
+    /// prediction includes what the effects left out do over the joint space).
+    pub write_effects: bool,
     /// Random joint poses of the workspace prediction, and their seed.
     pub workspace_poses: usize,
     pub seed: u64,
@@ -148,6 +155,7 @@ impl Default for CalibrateOptions {
             prior_setup: DEFAULT_PRIOR_SETUP_MM * MM,
             kappa: DEFAULT_KAPPA,
             max_steps: 12,
+            write_effects: true,
             workspace_poses: WORKSPACE_POSES,
             seed: 1,
         }
@@ -192,8 +200,9 @@ pub struct Undetermined {
     pub why: String,
 }
 
-/// Predicted 1σ MAP position uncertainty after rigid registration (µm): combined, and its two
-/// components.
+/// Predicted 1σ MAP position uncertainty after rigid registration (µm) of the robot the written
+/// files deliver: combined, and its components. With every effect in the file it is the
+/// calibrated model's own; an effect left out adds what it does over the joint space.
 #[derive(Clone, Copy, Debug, Serialize)]
 pub struct Predicted {
     /// RMS over the recorded poses.
@@ -221,6 +230,9 @@ pub struct Predicted {
     /// error; only blocks whose complement determines the fit count, and up to 200 readings
     /// they are single readings).
     pub model_error_factor: f64,
+    /// The calibrated model's own workspace RMS (µm), every adopted effect applied: the figure
+    /// above when every effect is delivered.
+    pub model_workspace_rms: f64,
 }
 
 #[derive(Clone, Copy, Debug, Serialize)]
@@ -347,6 +359,33 @@ pub struct Report {
     pub outliers: Vec<OutlierReport>,
     pub candidates: Vec<CandidateReport>,
     pub validation: Validation,
+    /// Each adopted effect's size over the joint space, whether the written files carry it,
+    /// and the prediction without it.
+    pub effect_sizes: Vec<delivered::EffectSize>,
+    /// What the written robot files carry: `geometry and effects` or `geometry only`, and
+    /// the effects they leave out (with why).
+    pub delivered: Delivered,
+}
+
+/// What the written files deliver.
+#[derive(Clone, Debug, Serialize)]
+pub struct Delivered {
+    pub content: &'static str,
+    pub not_delivered: Vec<String>,
+    /// What a thermal drift in the file is referred to.
+    pub thermal_reference: String,
+    /// Joint zeros the file holds differently from `params`: a cyclic error's harmonics are
+    /// fitted about their mean over the joint's measured range and written about zero (their
+    /// mean over a turn), so the file's θ holds that constant (deg; the same robot).
+    pub zero_shifts: Vec<ZeroShift>,
+}
+
+/// A joint zero the file holds with a cyclic error's constant part.
+#[derive(Clone, Debug, Serialize)]
+pub struct ZeroShift {
+    pub param: String,
+    /// The file's θ less the fit's (deg).
+    pub shift_deg: f64,
 }
 
 /// A calibration: the report, the calibrated estimate and what the plots need.
@@ -364,13 +403,16 @@ pub struct Calibration {
     pub residual: Vec<f64>,
     /// Per-pose predicted position uncertainty over the workspace (µm), for plots.
     pub workspace_std_um: Vec<f64>,
+    /// The model the robot file holds: the physical geometry and the effects.
+    pub file: delivered::FileModel,
     pub summary: String,
 }
 
 impl Calibration {
-    /// The calibrated parameters (run 1's fixture).
+    /// The calibrated parameters (run 1's fixture) as the robot file holds them: the physical
+    /// geometry (a cyclic error's mean over a turn is zero, its constant part in θ).
     pub fn params(&self) -> Params {
-        self.estimate.params(0)
+        self.file.params
     }
 }
 
@@ -406,191 +448,6 @@ fn prior(opts: &CalibrateOptions, q: Param) -> f64 {
     }
 }
 
-/// Step 4: of the free parameters of a converged fit, the ones the data determine, and the
-/// others with the standard uncertainty they would have (SI).
-fn determine(
-    fitted: &Fitted,
-    sigma: f64,
-    opts: &CalibrateOptions,
-) -> (Vec<Param>, Vec<(Param, f64)>) {
-    let free = &fitted.free;
-    let g = free.len();
-    let c = fitted.coefficients();
-    let n = &fitted.normal;
-    // The geometry's information once the effects' coefficients are eliminated.
-    let mut s = n.view((0, 0), (g, g)).into_owned();
-    if c > g {
-        let nge = n.view((0, g), (g, c - g)).into_owned();
-        let nee = n.view((g, g), (c - g, c - g)).into_owned();
-        s -= &nge * fit::inverse(&nee) * nge.transpose();
-    }
-    let scale: Vec<f64> = free.iter().map(|&q| prior(opts, q)).collect();
-    let ss = DMatrix::from_fn(g, g, |a, b| s[(a, b)] * scale[a] * scale[b]);
-    let (chosen, weak) = determined_columns(&ss, sigma, opts.kappa);
-    (
-        chosen.into_iter().map(|k| free[k]).collect(),
-        weak.into_iter()
-            .map(|(k, ratio)| (free[k], ratio * scale[k]))
-            .collect(),
-    )
-}
-
-/// Step 3 on a normal matrix `ss` (g × g) whose columns are scaled by their parameters' prior
-/// uncertainty, for a noise σ per reading: the columns the data determine (ascending), and the
-/// others with the standard uncertainty each would have, in units of its prior (in the order
-/// they were ruled out). Pivoted Cholesky takes the best-seen column next while its conditional
-/// uncertainty stays below prior/κ; then any column whose marginal uncertainty exceeds prior/κ
-/// is dropped, worst first. Shared by [`run`] (on fitted data) and
-/// [`predict::expected`] (on the information a planned campaign would collect).
-pub fn determined_columns(
-    ss: &DMatrix<f64>,
-    sigma: f64,
-    kappa: f64,
-) -> (Vec<usize>, Vec<(usize, f64)>) {
-    let g = ss.nrows();
-    // Pivoted Cholesky: the best-seen parameter next, while it is seen well enough.
-    let floor = (kappa * sigma).powi(2);
-    let mut d: Vec<f64> = (0..g).map(|k| ss[(k, k)]).collect();
-    let mut chosen: Vec<usize> = Vec::new();
-    let mut l = DMatrix::<f64>::zeros(g, g);
-    loop {
-        let best = (0..g)
-            .filter(|k| !chosen.contains(k))
-            .max_by(|&a, &b| d[a].total_cmp(&d[b]).then(b.cmp(&a)));
-        let Some(k) = best else { break };
-        if !(d[k] >= floor && d[k] > 0.0) {
-            break;
-        }
-        let col = chosen.len();
-        let piv = d[k].sqrt();
-        for i in 0..g {
-            let mut v = ss[(i, k)];
-            for j in 0..col {
-                v -= l[(i, j)] * l[(k, j)];
-            }
-            l[(i, col)] = v / piv;
-        }
-        for i in 0..g {
-            d[i] -= l[(i, col)] * l[(i, col)];
-        }
-        chosen.push(k);
-    }
-    let mut weak: Vec<(usize, f64)> = (0..g)
-        .filter(|k| !chosen.contains(k))
-        .map(|k| (k, sigma / d[k].max(1e-300).sqrt()))
-        .collect();
-    // Every kept parameter's marginal uncertainty within prior / κ, worst dropped first.
-    chosen.sort_unstable();
-    loop {
-        if chosen.is_empty() {
-            break;
-        }
-        let sub = DMatrix::from_fn(chosen.len(), chosen.len(), |a, b| {
-            ss[(chosen[a], chosen[b])]
-        });
-        let cov = fit::inverse(&sub);
-        let (worst, ratio) = (0..chosen.len())
-            .map(|a| (a, cov[(a, a)].max(0.0).sqrt() * sigma))
-            .max_by(|x, y| x.1.total_cmp(&y.1).then(y.0.cmp(&x.0)))
-            .unwrap_or((0, 0.0));
-        if ratio <= 1.0 / kappa {
-            break;
-        }
-        let k = chosen.remove(worst);
-        weak.push((k, ratio));
-    }
-    (chosen, weak)
-}
-
-/// The form an effect named in `--effects` takes: cyclic errors with harmonic orders 1-3, a
-/// thermal drift linear in a logged temperature or a first-order lag, a servo delay.
-fn list_basis(e: Effect, problem: &Problem) -> Basis {
-    match e {
-        Effect::CyclicError(_) => Basis::Harmonics(0b111),
-        Effect::ThermalDrift if problem.has_temperature() => Basis::Temperature,
-        Effect::ThermalDrift => Basis::Lag,
-        _ => Basis::Standard,
-    }
-}
-
-/// Robust weights: rows whose residual leaves the median of its neighbours (7 rows, in the
-/// order taken) by more than [`OUTLIER_SIGMAS`] robust standard deviations are dropped (weight
-/// 0: a redescending loss), and in a campaign each run's rows are scaled by its own noise so
-/// that a noisy run does not outweigh a quiet one. Returns true when the set of dropped rows
-/// changed.
-fn reweight(problem: &mut Problem, residual: &[f64]) -> bool {
-    let n = problem.rows();
-    let mut dropped = vec![false; n];
-    let mut noise = vec![0.0; problem.runs()];
-    let median = |v: &mut Vec<f64>| -> f64 {
-        if v.is_empty() {
-            return 0.0;
-        }
-        v.sort_by(f64::total_cmp);
-        v[v.len() / 2]
-    };
-    for (r, range) in problem.ranges.iter().enumerate() {
-        let idx: Vec<usize> = range
-            .clone()
-            .filter(|&k| problem.base_weight[k] > 0.0)
-            .collect();
-        if idx.len() < 8 {
-            continue;
-        }
-        let e: Vec<f64> = (0..idx.len())
-            .map(|i| {
-                let (lo, hi) = (i.saturating_sub(3), (i + 4).min(idx.len()));
-                let mut w: Vec<f64> = idx[lo..hi].iter().map(|&k| residual[k]).collect();
-                residual[idx[i]] - median(&mut w)
-            })
-            .collect();
-        let mut a: Vec<f64> = e.iter().map(|v| v.abs()).collect();
-        let sigma = 1.4826 * median(&mut a);
-        noise[r] = sigma;
-        if sigma <= 0.0 {
-            continue;
-        }
-        for (i, &k) in idx.iter().enumerate() {
-            dropped[k] = e[i].abs() > OUTLIER_SIGMAS * sigma;
-        }
-    }
-    // One yardstick for the runs: the median of their noise levels.
-    let mut levels: Vec<f64> = noise.iter().copied().filter(|v| *v > 0.0).collect();
-    let reference = median(&mut levels);
-    let mut changed = false;
-    for (r, range) in problem.ranges.iter().enumerate() {
-        let scale = if problem.runs() > 1 && noise[r] > 0.0 && reference > 0.0 {
-            (reference / noise[r]).clamp(0.01, 100.0)
-        } else {
-            1.0
-        };
-        for k in range.clone() {
-            let was = problem.weight[k] <= 0.0 && problem.base_weight[k] > 0.0;
-            changed |= was != dropped[k];
-            problem.weight[k] = if dropped[k] {
-                0.0
-            } else {
-                problem.base_weight[k] * scale
-            };
-        }
-    }
-    changed
-}
-
-/// The value a parameter the data do not determine is held at: nominal (the given value) for
-/// the robot and a run's own set-up; a segment's fixture or zero keeps its run's first one.
-fn held_value(problem: &Problem, nominal: &Estimate, est: &Estimate, q: Param) -> f64 {
-    match q {
-        Param::Fixture { group, axis } if !problem.fix_groups[group].given => {
-            est.fixtures[problem.fix_groups[group].run][axis]
-        }
-        Param::Offset { group } if !problem.off_groups[group].given => {
-            est.offsets[problem.off_groups[group].run]
-        }
-        _ => nominal.get(q),
-    }
-}
-
 /// Calibrates the robot of `model` on a campaign of runs (`labels` name them in the report).
 pub fn run(
     model: &MeasurementModel,
@@ -599,6 +456,76 @@ pub fn run(
     labels: &[String],
     opts: &CalibrateOptions,
 ) -> Result<Calibration, CalibrateError> {
+    check_rows(runs, labels)?;
+    let given_offset = match opts.length_offset {
+        LengthOffset::Known(v) => v,
+        LengthOffset::Free => 0.0,
+    };
+    let mut problem = Problem::new(model, runs)
+        .with_masses(&robot.masses)
+        .with_offset(given_offset);
+    check_effects(&problem, opts)?;
+    let known = Known {
+        fixture: opts.fixture_known,
+        map: opts.tool_known,
+        offset: matches!(opts.length_offset, LengthOffset::Known(_)),
+    };
+    let fitted = steps::fit(&mut problem, robot, &known, opts);
+    let held_out = steps::held_out(&problem, &fitted);
+    let u = uncertainty::estimate(model, robot, &problem, &known, &fitted, &held_out, opts);
+    Ok(assemble(
+        model, robot, &problem, &known, fitted, &held_out, u, labels, opts,
+    ))
+}
+
+/// The report's joint zeros as the robot file holds them: a joint with a cyclic error has its
+/// harmonics' mean over the measured range moved into its zero (θ_file = θ_fit − Σ aₖ·cₖ, aₖ
+/// the harmonics' means); its standard uncertainty through the covariance of θ and the
+/// harmonics' coefficients.
+fn physical_zeros(
+    problem: &Problem,
+    f: &steps::Fit,
+    cov: &nalgebra::DMatrix<f64>,
+    values: &mut serde_json::Map<String, serde_json::Value>,
+    stds: &mut serde_json::Map<String, serde_json::Value>,
+) {
+    let g = f.free.len();
+    let mut col = g;
+    for t in &f.est.effects {
+        let n = t.coef.len();
+        if let Effect::CyclicError(j) = t.effect {
+            let theta = Param::Shared(crate::model::THETA + j);
+            if let Some(a) = f.free.iter().position(|q| *q == theta) {
+                // θ_file = θ_fit − Σ_k w_k·coef_k.
+                let mut w = vec![(a, 1.0)];
+                let mut shift = 0.0;
+                for (m, h) in t.basis.orders().into_iter().enumerate() {
+                    let (ms, mc) = problem.harmonic_mean(j, h);
+                    w.push((col + 2 * m, -mc));
+                    w.push((col + 2 * m + 1, -ms));
+                    shift += t.coef[2 * m] * mc + t.coef[2 * m + 1] * ms;
+                }
+                let var: f64 = w
+                    .iter()
+                    .flat_map(|&(x, wx)| w.iter().map(move |&(y, wy)| wx * wy * cov[(x, y)]))
+                    .sum();
+                let name = problem.param_name(theta);
+                if let Some(v) = values.get(&name).and_then(|v| v.as_f64()) {
+                    values.insert(name.clone(), round(v - shift / DEG, 6).into());
+                    stds.insert(name, diagnose_sane(var.max(0.0).sqrt() / DEG));
+                }
+            }
+        }
+        col += n;
+    }
+}
+
+fn diagnose_sane(v: f64) -> serde_json::Value {
+    crate::diagnose::sane(crate::diagnose::round_std(v, 6))
+}
+
+/// A campaign too short to calibrate from is refused before any work.
+fn check_rows(runs: &[Run], labels: &[String]) -> Result<(), CalibrateError> {
     if runs.is_empty() {
         return Err(CalibrateError::Data("no run to calibrate from".into()));
     }
@@ -615,156 +542,47 @@ pub fn run(
             )
         }));
     }
-    let given_offset = match opts.length_offset {
-        LengthOffset::Known(v) => v,
-        LengthOffset::Free => 0.0,
-    };
-    let mut problem = Problem::new(model, runs)
-        .with_masses(&robot.masses)
-        .with_offset(given_offset);
+    Ok(())
+}
 
-    if let Effects::List(v) = &opts.effects {
-        for e in v {
-            if *e == Effect::ThermalDrift && !problem.timed() && !problem.has_temperature() {
-                return Err(CalibrateError::Data(
-                    "--effects thermal_drift: a run has no times (the static form, one reading per pose) and no temp_c column: no time-dependent effect can be fitted to it".into(),
-                ));
-            }
-            if *e == Effect::ServoLag && !problem.moving() {
-                return Err(CalibrateError::Data(
-                    "--effects servo_lag: no run was recorded in motion (static readings have no velocities)".into(),
-                ));
-            }
+/// An effect the user listed that the data cannot carry is refused.
+fn check_effects(problem: &Problem, opts: &CalibrateOptions) -> Result<(), CalibrateError> {
+    let Effects::List(v) = &opts.effects else {
+        return Ok(());
+    };
+    for e in v {
+        if *e == Effect::ThermalDrift && !problem.timed() && !problem.has_temperature() {
+            return Err(CalibrateError::Data(
+                "--effects thermal_drift: a run has no times (the static form, one reading per pose) and no temp_c column: no time-dependent effect can be fitted to it".into(),
+            ));
+        }
+        if *e == Effect::ServoLag && !problem.moving() {
+            return Err(CalibrateError::Data(
+                "--effects servo_lag: no run was recorded in motion (static readings have no velocities)".into(),
+            ));
         }
     }
-    let known = Known {
-        fixture: opts.fixture_known,
-        map: opts.tool_known,
-        offset: matches!(opts.length_offset, LengthOffset::Known(_)),
-    };
-    let nominal = Estimate::nominal(&problem);
-    let nruns = problem.runs();
-    let mut warnings = Vec::new();
+    Ok(())
+}
 
-    // Step 1: the set-up from a start that needs none, the robot held nominal.
-    let mut est = nominal.clone();
-    let (_, at_given) = structural(&problem, &known, &est);
-    let setup: Vec<Param> = at_given.iter().copied().filter(Param::is_setup).collect();
-    start::setup(&problem, &mut est, &setup);
-    // Which parameters the poses separate, judged where the set-up really is.
-    let (_, structural_free) = structural(&problem, &known, &est);
-
-    // Steps 2-3: the robust geometric fit, then effects and steps on held-out data.
-    let mut free = structural_free.clone();
-    let mut fitted = fit::refit(&problem, &mut est, &free);
-    for _ in 0..3 {
-        if !reweight(&mut problem, &fitted.residual) {
-            break;
-        }
-        fitted = fit::refit(&problem, &mut est, &free);
+/// The report and the calibration from the fit, its validation and its uncertainty.
+#[allow(clippy::too_many_arguments)]
+fn assemble(
+    model: &MeasurementModel,
+    robot: &Robot,
+    problem: &Problem,
+    known: &Known,
+    f: steps::Fit,
+    held_out: &steps::HeldOutScore,
+    u: uncertainty::Uncertainty,
+    labels: &[String],
+    opts: &CalibrateOptions,
+) -> Calibration {
+    let g = f.free.len();
+    let (mut values, mut stds) = geometry_report(problem, &f.est, &f.free, &u.var[..g]);
+    if opts.write_effects {
+        physical_zeros(problem, &f, &u.cov, &mut values, &mut stds);
     }
-    let (effects_mode, max_effects) = match &opts.effects {
-        Effects::Auto => ("auto", 3),
-        Effects::None => ("none", 0),
-        Effects::List(v) => {
-            for e in v {
-                est.add_effect(*e, list_basis(*e, &problem), 0.5 * problem.span());
-            }
-            fit::refit(&problem, &mut est, &free);
-            ("list", 0)
-        }
-    };
-    let sel_opts = DiagnoseOptions {
-        folds: FOLDS,
-        max_effects,
-        masses: robot.masses.clone(),
-        max_steps: opts.max_steps * nruns,
-        min_explained: 0.3,
-    };
-    let sel = diagnose::select(&mut problem, &free, est, &sel_opts);
-    if max_effects > 0 && sel.diagnosis.report.unexplained {
-        warnings.push(
-            "structure remains that no effect of the library explains; the geometry may absorb part of it (see `edbbgen diagnose`)".to_string(),
-        );
-    }
-    let mut est = sel.estimate.clone();
-    free = sel.free.clone();
-    // The segments opened at steps start from their run's given set-up.
-    let nominal = Estimate::nominal(&problem);
-    fitted = sel.fitted;
-    if reweight(&mut problem, &fitted.residual) {
-        fitted = fit::refit(&problem, &mut est, &free);
-    }
-
-    // Step 4: only what the data determine moves.
-    let mut weak: Vec<(Param, f64)> = Vec::new();
-    let mut noise;
-    loop {
-        noise = noise_variance(&fitted, &problem.weight);
-        let sigma_eff = noise.0 * noise.2.sqrt();
-        let (kept, dropped) = determine(&fitted, sigma_eff, opts);
-        if dropped.is_empty() {
-            break;
-        }
-        for (q, _) in &dropped {
-            let v = held_value(&problem, &nominal, &est, *q);
-            est.set(*q, v);
-        }
-        weak.extend(dropped);
-        free = kept;
-        fitted = fit::refit(&problem, &mut est, &free);
-    }
-    let (sigma, rho, inflate) = noise;
-    let kept_rows = problem.kept().max(1);
-
-    // Step 5: held out, block by block: the calibrated model against the nominal robot with
-    // the same set-up fitted.
-    let folds = FOLDS.min(kept_rows / 8).max(2);
-    let cols = model_cols(&est, &free);
-    let all: Vec<usize> = (0..cols.len()).collect();
-    let st = accumulate(&problem, &est, &cols, folds);
-    let cv_cal = score(&st, &all).3;
-    let heldout_cal = (cv_cal / kept_rows as f64).sqrt();
-    let heldout_nom = {
-        let mut e = est.clone();
-        e.p[crate::model::ALPHA..MAP].copy_from_slice(&nominal.p[crate::model::ALPHA..MAP]);
-        e.effects.clear();
-        let f: Vec<Param> = free.iter().copied().filter(Param::is_setup).collect();
-        fit::refit(&problem, &mut e, &f);
-        let c = model_cols(&e, &f);
-        let s = accumulate(&problem, &e, &c, folds);
-        let sel: Vec<usize> = (0..c.len()).collect();
-        (score(&s, &sel).3 / kept_rows as f64).sqrt()
-    };
-
-    // Step 6: uncertainty. Type A from the residual, with what the held-out residual says
-    // about model error: its mean square over what the noise alone gives held out (the
-    // noise plus the variance of predicting a block from the others, which on a few static
-    // readings is no model error).
-    // Only folds whose complement determines the whole fit count: on a few dozen readings
-    // with nearly as many unknowns (a stop-and-measure run's plateau means) blocks of an
-    // eighth leave directions undetermined, so those are held out one reading at a time.
-    let model_factor = {
-        let loo;
-        let st_m = if kept_rows <= LOO_ROWS {
-            loo = accumulate(&problem, &est, &cols, problem.rows());
-            &loo
-        } else {
-            &st
-        };
-        match fit::heldout_determined(st_m, &all) {
-            Some((cv, noise, _)) if sigma > 0.0 && noise > 0.0 => {
-                (cv / (sigma * sigma * noise)).max(1.0)
-            }
-            _ => 1.0,
-        }
-    };
-    let factor = inflate.max(model_factor);
-    let sigma_eff = sigma * factor.sqrt();
-    let cov = fit::inverse(&fitted.normal) * (sigma_eff * sigma_eff);
-    let g = free.len();
-    let var: Vec<f64> = (0..cov.nrows()).map(|k| cov[(k, k)]).collect();
-    let (values, stds) = geometry_report(&problem, &est, &free, &var[..g]);
     let mut params = serde_json::Map::new();
     for (name, v) in &values {
         let mut e = serde_json::Map::new();
@@ -772,439 +590,47 @@ pub fn run(
         e.insert("std".into(), stds[name].clone());
         params.insert(name.clone(), e.into());
     }
-    let effect_reports = effects_report(&est, &var[g..]);
-    let calibrated = est.params(0);
-    let region: Vec<[f64; 6]> = {
-        let rows: Vec<usize> = (0..problem.rows())
-            .filter(|&k| problem.weight[k] > 0.0)
-            .collect();
-        let stride = rows.len().div_ceil(REGION_POSES).max(1);
-        rows.iter()
-            .step_by(stride)
-            .map(|&k| problem.m.q[k])
-            .collect()
-    };
-    let space = predict::workspace(robot, opts.workspace_poses, opts.seed);
-    let shared = shared_columns(&free);
-    let idx: Vec<usize> = shared.iter().map(|s| s.1).collect();
-    let cov_a = DMatrix::from_fn(shared.len(), shared.len(), |a, b| {
-        cov[(shared[a].0, shared[b].0)]
-    });
-    let w_a = predict::selection(&idx);
-    // Type B: every parameter held at nominal (not by assumption) keeps its prior; through
-    // the fit the determined ones absorb K = N_aa⁻¹ N_ah of it, so the MAP moves by
-    // (e_h − Σ_d e_d K_dh) per unit of held deviation.
-    let (status, _) = structural(&problem, &known, &est);
-    let held_params: Vec<Param> = status
-        .iter()
-        .filter(|(q, st)| !free.contains(q) && *st != Status::Known)
-        .map(|(q, _)| *q)
-        .collect();
-    let (w_b, cov_b) = held_map(&problem, &est, &free, &held_params, opts);
-    let a_region = predict::position_std(model, &calibrated, &region, &w_a, &cov_a);
-    let a_space = predict::position_std(model, &calibrated, &space, &w_a, &cov_a);
-    let b_region = predict::position_std(model, &calibrated, &region, &w_b, &cov_b);
-    let b_space = predict::position_std(model, &calibrated, &space, &w_b, &cov_b);
-    let [m_region, m_space] =
-        effect_model_spread(&problem, &est, &fitted, sigma_eff, &[&region, &space]);
-    let combine = |a: &[f64], b: &[f64], m: &[f64]| -> Vec<f64> {
-        a.iter()
-            .zip(b)
-            .zip(m)
-            .map(|((x, y), z)| x.hypot(*y).hypot(*z) * 1e6)
-            .collect()
-    };
-    let um = |v: &[f64]| -> Vec<f64> { v.iter().map(|x| x * 1e6).collect() };
-    let region_std = predict::spread(&combine(&a_region, &b_region, &m_region));
-    let space_std = combine(&a_space, &b_space, &m_space);
-    let space_spread = predict::spread(&space_std);
-    // The nominal robot as the priors see it: every robot parameter off by its prior.
-    let nominal_prior_rms = {
-        let all: Vec<usize> = (crate::model::ALPHA..N_PARAMS).collect();
-        let cov = DMatrix::from_fn(all.len(), all.len(), |a, b| {
-            if a == b {
-                prior(opts, Param::Shared(all[a])).powi(2)
-            } else {
-                0.0
-            }
-        });
-        predict::spread(&predict::position_std(
-            model,
-            &model.nominal,
-            &space,
-            &predict::selection(&all),
-            &cov,
-        ))
-        .rms
-    };
-    let predicted = Predicted {
-        measured_region_rms: round(region_std.rms, 3),
-        workspace_rms: round(space_spread.rms, 3),
-        workspace_p95: round(space_spread.p95, 3),
-        from_noise: Component {
-            measured_region_rms: round(predict::spread(&um(&a_region)).rms, 3),
-            workspace_rms: round(predict::spread(&um(&a_space)).rms, 3),
-        },
-        from_held: Component {
-            measured_region_rms: round(predict::spread(&um(&b_region)).rms, 3),
-            workspace_rms: round(predict::spread(&um(&b_space)).rms, 3),
-        },
-        from_effect_model: Component {
-            measured_region_rms: round(predict::spread(&um(&m_region)).rms, 3),
-            workspace_rms: round(predict::spread(&um(&m_space)).rms, 3),
-        },
-        nominal_workspace_rms: round(nominal_prior_rms * 1e6, 3),
-        model_error_factor: round(factor, 3),
-    };
-
-    // An effect the data cannot tell from the geometry makes the geometry uncertain: say which.
-    if let Some(w) = confounding(&fitted, &free, &est, sigma_eff, model, &calibrated, &space) {
-        warnings.push(w);
-    }
-
-    // Residuals, per run.
-    let residual_nominal = problem.residual(&nominal);
-    let residual = fitted.residual.clone();
-    let live: Vec<f64> = residual
-        .iter()
-        .zip(&problem.weight)
-        .filter(|(_, w)| **w > 0.0)
-        .map(|(r, _)| *r)
-        .collect();
-    let noise_hf = fit::noise_estimate(&live);
-    let rms_after = fit::rms(&live);
-    // Structure above the noise: the residual clearly larger than its high-frequency part, or
-    // a lag-1 correlation white noise of this length would not show (5 standard errors).
-    let rho_limit = (5.0 / (kept_rows as f64).sqrt()).max(0.1);
-    let residual_structure = rms_after > 1.25 * noise_hf || rho > rho_limit;
-    if residual_structure {
-        let hint = match opts.effects {
-            Effects::None => "; fit the effects with --effects auto",
-            _ => "",
+    let effect_reports = effects_report(&f.est, &u.var[g..]);
+    let mut file = delivered::file_model(problem, &f.est, &u.var[g..]);
+    let (effect_sizes, predicted, space_std, delivered) =
+        parts::delivered(model, robot, problem, &f, &u, &file, opts);
+    if !opts.write_effects {
+        // The geometry alone: with a cyclic error's constant over the measured range in the
+        // joint zero, the best a table without the harmonics can hold there.
+        file = delivered::FileModel {
+            params: f.est.params(0),
+            effects: Default::default(),
+            reference: file.reference,
         };
-        warnings.push(format!(
-            "structure above the noise is left in the residual (RMS {} um against {} um of bar noise, lag-1 autocorrelation {}): the model misses an effect, and the geometry absorbs part of it{hint}",
-            fmt_fixed(rms_after * 1e6, 3),
-            fmt_fixed(noise_hf * 1e6, 3),
-            fmt_fixed(rho, 2)
-        ));
     }
-    // A uniform expansion is a scale the geometry absorbs: a thermal drift the model leaves
-    // out need not show in the residual. The temperature log says it is there all the same.
-    let thermal_fitted = est.effects.iter().any(|t| t.effect == Effect::ThermalDrift);
-    if let (false, Some(dt)) = (thermal_fitted, problem.temperature_change()) {
-        let reach = region
-            .iter()
-            .map(|q| model.map_position(&calibrated, q).norm())
-            .fold(0.0f64, f64::max);
-        let growth = STEEL_EXPANSION * dt * reach;
-        if growth > noise_hf {
-            let hint = match opts.effects {
-                Effects::Auto => "",
-                _ => "; fit the effects with --effects auto",
-            };
-            warnings.push(format!(
-                "the logged temperature changed by {} K during the runs: about {} um of thermal growth at the MAP's {} mm reach (steel, {} per K), which the model leaves to the geometry{hint}",
-                fmt_fixed(dt, 2),
-                fmt_fixed(growth * 1e6, 1),
-                fmt_fixed(reach * 1e3, 0),
-                STEEL_EXPANSION
-            ));
-        }
-    }
-    if opts.fixture_known {
-        if let Some(w) = fixture_check(&problem, &est, &free) {
-            warnings.push(w);
-        }
-    }
-    // A parameter that moved by several prior sigmas: the prior (or the given value) was off.
-    // A segment's own fixture or zero is a step (reported as one); a free length zero has no
-    // given value.
-    for q in &free {
-        let flagged = match *q {
-            Param::Fixture { group, .. } => problem.fix_groups[group].given,
-            Param::Offset { group } => problem.off_groups[group].given && known.offset,
-            Param::Shared(_) => true,
-        };
-        let dev = est.get(*q) - nominal.get(*q);
-        let p = prior(opts, *q);
-        if flagged && dev.abs() > FLAG_SIGMAS * p {
-            let (u, unit) = if q.is_angle() {
-                (DEG, "deg")
-            } else {
-                (MM, "mm")
-            };
-            let check = match q {
-                Param::Shared(i) if crate::model::is_map(*i) => "check --tool",
-                Param::Fixture { .. } => "check --fixture",
-                Param::Offset { .. } => "check the bar's zero (--length-offset)",
-                _ => "check the robot file, or widen --prior if such deviations are expected",
-            };
-            warnings.push(format!(
-                "{} moved by {} {unit} from its {} value, more than {} prior sigmas ({} {unit}): {check}",
-                problem.param_name(*q),
-                fmt_fixed(dev / u, 4),
-                if q.is_setup() { "given" } else { "nominal" },
-                fmt_fixed(FLAG_SIGMAS, 0),
-                fmt_fixed(p / u, 4)
-            ));
-        }
-    }
-
-    let std_of = |q: Param| -> Option<f64> {
-        free.iter()
-            .position(|x| *x == q)
-            .map(|a| round(var[a].max(0.0).sqrt() / MM, 6))
-    };
-    let mut run_reports = Vec::with_capacity(nruns);
-    for (r, range) in problem.ranges.iter().enumerate() {
-        let fixture_fitted = free
-            .iter()
-            .any(|q| matches!(q, Param::Fixture { group, .. } if *group == r));
-        let kept_r: Vec<usize> = range.clone().filter(|&k| problem.weight[k] > 0.0).collect();
-        let rms_kept = |v: &[f64]| -> f64 {
-            (kept_r.iter().map(|&k| v[k] * v[k]).sum::<f64>() / kept_r.len().max(1) as f64).sqrt()
-        };
-        let fixture_mm: [f64; 3] = problem.fixtures[r].map(|v| round(v / MM, 6)).into();
-        run_reports.push(RunReport {
-            measured: labels.get(r).cloned().unwrap_or_default(),
-            fixture_mm,
-            rows: range.len(),
-            rms_before_um: round(rms_kept(&residual_nominal) * 1e6, 3),
-            rms_after_um: round(rms_kept(&residual) * 1e6, 3),
-            fixture_fitted_mm: fixture_fitted
-                .then(|| est.fixtures[r].map(|v| round(v / MM, 6)).into()),
-            fixture_std_mm: fixture_fitted
-                .then(|| [0, 1, 2].map(|axis| std_of(Param::Fixture { group: r, axis }))),
-            fixture_moved_mm: fixture_fitted
-                .then(|| round((est.fixtures[r] - problem.fixtures[r]).norm() / MM, 6)),
-            length_offset_mm: round(est.offsets[r] / MM, 6),
-            length_offset_std_mm: std_of(Param::Offset { group: r }),
-            form: problem.forms[r].name(),
-            rows_used: kept_r.len(),
-        });
-    }
-
-    let mut undetermined = Vec::new();
-    let mut held = Vec::new();
-    for (q, st) in &status {
-        if free.contains(q) {
-            continue;
-        }
-        let name = problem.param_name(*q);
-        let unit = |q: &Param| {
-            if q.is_angle() {
-                (DEG, "deg")
-            } else {
-                (MM, "mm")
-            }
-        };
-        let why = match st {
-            Status::Known => {
-                held.push(name);
-                continue;
-            }
-            Status::Dependent { on } => format!("dependent on {}", on.join(", ")),
-            Status::Negligible => {
-                "no influence on the bar length at the recorded poses".to_string()
-            }
-            Status::Identifiable => match weak.iter().find(|(w, _)| w == q) {
-                Some((_, sd)) if *sd < 1e3 * prior(opts, *q) => {
-                    let (u, name) = unit(q);
-                    format!(
-                        "not determined by these data: its standard uncertainty would be {} {name}, more than the prior {} {name} / {}",
-                        fmt_fixed(sd / u, 4),
-                        fmt_fixed(prior(opts, *q) / u, 4),
-                        fmt_fixed(opts.kappa, 1)
-                    )
-                }
-                Some(_) => {
-                    "not determined by these data: they do not constrain it (its uncertainty would exceed a thousand priors)".to_string()
-                }
-                None => "not determined by these data".to_string(),
-            },
-        };
-        undetermined.push(Undetermined { param: name, why });
-    }
-
-    // The segments of every split run.
-    let mut segments = Vec::new();
-    for (r, range) in problem.ranges.iter().enumerate() {
-        let mut cuts: Vec<usize> = problem
-            .fix_groups
-            .iter()
-            .chain(&problem.off_groups)
-            .filter(|g| g.run == r && !g.given && !g.rows.is_empty())
-            .map(|g| g.rows.start)
-            .collect();
-        if cuts.is_empty() {
-            continue;
-        }
-        cuts.push(range.start);
-        cuts.push(range.end);
-        cuts.sort_unstable();
-        cuts.dedup();
-        let timed = problem.forms[r].timed();
-        for w in cuts.windows(2) {
-            let (a, b) = (w[0], w[1]);
-            if a >= b {
-                continue;
-            }
-            let starts =
-                |groups: &[fit::Group]| groups.iter().any(|g| g.rows.start == a && !g.given);
-            let cause = match (
-                a == range.start,
-                starts(&problem.fix_groups),
-                starts(&problem.off_groups),
-            ) {
-                (true, _, _) => "run start",
-                (false, true, true) => "fixture moved and length zero changed",
-                (false, true, false) => "fixture moved",
-                _ => "length zero changed",
-            };
-            segments.push(SegmentReport {
-                run: r + 1,
-                from_row: a - range.start + 1,
-                to_row: b - range.start,
-                t_from_s: timed.then(|| round(problem.m.t[a], 3)),
-                t_to_s: timed.then(|| round(problem.m.t[b - 1], 3)),
-                cause,
-                fixture_fitted_mm: est.fixtures[problem.fixture_group_of(a)]
-                    .map(|v| round(v / MM, 6))
-                    .into(),
-                length_offset_mm: round(est.offsets[problem.offset_group_of(a)] / MM, 6),
-            });
-        }
-    }
-    let outliers: Vec<OutlierReport> = (0..problem.rows())
-        .filter(|&k| problem.weight[k] <= 0.0 && problem.base_weight[k] > 0.0)
-        .map(|k| {
-            let r = problem.run_of(k);
-            OutlierReport {
-                run: r + 1,
-                row: k - problem.ranges[r].start + 1,
-                t_s: problem.forms[r].timed().then(|| round(problem.m.t[k], 3)),
-                residual_um: round(residual[k] * 1e6, 3),
-            }
-        })
-        .collect();
-    let mut candidates: Vec<CandidateReport> = sel
-        .candidates
-        .iter()
-        .map(|c| CandidateReport {
-            effect: c.effect.name(),
-            joint: c.effect.joint(),
-            heldout_rms_um: round(c.heldout_rms * 1e6, 3),
-            adopted: c.adopted && est.effects.iter().any(|t| t.effect == c.effect)
-                || c.effect == Effect::Geometric,
-            form: if c.effect == Effect::Geometric {
-                "geometry".into()
-            } else {
-                diagnose::form_name(c.effect, c.basis)
-            },
-        })
-        .collect();
-    if let Effects::List(v) = &opts.effects {
-        for e in v {
-            let b = est
-                .effects
-                .iter()
-                .find(|t| t.effect == *e)
-                .map_or(Basis::Standard, |t| t.basis);
-            candidates.push(CandidateReport {
-                effect: e.name(),
-                joint: e.joint(),
-                heldout_rms_um: round(heldout_cal * 1e6, 3),
-                adopted: true,
-                form: diagnose::form_name(*e, b),
-            });
-        }
-    }
-
-    // The verdict: something of the robot determined, and better than nominal held out.
-    let robot_determined = free.iter().any(|q| !q.is_setup());
-    let (is_calibrated, verdict) = if !robot_determined {
-        let closest = weak
-            .iter()
-            .filter(|(q, _)| !q.is_setup())
-            .min_by(|a, b| (a.1 / prior(opts, a.0)).total_cmp(&(b.1 / prior(opts, b.0))));
-        let detail = match closest {
-            Some((q, sd)) if sd.is_finite() && *sd < 1e3 * prior(opts, *q) => format!(
-                " (the best seen, {}, would have {} prior sigmas of uncertainty)",
-                problem.param_name(*q),
-                fmt_fixed(sd / prior(opts, *q), 2)
-            ),
-            _ => String::new(),
-        };
-        (
-            false,
-            format!(
-                "not calibrated: no parameter of the robot is determined by these data{detail}; measure more poses over a wider range of every joint, or check the set-up (--tool, --fixture, --length-offset)"
-            ),
-        )
-    } else if heldout_cal >= heldout_nom {
-        let effects_hint = match (&opts.effects, residual_structure) {
-            (Effects::Auto, _) | (_, false) => "",
-            _ => ", fit the effects (--effects auto)",
-        };
-        (
-            false,
-            format!(
-                "not calibrated: held out, the calibrated robot predicts the readings no better than the nominal one ({} um against {} um RMS); the data show no deviation the geometry explains: check the set-up (--tool, --fixture, --length-offset){effects_hint} or measure over a wider range",
-                fmt_fixed(heldout_cal * 1e6, 3),
-                fmt_fixed(heldout_nom * 1e6, 3)
-            ),
-        )
-    } else if space_spread.rms >= WRITE_SHARE * nominal_prior_rms * 1e6 {
-        (
-            false,
-            format!(
-                "not calibrated: its predicted position uncertainty over the joint space ({} um RMS, mostly from the parameters these data cannot determine) is not under half of what the priors say of the nominal robot ({} um); measure over a wider range of every joint",
-                fmt_fixed(space_spread.rms, 2),
-                fmt_fixed(nominal_prior_rms * 1e6, 2)
-            ),
-        )
-    } else {
-        (
-            true,
-            format!(
-                "calibrated: held out, the calibrated robot predicts the readings to {} um RMS against {} um for the nominal one",
-                fmt_fixed(heldout_cal * 1e6, 3),
-                fmt_fixed(heldout_nom * 1e6, 3)
-            ),
-        )
-    };
-    let tool_std = [0, 1, 2].map(|a| std_of(Param::Shared(MAP + a)));
-    let map_given = Vector3::new(nominal.p[MAP], nominal.p[MAP + 1], nominal.p[MAP + 2]);
-    let map_fitted = Vector3::new(est.p[MAP], est.p[MAP + 1], est.p[MAP + 2]);
-    let tool = ToolReport {
-        given_mm: map_given.map(|v| round(v / MM, 6)).into(),
-        fitted_mm: map_fitted.map(|v| round(v / MM, 6)).into(),
-        std_mm: tool_std,
-        moved_mm: round((map_fitted - map_given).norm() / MM, 6),
-    };
+    let diag = parts::diagnostics(model, problem, known, &f, &u, opts);
+    let residual_nominal = problem.residual(&f.nominal);
+    let residual = f.fitted.residual.clone();
+    let run_reports = parts::runs(problem, &f, &u.var, labels, &residual_nominal);
+    let (undetermined, held) = parts::undetermined(problem, &f, &u.status, opts);
+    let (is_calibrated, verdict) = parts::verdict(problem, &f, held_out, &u, opts, diag.structure);
+    let nruns = problem.runs();
     let shared_offset = (nruns == 1 || matches!(opts.length_offset, LengthOffset::Known(_)))
-        .then(|| round(est.offsets[0] / MM, 6));
-
+        .then(|| round(f.est.offsets[0] / MM, 6));
     let report = Report {
         schema: "edbbgen.calibrate/1",
         runs: run_reports,
-        determined: free.iter().map(|q| problem.param_name(*q)).collect(),
+        determined: f.free.iter().map(|q| problem.param_name(*q)).collect(),
         undetermined,
         params,
         effects: effect_reports,
-        noise_um: round(noise_hf * 1e6, 3),
+        noise_um: round(diag.noise_hf * 1e6, 3),
         rms_before_um: round(fit::kept_rms(&residual_nominal, &problem.weight) * 1e6, 3),
-        rms_after_um: round(rms_after * 1e6, 3),
+        rms_after_um: round(diag.rms_after * 1e6, 3),
         predicted_position_std_um: predicted,
         calibrated: is_calibrated,
         verdict,
-        effects_mode,
+        effects_mode: f.effects_mode,
         held,
-        residual_sigma_um: round(sigma * 1e6, 3),
-        residual_lag1: round(rho, 4),
-        noise_inflation: round(inflate, 4),
-        residual_structure,
+        residual_sigma_um: round(f.sigma * 1e6, 3),
+        residual_lag1: round(f.rho, 4),
+        noise_inflation: round(f.inflate, 4),
+        residual_structure: diag.structure,
         prior: Prior {
             length_mm: opts.prior_length / MM,
             angle_deg: opts.prior_angle / DEG,
@@ -1212,234 +638,39 @@ pub fn run(
             kappa: opts.kappa,
         },
         rows: problem.rows(),
-        warnings,
-        tool,
+        warnings: diag.warnings,
+        tool: parts::tool(&f, &u.var),
         length_offset_mm: shared_offset,
-        segments,
-        outliers,
-        candidates,
+        segments: parts::segments(problem, &f.est),
+        outliers: parts::outliers(problem, &residual),
+        candidates: parts::candidates(&f, opts, held_out.calibrated),
         validation: Validation {
             heldout_rms_um: HeldOut {
-                nominal: round(heldout_nom * 1e6, 3),
-                calibrated: round(heldout_cal * 1e6, 3),
+                nominal: round(held_out.nominal * 1e6, 3),
+                calibrated: round(held_out.calibrated * 1e6, 3),
             },
             split: format!(
-                "{folds} contiguous blocks of the rows in the order taken (time order; the campaign's runs one after the other), each predicted by the model fitted to the others (linearised at the fit to all rows); nominal: the nominal robot with the set-up (tool point, fixtures, length zeros) fitted"
+                "{} contiguous blocks of the rows in the order taken (time order; the campaign's runs one after the other), each predicted by the model fitted to the others (linearised at the fit to all rows); nominal: the nominal robot with the set-up (tool point, fixtures, length zeros) fitted",
+                held_out.folds
             ),
-            rows: kept_rows,
+            rows: held_out.rows,
         },
+        effect_sizes,
+        delivered,
     };
     let summary = summary(&report);
-    Ok(Calibration {
+    Calibration {
         report,
-        estimate: est,
-        determined: free,
+        estimate: f.est,
+        determined: f.free,
         ranges: problem.ranges.clone(),
         t: problem.m.t.clone(),
         residual_nominal,
         residual,
         workspace_std_um: space_std,
+        file,
         summary,
-    })
-}
-
-/// What the data cannot say about the effects' form: for every cyclic error fitted with
-/// harmonic orders 1..H, the geometry's covariance with orders up to H + 1 and H + 2 as well,
-/// less the fitted model's. For nested least-squares models the two estimates differ by a
-/// vector whose covariance is that difference (Hausman), so while the data do not reject the
-/// smaller model its error is bounded by the larger model's covariance: this is the extra
-/// variance, propagated to the MAP after registration. Beside it, the larger model's estimate
-/// itself: the MAP shift between the two fits. Per pose of each set, the largest over the
-/// alternatives and the two measures, root-sum-squared over the cyclic errors (m).
-fn effect_model_spread<const N: usize>(
-    problem: &Problem,
-    est: &Estimate,
-    fitted: &Fitted,
-    sigma: f64,
-    poses: &[&[[f64; 6]]; N],
-) -> [Vec<f64>; N] {
-    let mut out: [Vec<f64>; N] = std::array::from_fn(|i| vec![0.0; poses[i].len()]);
-    let free = &fitted.free;
-    let base = model_cols(est, free);
-    let shared = shared_columns(free);
-    let idx: Vec<usize> = shared.iter().map(|s| s.1).collect();
-    let w = predict::selection(&idx);
-    let p = est.params(0);
-    let small = fit::inverse(&fitted.normal);
-    for t in &est.effects {
-        let Effect::CyclicError(j) = t.effect else {
-            continue;
-        };
-        let h = t.basis.orders().into_iter().max().unwrap_or(0);
-        let mut worst: [Vec<f64>; N] = std::array::from_fn(|i| vec![0.0; poses[i].len()]);
-        for extra in 1..=2 {
-            if h + extra > fit::MAX_HARMONIC {
-                break;
-            }
-            let mut cols = base.clone();
-            for o in h + 1..=h + extra {
-                cols.push(fit::Col::Cyc(j, o, false));
-                cols.push(fit::Col::Cyc(j, o, true));
-            }
-            let (n, b, _, _) = accumulate(problem, est, &cols, 1).total();
-            let big = fit::inverse(&n);
-            let diff = DMatrix::from_fn(shared.len(), shared.len(), |a, b| {
-                let (x, y) = (shared[a].0, shared[b].0);
-                (big[(x, y)] - small[(x, y)]) * sigma * sigma
-            });
-            // The larger model's own estimate, one Gauss-Newton step from the fitted one (at
-            // which the smaller model's step is nil): how far the geometry moves were the
-            // form one order richer. Without model error its square is the variance above on
-            // average; a higher order the data hold but the selection left out (a joint's
-            // third harmonic mimicked by the second over a short range) shows in it alone.
-            let all: Vec<usize> = (0..cols.len()).collect();
-            let (step, _, _) = fit::solve(&n, &b, &all);
-            let shift = DMatrix::from_fn(shared.len(), shared.len(), |a, b| {
-                step[shared[a].0] * step[shared[b].0]
-            });
-            for (i, set) in poses.iter().enumerate() {
-                let v = predict::position_std(&problem.model, &p, set, &w, &diff);
-                let d = predict::position_std(&problem.model, &p, set, &w, &shift);
-                for ((m, x), y) in worst[i].iter_mut().zip(v).zip(d) {
-                    *m = m.max(x).max(y);
-                }
-            }
-        }
-        for i in 0..N {
-            for (o, x) in out[i].iter_mut().zip(&worst[i]) {
-                *o = o.hypot(*x);
-            }
-        }
     }
-    out
-}
-
-/// Type B of the held parameters: W (30 × h) and their prior covariance (h × h). A held
-/// parameter's true deviation δ moves the MAP by J_h δ directly, and by −J_d K δ through the
-/// determined parameters that absorb it in the fit (K = N_aa⁻¹ N_ah, the effects included in
-/// a). For an exact dependency (d3 on d2) the two cancel: no uncertainty.
-fn held_map(
-    problem: &Problem,
-    est: &Estimate,
-    free: &[Param],
-    held: &[Param],
-    opts: &CalibrateOptions,
-) -> (DMatrix<f64>, DMatrix<f64>) {
-    let h = held.len();
-    if h == 0 {
-        return (DMatrix::zeros(N_PARAMS, 0), DMatrix::zeros(0, 0));
-    }
-    let mut cols = model_cols(est, free);
-    let c = cols.len();
-    cols.extend(held.iter().map(|&q| fit::Col::Geo(q)));
-    let (n, _, _, _) = accumulate(problem, est, &cols, 1).total();
-    let shared = |q: &Param| match q {
-        Param::Shared(i) => Some(*i),
-        _ => None,
-    };
-    // Fitted columns: the free parameters, then the effects' coefficients (no MAP motion).
-    let fitted: Vec<Option<usize>> = (0..c).map(|a| free.get(a).and_then(shared)).collect();
-    let held_idx: Vec<Option<usize>> = held.iter().map(shared).collect();
-    let w = predict::held_weights(&n, &fitted, &held_idx);
-    let cov = DMatrix::from_fn(h, h, |a, b| {
-        if a == b {
-            prior(opts, held[a]).powi(2)
-        } else {
-            0.0
-        }
-    });
-    (w, cov)
-}
-
-/// The effect whose coefficients, were they known, would shrink the geometry's predicted
-/// workspace uncertainty most — when that is more than threefold: the data cannot tell it
-/// from the geometry (e.g. a once-per-turn cyclic error of a joint that moves far less than a
-/// turn looks like its zero offset).
-fn confounding(
-    fitted: &Fitted,
-    free: &[Param],
-    est: &Estimate,
-    sigma: f64,
-    model: &MeasurementModel,
-    p: &Params,
-    space: &[[f64; 6]],
-) -> Option<String> {
-    let g = free.len();
-    if est.effects.is_empty() || g == 0 {
-        return None;
-    }
-    let poses: Vec<[f64; 6]> = space.iter().step_by(4).copied().collect();
-    let shared = shared_columns(free);
-    let idx: Vec<usize> = shared.iter().map(|s| s.1).collect();
-    let w = predict::selection(&idx);
-    // Type A workspace RMS from the normal matrix on the columns `keep`.
-    let rms_with = |keep: &[usize]| -> f64 {
-        let n = DMatrix::from_fn(keep.len(), keep.len(), |a, b| {
-            fitted.normal[(keep[a], keep[b])]
-        });
-        let cov = fit::inverse(&n) * (sigma * sigma);
-        let c = DMatrix::from_fn(shared.len(), shared.len(), |a, b| {
-            cov[(shared[a].0, shared[b].0)]
-        });
-        predict::spread(&predict::position_std(model, p, &poses, &w, &c)).rms
-    };
-    let all: Vec<usize> = (0..fitted.coefficients()).collect();
-    let full = rms_with(&all);
-    let mut start = g;
-    let mut best: Option<(Effect, f64)> = None;
-    for t in &est.effects {
-        let (e, c) = (&t.effect, &t.coef);
-        let range = start..start + c.len();
-        start += c.len();
-        let keep: Vec<usize> = all.iter().copied().filter(|k| !range.contains(k)).collect();
-        let without = rms_with(&keep);
-        if best.is_none_or(|b| without < b.1) {
-            best = Some((*e, without));
-        }
-    }
-    let (e, without) = best?;
-    (full > 3.0 * without && full > 2e-6).then(|| {
-        let name = match e.joint() {
-            Some(j) => format!("{} of joint {j}", e.name()),
-            None => e.name().to_string(),
-        };
-        format!(
-            "the data barely tell the {name} from the geometry: fitted together, the geometry's predicted uncertainty is {} um RMS over the joint space; were the effect known, it would be {} um. Measuring over a wider range of the joint separates them",
-            fmt_fixed(full * 1e6, 2),
-            fmt_fixed(without * 1e6, 2)
-        )
-    })
-}
-
-/// With the fixture held (`--fixture-known`): does estimating it explain clearly more (BIC,
-/// and a tenth of the residual)? Then the given position is probably off, and the geometry
-/// absorbs it.
-fn fixture_check(problem: &Problem, est: &Estimate, free: &[Param]) -> Option<String> {
-    let (_, with_fixture) = structural(problem, &Known::default(), est);
-    let extra: Vec<Param> = with_fixture
-        .iter()
-        .filter(|q| matches!(q, Param::Fixture { .. }) && !free.contains(q))
-        .copied()
-        .collect();
-    if extra.is_empty() {
-        return None;
-    }
-    let mut cols = model_cols(est, free);
-    let base = cols.len();
-    cols.extend(extra.iter().map(|&q| fit::Col::Geo(q)));
-    let st = accumulate(problem, est, &cols, 1);
-    let sel0: Vec<usize> = (0..base).collect();
-    let sel1: Vec<usize> = (0..cols.len()).collect();
-    let (rss0, _, bic0, _) = score(&st, &sel0);
-    let (rss1, _, bic1, _) = score(&st, &sel1);
-    let n = problem.kept().max(1) as f64;
-    (bic1 < bic0 - 10.0 && rss1 < 0.9 * rss0).then(|| {
-        format!(
-            "the fixture position looks off: estimating it lowers the residual from {} um to {} um RMS; check --fixture, or leave out --fixture-known",
-            fmt_fixed((rss0 / n).sqrt() * 1e6, 3),
-            fmt_fixed((rss1 / n).sqrt() * 1e6, 3)
-        )
-    })
 }
 
 /// The printed summary of a report (also rebuilt when a report is restated, see
@@ -1483,6 +714,23 @@ pub fn summary(r: &Report) -> String {
             effects.join(", ")
         }
     );
+    for e in &r.effect_sizes {
+        let name = match e.joint {
+            Some(j) => format!("{} (joint {j})", e.effect),
+            None => e.effect.to_string(),
+        };
+        let carried = match (e.delivered, e.acts_on) {
+            (true, "motion") => "in the robot file; it moves no pose",
+            (true, _) => "in the robot file",
+            (false, _) => "NOT in the robot file",
+        };
+        s += &format!(
+            "  {name}: {} um RMS, {} um p95 over the joint space ({}); {carried}\n",
+            fmt_fixed(e.workspace_rms_um, 2),
+            fmt_fixed(e.workspace_p95_um, 2),
+            e.at
+        );
+    }
     s += &format!(
         "determined: {} parameters; held at nominal: {}\n",
         r.determined.len(),
@@ -1552,6 +800,12 @@ pub fn summary(r: &Report) -> String {
         fmt_fixed(p.workspace_rms, 2),
         fmt_fixed(p.workspace_p95, 2)
     );
+    if r.delivered.content == "geometry only" {
+        s += &format!(
+            "the robot file carries the geometry only: the prediction includes the effects left out (the model with them: {} um RMS over the joint space)\n",
+            fmt_fixed(p.model_workspace_rms, 2)
+        );
+    }
     s += &format!(
         "validation (held out): {} um RMS nominal, {} um RMS calibrated\n",
         fmt_fixed(r.validation.heldout_rms_um.nominal, 3),

@@ -77,7 +77,37 @@ pub fn position_std(
     w: &DMatrix<f64>,
     cov: &DMatrix<f64>,
 ) -> Vec<f64> {
-    registered(model, p, poses, w)
+    position_std_with(model, p, poses, w, &NoJointTerms, cov)
+}
+
+/// Quantities that move joint angles by a pose-dependent amount (an effect's coefficients: a
+/// harmonic of a joint's angle, a compliance's gravity torque): per pose, each quantity's
+/// joint and the angle (rad) it moves that joint by per unit.
+pub trait JointTerms: Sync {
+    fn count(&self) -> usize;
+    fn at(&self, q: &[f64; 6], out: &mut Vec<(usize, f64)>);
+}
+
+struct NoJointTerms;
+
+impl JointTerms for NoJointTerms {
+    fn count(&self) -> usize {
+        0
+    }
+    fn at(&self, _: &[f64; 6], _: &mut Vec<(usize, f64)>) {}
+}
+
+/// [`position_std`] with more quantities after the k of `w`: `terms`, which move joint
+/// angles pose by pose; `cov` covers all k + terms.count() of them.
+pub fn position_std_with(
+    model: &MeasurementModel,
+    p: &Params,
+    poses: &[[f64; 6]],
+    w: &DMatrix<f64>,
+    terms: &dyn JointTerms,
+    cov: &DMatrix<f64>,
+) -> Vec<f64> {
+    registered(model, p, poses, w, terms)
         .iter()
         .map(|jn| {
             let c = jn * cov * jn.transpose();
@@ -96,7 +126,7 @@ pub fn column_rms(
     w: &DMatrix<f64>,
     sd: &[f64],
 ) -> Vec<f64> {
-    let reg = registered(model, p, poses, w);
+    let reg = registered(model, p, poses, w, &NoJointTerms);
     (0..w.ncols())
         .map(|c| {
             let ms = reg
@@ -116,8 +146,10 @@ fn registered(
     p: &Params,
     poses: &[[f64; 6]],
     w: &DMatrix<f64>,
+    terms: &dyn JointTerms,
 ) -> Vec<Matrix3xX<f64>> {
-    let k = w.ncols();
+    let kw = w.ncols();
+    let k = kw + terms.count();
     if poses.is_empty() || k == 0 {
         return vec![Matrix3xX::zeros(k); poses.len()];
     }
@@ -125,16 +157,24 @@ fn registered(
     let mut pos = Vec::with_capacity(poses.len());
     let mut jac = DMatrix::zeros(3 * poses.len(), k);
     let mut cols = [Vector3::zeros(); N_PARAMS];
+    let mut joint = Vec::with_capacity(terms.count());
     for (n, q) in poses.iter().enumerate() {
         pos.push(model.position_jacobian(p, q, &mut cols));
         for i in 0..N_PARAMS {
-            for c in 0..k {
+            for c in 0..kw {
                 let wi = w[(i, c)];
                 if wi != 0.0 {
                     for a in 0..3 {
                         jac[(3 * n + a, c)] += cols[i][a] * wi;
                     }
                 }
+            }
+        }
+        joint.clear();
+        terms.at(q, &mut joint);
+        for (c, &(j, f)) in joint.iter().enumerate() {
+            for a in 0..3 {
+                jac[(3 * n + a, kw + c)] = cols[crate::model::THETA + j][a] * f;
             }
         }
     }

@@ -587,6 +587,11 @@ pub struct CalibrateArgs {
     /// a list such as cyclic_error:2,servo_lag (joint numbers 1-based).
     #[arg(long, value_name = "auto|none|LIST", default_value = "auto")]
     pub effects: String,
+    /// Write the geometry only: the robot file leaves out the effects fitted with it (every
+    /// command then evaluates the geometry alone), and the prediction includes what they do
+    /// over the joint space.
+    #[arg(long)]
+    pub geometry_only: bool,
     /// Estimate each run's fixture position where the data determine it (the default; the
     /// given position is a prior).
     #[arg(long, conflicts_with = "fixture_known")]
@@ -658,6 +663,34 @@ pub struct CompensateArgs {
     /// uncertainties and the predicted accuracy [default: the robot files' joint zeros].
     #[arg(long, value_name = "REPORT.json")]
     pub calibration: Option<PathBuf>,
+    /// How each target's joints come into it, for a backlash of the calibrated robot, where
+    /// the targets file has no `approach` column: order (from the previous row), positive,
+    /// negative, unknown (the centre of the play). A program's moves come from the move before;
+    /// positive or negative says how the robot comes into its first move.
+    #[arg(
+        long,
+        value_name = "order|positive|negative|unknown",
+        default_value = "order"
+    )]
+    pub approach: String,
+    /// The temperature (°C) to compensate a thermal drift referred to a logged temperature at
+    /// [default: the calibration's reference state].
+    #[arg(
+        long,
+        value_name = "C",
+        allow_hyphen_values = true,
+        conflicts_with = "elapsed"
+    )]
+    pub temperature: Option<f64>,
+    /// The time since the reference state (s) to compensate a thermal drift at (a drift
+    /// identified as a warm-up lag) [default: the reference state].
+    #[arg(long, value_name = "S")]
+    pub elapsed: Option<f64>,
+    /// A payload different from the calibration's: mass (kg) and its centre in the flange
+    /// frame (mm; default the tool point), for a joint compliance identified with a mass
+    /// model (form known_masses).
+    #[arg(long, value_name = "KG[,X,Y,Z]")]
+    pub payload: Option<String>,
     /// Write the report here (schema edbbgen.compensate/1).
     #[arg(long, value_name = "REPORT.json")]
     pub json: Option<PathBuf>,

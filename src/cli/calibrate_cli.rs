@@ -191,6 +191,7 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
         fixture_known: a.fixture_known,
         tool_known: a.tool_known,
         length_offset: parse_length_offset(a.length_offset.as_deref())?,
+        write_effects: !a.geometry_only,
         ..CalibrateOptions::default()
     };
     if let Some(p) = &a.prior {
@@ -332,8 +333,12 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
     if kept.iter().any(Option::is_some) {
         for (k, logs) in kept.iter().enumerate() {
             let Some(logs) = logs else { continue };
-            let p = cal.estimate.params(k);
-            let length = |q: &[f64; 6]| model.length(&p, q);
+            // The calibrated robot whole (its effects too: a compliance moves the bar's
+            // length by hundreds of micrometres), run k's fixture.
+            let mut p = cal.file.params;
+            p.fix = cal.estimate.params(k).fix;
+            let fx = &cal.file.effects;
+            let length = |q: &[f64; 6]| model.reached_length(&p, fx, q, &[0.0; 6]);
             let i = k - a.measured.len();
             let (m, extra, summary) = super::logs_cli::resync(logs, &length, program_of(i))?;
             data[k].0 = m;
@@ -400,6 +405,17 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
         header.push(format!("since {}: {}", name(p), d.verdict));
     }
     let p = cal.params();
+    let effects = cal.file.effects.clone();
+    let effects_text = robot::effects::to_toml(&effects, &cal.file.reference);
+    // A URDF cannot hold the effects: they go to a sidecar file beside it, named in its header.
+    let sidecar = (urdf && !effects_text.is_empty()).then(|| sidecar_path(&a.output));
+    if let Some(side) = &sidecar {
+        let name = side
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        header.push(format!("{} {name}", robot::effects::SIDECAR_MARK));
+    }
     let calibrated = if urdf {
         robot::urdf::calibrated(
             &robot_text,
@@ -411,8 +427,27 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
             &header,
         )?
     } else {
-        robot::dh::calibrated(&robot_text, &a.robot, &p.dh, &p.map, &header)?
+        robot::dh::calibrated(&robot_text, &a.robot, &p.dh, &p.map, &header, &effects_text)?
     };
+    // The URDF loads to a DH table of its own (its common normals may point the other way):
+    // the effects go to the sidecar referred to that table's frames.
+    let effects_text = if sidecar.is_some() {
+        let (b, dh, f) =
+            robot::urdf::dh_chain(&calibrated, &load_opts).map_err(|e| file_err(&a.output, e))?;
+        let moved = effects.reframed((&robot.base, &p.dh, &robot.flange), (&b, &dh, &f));
+        robot::effects::to_toml(&moved, &cal.file.reference)
+    } else {
+        effects_text
+    };
+    let sidecar_text = sidecar.as_ref().map(|_| {
+        format!(
+            "# The effects of {} (edbbgen calibrate): the URDF names this file; keep the two together.\n{effects_text}",
+            a.output
+                .file_name()
+                .map(|n| n.to_string_lossy().into_owned())
+                .unwrap_or_default()
+        )
+    });
     let svg = match &a.plot {
         Some(_) => Some(crate::calibrate::plot::svg(&cal)?),
         None => None,
@@ -436,6 +471,9 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
         None => None,
     };
     let mut files: Vec<(&Path, &str)> = vec![(a.output.as_path(), calibrated.as_str())];
+    if let (Some(p), Some(t)) = (&sidecar, &sidecar_text) {
+        files.push((p.as_path(), t.as_str()));
+    }
     if let Some(p) = &a.json {
         files.push((p.as_path(), json.as_str()));
     }
@@ -453,7 +491,19 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
     }
     print!("{}", cal.summary);
     println!("wrote {}", a.output.display());
+    if let Some(p) = &sidecar {
+        println!("wrote {} (the effects the URDF names)", p.display());
+    }
     Ok(0)
+}
+
+/// The sidecar file of a calibrated URDF: `robot.cal.urdf` → `robot.cal.effects.toml`.
+pub(super) fn sidecar_path(urdf: &Path) -> std::path::PathBuf {
+    let stem = urdf
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "robot".into());
+    urdf.with_file_name(format!("{stem}.effects.toml"))
 }
 
 /// The input hash of a calibration: robot, data, fixtures, tool and the effects option.
@@ -545,18 +595,20 @@ fn header_lines(
         fmt_fixed(p.workspace_rms, 2),
         fmt_fixed(p.workspace_p95, 2)
     ));
-    if !r.effects.is_empty() {
-        let names: Vec<String> = r
-            .effects
-            .iter()
-            .map(|e| match e.joint {
-                Some(j) => format!("{} (joint {j})", e.effect),
-                None => e.effect.to_string(),
-            })
-            .collect();
+    for e in &r.effect_sizes {
+        let name = match e.joint {
+            Some(j) => format!("{} (joint {j})", e.effect),
+            None => e.effect.to_string(),
+        };
         h.push(format!(
-            "effects fitted with the geometry (in the report, not in this file): {}",
-            names.join(", ")
+            "effect {name}: {} um RMS over the joint space ({}); {}",
+            fmt_fixed(e.workspace_rms_um, 2),
+            e.at,
+            if e.delivered {
+                "in the [effects] of this robot"
+            } else {
+                "NOT in this file (--geometry-only)"
+            }
         ));
     }
     for w in &r.warnings {

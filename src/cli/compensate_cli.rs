@@ -8,7 +8,8 @@ use crate::compensate::offsets::{self, JointOffsets, Um};
 use crate::compensate::program::{self, Outcome};
 use crate::compensate::{self, targets, Compensator, Limits, NotCompensated, Report};
 use crate::controller::{ControllerDefaults, ControllerMap, Coupling, Units};
-use crate::robot::{self, Frame, LoadOptions, Robot};
+use crate::robot::effects::{ComplianceForm, ThermalState};
+use crate::robot::{self, Frame, LoadOptions, PointMass, Robot};
 use crate::units::{fmt_fixed, DEG, MM};
 use nalgebra::Vector3;
 use std::path::Path;
@@ -189,8 +190,20 @@ pub fn compensate(a: &CompensateArgs) -> Result<i32, Error> {
         None => None,
     };
 
-    let comp = Compensator::new(&nominal, &calibrated, &tcp_n, &tcp_c);
-    let mut notes = Vec::new();
+    let approach = targets::Approach::parse(&a.approach).ok_or_else(|| {
+        usage(format!(
+            "--approach: '{}' (expected order, positive, negative or unknown)",
+            a.approach
+        ))
+    })?;
+    let mut calibrated = calibrated;
+    let mut notes = effects_setup(a, approach, &mut calibrated, &tcp_c)?;
+    let state = match (a.temperature, a.elapsed) {
+        (Some(c), _) => ThermalState::Temperature(c),
+        (None, Some(t)) => ThermalState::Elapsed(t),
+        (None, None) => ThermalState::Reference,
+    };
+    let comp = Compensator::new(&nominal, &calibrated, &tcp_n, &tcp_c).at_state(state);
     if tcp.is_some() {
         if let (Some(tn), Some(tc)) = (nominal.tool, calibrated.tool) {
             notes.push(format!(
@@ -251,7 +264,23 @@ pub fn compensate(a: &CompensateArgs) -> Result<i32, Error> {
         let text = super::read_input(path, "targets", crate::files::Kind::Measured)?;
         let file = targets::parse(&text).map_err(|e| file_err(path, e))?;
         let list = targets::to_targets(&file, &map);
-        let results = comp.compensate_all(&list);
+        let unknown: Vec<(compensate::Target, [f64; 6])> =
+            list.iter().map(|t| (*t, [0.0; 6])).collect();
+        // A backlash needs each target's approach; in file order it follows the load-side
+        // joints (a first pass solves them) of the targets the robot will visit: a row that
+        // cannot be compensated is not run, so the next one comes from the row before it.
+        let results = if comp.effects().backlash.is_empty() {
+            comp.compensate_all(&unknown)
+        } else {
+            let load: Vec<Option<[f64; 6]>> = comp
+                .compensate_all(&unknown)
+                .iter()
+                .map(|c| c.q.map(|q| comp.load(&q, &[0.0; 6])))
+                .collect();
+            let ap = targets::approaches(&file, &map, &load, approach);
+            let with: Vec<(compensate::Target, [f64; 6])> = list.iter().copied().zip(ap).collect();
+            comp.compensate_all(&with)
+        };
         output_text = Some(targets::write(&file, &results, &comp, &map));
         targets_report = Some(targets_summary(path, &file, &results, &comp, &map));
     }
@@ -263,6 +292,11 @@ pub fn compensate(a: &CompensateArgs) -> Result<i32, Error> {
             &comp,
             &crate::timing::Limits::of(&nominal),
             &note,
+            match approach {
+                targets::Approach::Positive => [1.0; 6],
+                targets::Approach::Negative => [-1.0; 6],
+                targets::Approach::Order | targets::Approach::Unknown => [0.0; 6],
+            },
         )
         .map_err(|e| file_err(path, e))?
         {
@@ -407,8 +441,8 @@ fn targets_summary(
     for (row, c) in file.rows.iter().zip(results) {
         match (c.status.is_ok(), c.q, c.nominal) {
             (true, Some(q), Some(qn)) => {
-                before.push(comp.residual(&c.target, &qn) * 1e6);
-                after.push(comp.residual(&c.target, &printed(&q)) * 1e6);
+                before.push(comp.residual(&c.target, &qn, &c.approach) * 1e6);
+                after.push(comp.residual(&c.target, &printed(&q), &c.approach) * 1e6);
                 free += usize::from(c.orientation_free);
             }
             _ => not.push(NotCompensated {
@@ -544,4 +578,122 @@ fn summary(r: &Report) -> String {
         s += &format!("note: {n}\n");
     }
     s
+}
+
+/// The calibrated robot's effects as this compensation applies them: a changed payload
+/// (`--payload`) added to a compliance with a mass model, and one note per effect saying how
+/// it is applied (and the thermal state, the approach convention, what is not applied).
+fn effects_setup(
+    a: &CompensateArgs,
+    approach: targets::Approach,
+    calibrated: &mut Robot,
+    tcp: &Frame,
+) -> Result<Vec<String>, Error> {
+    let mut notes = Vec::new();
+    let e = &mut calibrated.effects;
+    if let Some(p) = &a.payload {
+        let v = numbers("--payload", p, None)?;
+        if !(v.len() == 1 || v.len() == 4) || !(v[0] >= 0.0) {
+            return Err(usage(format!(
+                "--payload: '{p}' needs a mass (kg, >= 0) and optionally its centre X,Y,Z (mm, flange frame)"
+            )));
+        }
+        let centre = if v.len() == 4 {
+            Vector3::new(v[1], v[2], v[3]) * MM
+        } else {
+            tcp.t
+        };
+        match e.compliance.as_mut().map(|c| &mut c.form) {
+            Some(ComplianceForm::KnownMasses { masses, .. }) => {
+                masses.push(PointMass {
+                    frame: 6,
+                    com: calibrated.flange.apply(&centre),
+                    mass: v[0],
+                });
+                notes.push(format!(
+                    "joint compliance: the robot file's masses plus a payload of {} kg at {}, {}, {} mm in the flange frame (--payload)",
+                    fmt_fixed(v[0], 3),
+                    fmt_fixed(centre.x / MM, 1),
+                    fmt_fixed(centre.y / MM, 1),
+                    fmt_fixed(centre.z / MM, 1)
+                ));
+            }
+            Some(ComplianceForm::LinkMoments { .. }) => {
+                return Err(file_err(
+                    &a.calibrated,
+                    "--payload: its joint compliance was identified without a mass model (form link_moments), for the payload carried during the calibration; a changed payload needs a new calibration with it",
+                ))
+            }
+            None => {
+                return Err(file_err(
+                    &a.calibrated,
+                    "--payload: the robot has no joint compliance (no [effects.joint_compliance]) for a payload to act on",
+                ))
+            }
+        }
+    } else if let Some(c) = &e.compliance {
+        notes.push(match c.form {
+            ComplianceForm::KnownMasses { .. } => "joint compliance: applied to every target with the robot file's masses and gravity as calibrated (--payload adds a changed payload)".to_string(),
+            ComplianceForm::LinkMoments { .. } => "joint compliance: applied to every target for the payload and gravity of the calibration (identified without a mass model: a changed payload needs a new calibration)".to_string(),
+        });
+    }
+    let e = &calibrated.effects;
+    for c in &e.cyclic {
+        notes.push(format!(
+            "cyclic error of joint {}: applied to every target (harmonic orders {:?})",
+            c.joint + 1,
+            c.orders
+        ));
+    }
+    for b in &e.backlash {
+        notes.push(format!(
+            "backlash of joint {} ({} deg play): applied by each target's approach ({}); a joint whose approach is not known is taken at the centre of the play",
+            b.joint + 1,
+            fmt_fixed(b.play / DEG, 5),
+            if a.program.is_some() {
+                format!(
+                    "the direction of the program's move into it; into the first move {}",
+                    match approach {
+                        targets::Approach::Positive => "from below (--approach positive)",
+                        targets::Approach::Negative => "from above (--approach negative)",
+                        _ => "not known: the centre of the play, up to half of it off (--approach positive or negative says where the robot comes from)",
+                    }
+                )
+            } else {
+                format!("the targets' approach column, else --approach {}", a.approach)
+            }
+        ));
+    }
+    match (&e.thermal, a.temperature, a.elapsed) {
+        (Some(_), None, None) => notes.push(
+            "thermal drift: compensated at the reference state of the calibration (--temperature or --elapsed for another)".into(),
+        ),
+        (Some(robot::effects::Thermal::Temperature { reference_c, .. }), Some(c), _) => notes.push(format!(
+            "thermal drift: compensated at {} C ({} K from the reference)",
+            fmt_fixed(c, 2),
+            fmt_fixed(c - reference_c, 2)
+        )),
+        (Some(robot::effects::Thermal::Lag { .. }), None, Some(t)) => notes.push(format!(
+            "thermal drift: compensated at {} s after the reference state",
+            fmt_fixed(t, 1)
+        )),
+        (Some(_), _, _) => {
+            return Err(usage(
+                "--temperature applies to a drift referred to a logged temperature, --elapsed to a warm-up lag: the robot's [effects.thermal_drift] form is the other",
+            ))
+        }
+        (None, Some(_), _) | (None, _, Some(_)) => {
+            return Err(usage(
+                "--temperature/--elapsed: the calibrated robot has no thermal drift",
+            ))
+        }
+        (None, None, None) => {}
+    }
+    if let Some(l) = &e.servo_lag {
+        notes.push(format!(
+            "servo lag ({} ms): moves no pose, so no target is changed for it; it matters where the robot measures while moving",
+            fmt_fixed(l.tau * 1e3, 2)
+        ));
+    }
+    Ok(notes)
 }

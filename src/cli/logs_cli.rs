@@ -206,7 +206,8 @@ pub(super) fn read_run(
                     .collect(),
                 None => joints.q.clone(),
             };
-            let length = |x: &[f64; 6]| model.length(&model.nominal, x);
+            let length =
+                |x: &[f64; 6]| model.reached_length(&model.nominal, &robot.effects, x, &[0.0; 6]);
             let read = continuous(&length, bar_path, &bar, jp, &joints.t, &q, "nominal")?;
             kept = Some(Logs {
                 bar_path: bar_path.to_path_buf(),

@@ -38,7 +38,8 @@ pub mod offsets;
 pub mod program;
 pub mod targets;
 
-use crate::robot::{Frame, Robot};
+use crate::robot::effects::{Effects, ThermalState};
+use crate::robot::{Dh, Frame, Robot};
 use crate::units::{fmt_fixed, DEG, MM};
 use ik::{Chain, Goal, Options};
 use nalgebra::Vector3;
@@ -173,16 +174,28 @@ pub struct Compensated {
     pub q: Option<[f64; 6]>,
     /// The TCP position error (m) of the compensated joints, or of the best attempt.
     pub residual: Option<f64>,
+    /// The direction each joint came from into the pose (+1, −1, 0: not known), which a
+    /// backlash of the calibrated robot depends on.
+    pub approach: [f64; 6],
 }
 
-/// The two robots with their tool points, and the joint limits the compensation keeps.
+/// The two robots with their tool points, and the joint limits the compensation keeps. The
+/// calibrated robot is its geometry at a thermal state and the effects its file carries: the
+/// compensation solves for the load-side joints that reach the target, then for the commands
+/// that give those load-side joints.
 #[derive(Clone, Debug)]
 pub struct Compensator {
     pub nominal: Chain,
+    /// The calibrated robot's geometry at the thermal state, ending at its TCP.
     pub calibrated: Chain,
     pub lower: [f64; 6],
     pub upper: [f64; 6],
     starts: Vec<[f64; 6]>,
+    /// The calibrated robot's effects and its reference geometry (base, DH, flange), which
+    /// the joint corrections are evaluated on.
+    effects: Effects,
+    reference: (Frame, [Dh; 6], Frame),
+    state: ThermalState,
 }
 
 impl Compensator {
@@ -208,7 +221,45 @@ impl Compensator {
             lower,
             upper,
             starts,
+            effects: calibrated.effects.clone(),
+            reference: (calibrated.base, calibrated.dh, calibrated.flange),
+            state: ThermalState::Reference,
         }
+    }
+
+    /// The calibrated robot at a thermal state (its file's geometry is the reference state).
+    pub fn at_state(mut self, state: ThermalState) -> Self {
+        self.calibrated.dh = self.effects.at_state(&self.reference.1, state);
+        self.state = state;
+        self
+    }
+
+    /// The thermal state the calibrated robot is evaluated at.
+    pub fn state(&self) -> ThermalState {
+        self.state
+    }
+
+    /// The calibrated robot's effects.
+    pub fn effects(&self) -> &Effects {
+        &self.effects
+    }
+
+    /// The load-side joints the calibrated robot reaches when commanded `q`.
+    pub fn load(&self, q: &[f64; 6], approach: &[f64; 6]) -> [f64; 6] {
+        let (b, dh, f) = &self.reference;
+        self.effects.load(b, dh, f, q, approach)
+    }
+
+    /// The TCP pose the calibrated robot reaches when commanded `q`, each joint coming from
+    /// `approach`.
+    pub fn reached(&self, q: &[f64; 6], approach: &[f64; 6]) -> Frame {
+        self.calibrated.pose(&self.load(q, approach))
+    }
+
+    /// The commands that give the calibrated robot the load-side joints `load`.
+    fn command(&self, load: &[f64; 6], approach: &[f64; 6]) -> [f64; 6] {
+        let (b, dh, f) = &self.reference;
+        self.effects.command(b, dh, f, load, approach)
     }
 
     /// The Cartesian target a controller with the nominal model needs for the arm to end
@@ -217,9 +268,10 @@ impl Compensator {
         self.nominal.pose(q)
     }
 
-    /// The calibrated robot's TCP position error at `q` against `target` (m).
-    pub fn residual(&self, target: &Frame, q: &[f64; 6]) -> f64 {
-        (self.calibrated.pose(q).t - target.t).norm()
+    /// The calibrated robot's TCP position error at the command `q` (each joint coming from
+    /// `approach`) against `target` (m).
+    pub fn residual(&self, target: &Frame, q: &[f64; 6], approach: &[f64; 6]) -> f64 {
+        (self.reached(q, approach).t - target.t).norm()
     }
 
     fn within(&self, q: &[f64; 6]) -> bool {
@@ -280,8 +332,10 @@ impl Compensator {
         }
     }
 
-    /// Compensates one target.
-    pub fn compensate(&self, target: &Target) -> Compensated {
+    /// Compensates one target, each joint of the calibrated robot coming into it from
+    /// `approach` (+1 from below, −1 from above, 0 not known: the centre of a backlash).
+    pub fn compensate(&self, target: &Target, approach: &[f64; 6]) -> Compensated {
+        let approach = *approach;
         let fail =
             |status: Status, target: Frame, nominal: Option<[f64; 6]>, residual| Compensated {
                 status,
@@ -290,6 +344,7 @@ impl Compensator {
                 nominal,
                 q: None,
                 residual,
+                approach,
             };
         // 1. The nominal solution and the TCP pose to reach.
         let (qn, pose) = match *target {
@@ -368,8 +423,10 @@ impl Compensator {
             }
             (pos.q, true)
         };
+        // The commands that give the calibrated robot those load-side joints.
+        let q = self.command(&q, &approach);
         // 3. The same branch, within the limits.
-        let residual = self.residual(&pose, &q);
+        let residual = self.residual(&pose, &q, &approach);
         if let Some((joint, moved)) = (0..6)
             .map(|i| (i, (q[i] - qn[i]).abs()))
             .max_by(|a, b| a.1.total_cmp(&b.1))
@@ -392,12 +449,17 @@ impl Compensator {
             nominal: Some(qn),
             q: Some(q),
             residual: Some(residual),
+            approach,
         }
     }
 
-    /// Compensates every target (in parallel; the result in the order of `targets`).
-    pub fn compensate_all(&self, targets: &[Target]) -> Vec<Compensated> {
-        targets.par_iter().map(|t| self.compensate(t)).collect()
+    /// Compensates every target, each with its approach (in parallel; the result in the order
+    /// of `targets`).
+    pub fn compensate_all(&self, targets: &[(Target, [f64; 6])]) -> Vec<Compensated> {
+        targets
+            .par_iter()
+            .map(|(t, a)| self.compensate(t, a))
+            .collect()
     }
 }
 

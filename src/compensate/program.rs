@@ -109,6 +109,8 @@ fn shortest(dialect: &Dialect, a: &[f64; 6], b: &[f64; 6], lim: &Limits) -> f64 
 
 /// Rewrites `text` (in `dialect`, read with `map`) with compensated joints. `lim` are the
 /// robot file's joint speeds and accelerations (SI); `note` goes into the header comment.
+/// `first` is the direction each joint comes into the program's first move from (+1, −1, 0:
+/// not known), for a backlash; every later move comes from the one before.
 pub fn rewrite(
     text: &str,
     dialect: &Dialect,
@@ -116,6 +118,7 @@ pub fn rewrite(
     comp: &Compensator,
     lim: &Limits,
     note: &str,
+    first: [f64; 6],
 ) -> Result<Outcome, ProgramError> {
     let speeds = &lim.speed;
     let parsed = read(text, dialect, map)?;
@@ -135,10 +138,27 @@ pub fn rewrite(
     if moves.is_empty() {
         return Err(unsupported(0, "the program commands no motion"));
     }
-    let targets: Vec<Target> = moves
+    // Each move comes from the one before, and a backlash rests on the flank of the direction
+    // the joint's load side last moved in: the approach of each move is the direction from the
+    // load-side joints the move before reaches to the ones this move must reach (where the
+    // nominal program holds a joint, the compensation's own change decides: the play is pushed
+    // to the new angle). Before its first motion a joint comes from `first`. The load-side
+    // targets are the compensation's with the play left out (a first pass).
+    let plain: Vec<(Target, [f64; 6])> = moves
         .iter()
-        .map(|m| Target::Joints(m.1.map(|d| d * DEG)))
+        .map(|m| (Target::Joints(m.1.map(|d| d * DEG)), [0.0; 6]))
         .collect();
+    let targets: Vec<(Target, [f64; 6])> = if comp.effects().backlash.is_empty() {
+        plain
+    } else {
+        let load: Vec<Option<[f64; 6]>> = comp
+            .compensate_all(&plain)
+            .iter()
+            .map(|c| c.q.map(|q| comp.load(&q, &[0.0; 6])))
+            .collect();
+        let ap = super::targets::approach_along(&load, first);
+        plain.iter().zip(ap).map(|((t, _), a)| (*t, a)).collect()
+    };
     let results: Vec<Compensated> = comp.compensate_all(&targets);
     let refused: Vec<Refused> = moves
         .iter()
@@ -181,7 +201,7 @@ pub fn rewrite(
         let printed: Vec<(String, f64)> = axes.iter().map(|&v| print(v)).collect();
         let values: [f64; 6] = std::array::from_fn(|i| printed[i].1);
         let new_q = map.undo(&values).map(|d| d * DEG);
-        printed_residual.push(comp.residual(&c.target, &new_q));
+        printed_residual.push(comp.residual(&c.target, &new_q, &c.approach));
         let old_q = m.1.map(|d| d * DEG);
         joints.push((m.0, new_q));
         largest_change = (0..6).fold(largest_change, |a, i| a.max((new_q[i] - old_q[i]).abs()));

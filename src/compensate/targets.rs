@@ -37,6 +37,35 @@ pub struct Row {
     pub q_deg: Option<[f64; 6]>,
     pub xyz_mm: Option<[f64; 3]>,
     pub rxyz_deg: Option<[f64; 3]>,
+    /// The `approach` column: the direction each joint column moves into the target (+1, −1,
+    /// 0 = not known), as the file's joint values count.
+    pub approach: Option<[f64; 6]>,
+}
+
+/// How a target's joints come into it, where the file has no `approach` column: what a
+/// backlash of the calibrated robot depends on.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Approach {
+    /// From the previous row (the file is the order the targets are visited in); the first
+    /// row's joints are not known (the centre of the play).
+    Order,
+    /// Every joint moving positive into every target (a unidirectional approach).
+    Positive,
+    Negative,
+    /// Not known: the centre of the play, half the play's error either way.
+    Unknown,
+}
+
+impl Approach {
+    pub fn parse(s: &str) -> Option<Approach> {
+        match s {
+            "order" => Some(Approach::Order),
+            "positive" => Some(Approach::Positive),
+            "negative" => Some(Approach::Negative),
+            "unknown" => Some(Approach::Unknown),
+            _ => None,
+        }
+    }
 }
 
 #[derive(Clone, Debug, PartialEq)]
@@ -104,7 +133,7 @@ const JOINTS: [&str; 6] = ["q1_deg", "q2_deg", "q3_deg", "q4_deg", "q5_deg", "q6
 const XYZ: [&str; 3] = ["x_mm", "y_mm", "z_mm"];
 const RXYZ: [&str; 3] = ["rx_deg", "ry_deg", "rz_deg"];
 const EXPECTED: &str =
-    "name (optional), then q1_deg..q6_deg, or x_mm,y_mm,z_mm [rx_deg,ry_deg,rz_deg] [q1_deg..q6_deg as the seed]";
+    "name (optional), then q1_deg..q6_deg, or x_mm,y_mm,z_mm [rx_deg,ry_deg,rz_deg] [q1_deg..q6_deg as the seed], and optionally approach";
 
 /// Parses a targets file (strict: unknown, repeated or incomplete columns, fields that are not
 /// finite numbers, rows of the wrong width are errors naming the line and column).
@@ -121,7 +150,8 @@ pub fn parse(text: &str) -> Result<TargetFile, CsvError> {
         .into_iter()
         .map(|(_, v)| v.trim().to_string())
         .collect();
-    let known: Vec<&str> = std::iter::once("name")
+    let known: Vec<&str> = ["name", "approach"]
+        .into_iter()
         .chain(JOINTS)
         .chain(XYZ)
         .chain(RXYZ)
@@ -180,6 +210,7 @@ pub fn parse(text: &str) -> Result<TargetFile, CsvError> {
         }
     };
     let name_col = at("name");
+    let approach_col = at("approach");
     let mut rows = Vec::new();
     for (line, text) in lines {
         let f = fields(line, text)?;
@@ -235,6 +266,18 @@ pub fn parse(text: &str) -> Result<TargetFile, CsvError> {
         let q = take(&joints, kind != Kind::Joints)?;
         let p = take(&xyz, false)?;
         let r = take(&rxyz, false)?;
+        let approach = match approach_col {
+            Some(c) => Some(parse_approach(f[c].1.trim()).ok_or_else(|| {
+                err(
+                    line,
+                    format!(
+                        "column approach: '{}' is not six signs, one per joint (+ moving positive into the target, - negative, 0 not known), e.g. ++-+0+",
+                        f[c].1.trim()
+                    ),
+                )
+            })?),
+            None => None,
+        };
         rows.push(Row {
             line,
             raw: f.iter().map(|(raw, _)| raw.clone()).collect(),
@@ -242,6 +285,7 @@ pub fn parse(text: &str) -> Result<TargetFile, CsvError> {
             q_deg: q.map(|v| std::array::from_fn(|i| v[i])),
             xyz_mm: p.map(|v| [v[0], v[1], v[2]]),
             rxyz_deg: r.map(|v| [v[0], v[1], v[2]]),
+            approach,
         });
     }
     if rows.is_empty() {
@@ -285,6 +329,72 @@ pub fn to_targets(file: &TargetFile, map: &ControllerMap) -> Vec<Target> {
         .collect()
 }
 
+/// Six signs, one per joint: `+`, `-` or `0`.
+fn parse_approach(s: &str) -> Option<[f64; 6]> {
+    let v: Vec<f64> = s
+        .chars()
+        .map(|c| match c {
+            '+' => Some(1.0),
+            '-' => Some(-1.0),
+            '0' => Some(0.0),
+            _ => None,
+        })
+        .collect::<Option<_>>()?;
+    (v.len() == 6).then(|| std::array::from_fn(|i| v[i]))
+}
+
+/// Each row's approach in model joints: the row's `approach` column, else the convention; with
+/// [`Approach::Order`] the direction from the previous row's load-side joints to the row's
+/// ([`approach_along`]; `load`: the joints the calibrated robot's load side must reach, model
+/// joints; None for a row the robot does not visit).
+pub fn approaches(
+    file: &TargetFile,
+    map: &ControllerMap,
+    load: &[Option<[f64; 6]>],
+    convention: Approach,
+) -> Vec<[f64; 6]> {
+    let by_order = approach_along(load, [0.0; 6]);
+    file.rows
+        .iter()
+        .zip(by_order)
+        .map(|(row, by_order)| match (row.approach, convention) {
+            // The file counts the controller's axes: a flipped axis moves its joint the
+            // other way.
+            (Some(a), _) => std::array::from_fn(|j| a[j] * map.sign[j]),
+            (None, Approach::Order) => by_order,
+            (None, Approach::Positive) => [1.0; 6],
+            (None, Approach::Negative) => [-1.0; 6],
+            (None, Approach::Unknown) => [0.0; 6],
+        })
+        .collect()
+}
+
+/// The approach of each of a sequence of poses visited in order: per joint, the direction
+/// from the load-side angle the previous visited pose reaches to this one's (a backlash's load
+/// rests on the flank of the direction it was last pushed in, and to reach a new angle the
+/// play must be pushed towards it); an unchanged angle keeps the last direction; before a
+/// joint's first change, `first` (0: not known). `load`: None for a pose not visited.
+pub fn approach_along(load: &[Option<[f64; 6]>], first: [f64; 6]) -> Vec<[f64; 6]> {
+    let mut last = first;
+    let mut prev: Option<[f64; 6]> = None;
+    load.iter()
+        .map(|q| {
+            if let (Some(a), Some(b)) = (prev, q) {
+                for j in 0..6 {
+                    let d = b[j] - a[j];
+                    if d != 0.0 {
+                        last[j] = d.signum();
+                    }
+                }
+            }
+            if q.is_some() {
+                prev = *q;
+            }
+            last
+        })
+        .collect()
+}
+
 /// The output CSV: every input row repeated with its compensation. A compensated row carries
 /// the joints as printed (controller axes, deg), the nominal TCP pose at those joints (the
 /// Cartesian target for a nominal-IK controller) and the calibrated robot's TCP position error
@@ -324,7 +434,7 @@ pub fn write(
                     s += &fmt_fixed(v / DEG, DECIMALS);
                 }
                 s += ",";
-                s += &fmt_fixed(comp.residual(&c.target, &qp) * 1e6, 3);
+                s += &fmt_fixed(comp.residual(&c.target, &qp, &c.approach) * 1e6, 3);
             }
             _ => {
                 s += &",".repeat(12);

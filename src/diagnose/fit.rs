@@ -74,8 +74,10 @@ impl Param {
 /// general basis (mass and first moments of every link after the joint) times each joint's
 /// compliance. A cyclic error takes the harmonic orders the data support (bit h − 1 of the mask
 /// for order h). A thermal drift is a first-order lag with its own time constant, or linear in
-/// a logged temperature. A servo lag is a delay, or a delay with a second-order term (a
-/// first-order servo loop lags by τ·q̇ − τ²·q̈, a pure delay by τ·q̇ − τ²/2·q̈).
+/// a logged temperature; either one scale for every link, or one per link (bit i of the mask
+/// for DH row i: a link of no length has nothing to grow). A servo lag is a delay, or a delay
+/// with a second-order term (a first-order servo loop lags by τ·q̇ − τ²·q̈, a pure delay by
+/// τ·q̇ − τ²/2·q̈).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Basis {
     Standard,
@@ -83,6 +85,8 @@ pub enum Basis {
     Harmonics(u8),
     Lag,
     Temperature,
+    LagLinks(u8),
+    TemperatureLinks(u8),
     SecondOrder,
 }
 
@@ -99,6 +103,28 @@ impl Basis {
             _ => Vec::new(),
         }
     }
+
+    /// The links (DH rows, 0-based) a per-link thermal drift grows.
+    pub fn links(&self) -> Vec<usize> {
+        match *self {
+            Basis::LagLinks(mask) | Basis::TemperatureLinks(mask) => {
+                (0..6).filter(|i| mask & (1 << i) != 0).collect()
+            }
+            _ => Vec::new(),
+        }
+    }
+
+    /// A thermal drift in the form of a first-order lag (one scale or one per link).
+    pub fn is_lag(&self) -> bool {
+        matches!(self, Basis::Lag | Basis::LagLinks(_))
+    }
+}
+
+/// The DH rows a per-link thermal drift can grow: those with a length (a or d) over 1 mm.
+pub fn grown_links(p: &Params) -> u8 {
+    (0..6)
+        .filter(|&i| p.dh[i].a.abs() + p.dh[i].d.abs() > 1e-3)
+        .fold(0u8, |m, i| m | (1 << i))
 }
 
 /// One effect of the model and its coefficients.
@@ -190,8 +216,8 @@ impl Estimate {
     pub fn add_effect(&mut self, effect: Effect, basis: Basis, tau0: f64) {
         let n = effect_cols(effect, basis).len();
         let mut coef = vec![0.0; n];
-        if effect == Effect::ThermalDrift && basis == Basis::Lag {
-            coef[1] = tau0.clamp(TAU_RANGE.0, TAU_RANGE.1);
+        if effect == Effect::ThermalDrift && basis.is_lag() {
+            coef[n - 1] = tau0.clamp(TAU_RANGE.0, TAU_RANGE.1);
         }
         self.effects.push(Term {
             effect,
@@ -210,12 +236,93 @@ impl Estimate {
             })
     }
 
-    /// The thermal lag's amplitude and time constant, when the model has one.
-    fn lag(&self) -> Option<(f64, f64)> {
-        self.effects
+    /// The thermal lag's amplitude per link and time constant, when the model has one.
+    fn lag(&self) -> Option<([f64; 6], f64)> {
+        let t = self
+            .effects
             .iter()
-            .find(|t| t.effect == Effect::ThermalDrift && t.basis == Basis::Lag)
-            .map(|t| (t.coef[0], t.coef[1]))
+            .find(|t| t.effect == Effect::ThermalDrift && t.basis.is_lag())?;
+        let tau = *t.coef.last()?;
+        Some((growth_per_link(t.basis, &t.coef), tau))
+    }
+}
+
+impl Estimate {
+    /// The general gravity basis of a joint compliance (mass and first moments of every link
+    /// after the joint) holds exact dependencies: links whose frames share an origin give one
+    /// mass column twice. Along such a dependency the fit may leave coefficients of any size
+    /// that cancel (10⁹ seen), which no file can carry: rounding the geometry to a nanometre
+    /// then moves the deflection by micrometres. This replaces them by the smallest
+    /// coefficients that give the same deflections over `poses` (the whole joint space): per
+    /// joint, the columns scaled to unit norm, the coefficients projected on the right
+    /// singular vectors above 1e-10 of the largest singular value.
+    pub fn tidy_compliance(&mut self, problem: &Problem, poses: &[[f64; 6]]) {
+        let p = Params::from_array(&self.p);
+        let Some(t) = self
+            .effects
+            .iter_mut()
+            .find(|t| t.effect == Effect::JointCompliance && t.basis == Basis::Standard)
+        else {
+            return;
+        };
+        let frames: Vec<[crate::robot::Frame; 8]> = poses
+            .iter()
+            .map(|q| chain_frames(&problem.model.base, &p.dh, &problem.model.flange, q))
+            .collect();
+        let cols = effect_cols(Effect::JointCompliance, Basis::Standard);
+        for j in 0..6 {
+            let idx: Vec<usize> = (0..cols.len())
+                .filter(|&n| matches!(cols[n], Col::Comp(jj, ..) if jj == j))
+                .collect();
+            if idx.is_empty() {
+                continue;
+            }
+            let mut a = DMatrix::from_fn(frames.len(), idx.len(), |r, c| match cols[idx[c]] {
+                Col::Comp(jj, i, comp) => gravity_basis(&frames[r], jj, i, comp),
+                _ => 0.0,
+            });
+            // A column that is rounding noise (a mass on the joint's own axis has no torque
+            // about it) carries nothing: its coefficient is zero.
+            let norms: Vec<f64> = (0..idx.len()).map(|c| a.column(c).norm()).collect();
+            let largest = norms.iter().copied().fold(0.0, f64::max);
+            let scale: Vec<f64> = norms
+                .iter()
+                .map(|&n| if n > 1e-9 * largest { n } else { 0.0 })
+                .collect();
+            for (c, sc) in scale.iter().enumerate() {
+                let f = if *sc > 0.0 { 1.0 / sc } else { 0.0 };
+                a.column_mut(c).scale_mut(f);
+            }
+            let svd = a.svd(false, true);
+            let Some(vt) = svd.v_t else { continue };
+            let top = svd.singular_values.iter().copied().fold(0.0, f64::max);
+            let x = DVector::from_fn(idx.len(), |c, _| t.coef[idx[c]] * scale[c]);
+            let mut y = DVector::zeros(idx.len());
+            for (k, sv) in svd.singular_values.iter().enumerate() {
+                if *sv > 1e-10 * top {
+                    let v = vt.row(k).transpose();
+                    y += &v * v.dot(&x);
+                }
+            }
+            for (c, &n) in idx.iter().enumerate() {
+                t.coef[n] = if scale[c] > 0.0 { y[c] / scale[c] } else { 0.0 };
+            }
+        }
+    }
+}
+
+/// A thermal drift's coefficients as each link's growth per unit of its time function (the lag
+/// 1 − exp(−t/τ), or the temperature rise): one for every link, or one per link of the mask.
+pub fn growth_per_link(basis: Basis, coef: &[f64]) -> [f64; 6] {
+    match basis {
+        Basis::LagLinks(_) | Basis::TemperatureLinks(_) => {
+            let mut g = [0.0; 6];
+            for (n, i) in basis.links().into_iter().enumerate() {
+                g[i] = coef[n];
+            }
+            g
+        }
+        _ => [coef.first().copied().unwrap_or(0.0); 6],
     }
 }
 
@@ -244,6 +351,9 @@ pub(crate) enum Col {
     ThermTau,
     /// Linear in the logged temperature rise.
     ThermTemp,
+    /// Link i's own lag amplitude, and its own coefficient of the temperature rise.
+    ThermAmpLink(usize),
+    ThermTempLink(usize),
     /// joint j, frame i, component 0 = mass at the origin, 1..3 = first moment along x, y, z.
     Comp(usize, usize, usize),
     /// joint j's compliance times its gravity torque from the known masses.
@@ -276,6 +386,15 @@ pub(crate) fn effect_cols(e: Effect, basis: Basis) -> Vec<Col> {
         Effect::ServoLag if basis == Basis::SecondOrder => vec![Col::Servo, Col::Servo2],
         Effect::ServoLag => vec![Col::Servo],
         Effect::ThermalDrift if basis == Basis::Temperature => vec![Col::ThermTemp],
+        Effect::ThermalDrift if matches!(basis, Basis::TemperatureLinks(_)) => {
+            basis.links().into_iter().map(Col::ThermTempLink).collect()
+        }
+        Effect::ThermalDrift if matches!(basis, Basis::LagLinks(_)) => basis
+            .links()
+            .into_iter()
+            .map(Col::ThermAmpLink)
+            .chain([Col::ThermTau])
+            .collect(),
         Effect::ThermalDrift => vec![Col::ThermAmp, Col::ThermTau],
         Effect::JointCompliance => (0..6)
             .flat_map(|j| (j + 1..=6).flat_map(move |i| (0..4).map(move |c| Col::Comp(j, i, c))))
@@ -588,10 +707,35 @@ impl Problem {
     }
 
     /// sin(h·q) and cos(h·q) less their means over joint j's measured range.
-    fn harmonic(&self, j: usize, h: usize, q: f64) -> (f64, f64) {
+    pub(crate) fn harmonic(&self, j: usize, h: usize, q: f64) -> (f64, f64) {
         let (sn, cs) = (h as f64 * q).sin_cos();
         let (ms, mc) = self.harmonic_means[j][h - 1];
         (sn - ms, cs - mc)
+    }
+
+    /// The means of (sin(h·q), cos(h·q)) over joint j's measured range: what the fit's
+    /// harmonics are taken about (the constant part goes to the joint's zero).
+    pub fn harmonic_mean(&self, j: usize, h: usize) -> (f64, f64) {
+        self.harmonic_means[j][h - 1]
+    }
+
+    /// This problem with another's harmonic means: to evaluate an estimate fitted to `other`
+    /// on rows it was not fitted to (its cyclic errors' harmonics are taken about `other`'s).
+    pub fn with_harmonic_means_of(mut self, other: &Problem) -> Self {
+        self.harmonic_means = other.harmonic_means;
+        self
+    }
+
+    /// The joint velocities (rad/s) of row k (zero for a static row).
+    pub fn velocity(&self, k: usize) -> [f64; 6] {
+        self.qdot[k]
+    }
+
+    /// The temperature (°C) of run `r`'s first row, when the runs log one.
+    pub fn first_temperature(&self, r: usize) -> Option<f64> {
+        let t = self.m.temp.as_ref()?;
+        let range = self.ranges.get(r)?;
+        t.get(range.start).copied()
     }
 
     /// The length zero every run was given (m).
@@ -822,8 +966,30 @@ impl Problem {
     /// estimate.
     fn apply(&self, est: &Estimate, prep: &Prep, k: usize) -> ([f64; 6], Params, f64) {
         let q0 = prep.motor.as_ref().map_or(self.m.q[k], |m| m[k]);
-        let mut p = est.params_group(self.fix_of[k] as usize).to_array();
-        let mut q = q0;
+        let backlash: [f64; 6] =
+            std::array::from_fn(|j| prep.back[j].as_ref().map_or(0.0, |b| b.offset[k]));
+        let thermal = ThermalAt {
+            since: self.since[k],
+            rise: self.temp_rise.as_ref().map_or(0.0, |r| r[k]),
+        };
+        let (q, p) = self.pose_model(est, self.fix_of[k] as usize, &q0, &backlash, thermal);
+        (q, p, est.offsets[self.off_of[k] as usize])
+    }
+
+    /// The model of one pose: the load-side joints and the parameters (fixture group `group`)
+    /// the estimate gives for the motor-side angles `q0`, each backlash joint's load offset
+    /// from its motor (`backlash`, rad) and the thermal state. [`Problem::apply`] evaluates the
+    /// rows with it; a pose that was not recorded can be evaluated with it too.
+    pub fn pose_model(
+        &self,
+        est: &Estimate,
+        group: usize,
+        q0: &[f64; 6],
+        backlash: &[f64; 6],
+        thermal: ThermalAt,
+    ) -> ([f64; 6], Params) {
+        let mut p = est.params_group(group).to_array();
+        let mut q = *q0;
         let mut frames = None;
         for t in &est.effects {
             let c = &t.coef;
@@ -834,28 +1000,22 @@ impl Problem {
                         q[j] += c[2 * n] * cs + c[2 * n + 1] * sn;
                     }
                 }
-                Effect::Backlash(j) => {
-                    if let Some(b) = &prep.back[j] {
-                        q[j] += b.offset[k];
-                    }
-                }
+                Effect::Backlash(j) => q[j] += backlash[j],
                 Effect::ThermalDrift => {
-                    let f = match t.basis {
-                        Basis::Temperature => c[0] * self.temp_rise.as_ref().map_or(0.0, |r| r[k]),
-                        _ => c[0] * lag(self.since[k], c[1]).0,
+                    let g = growth_per_link(t.basis, c);
+                    let f = if t.basis.is_lag() {
+                        lag(thermal.since, c[c.len() - 1]).0
+                    } else {
+                        thermal.rise
                     };
                     for i in 0..6 {
-                        p[A + i] *= 1.0 + f;
-                        p[D + i] *= 1.0 + f;
+                        p[A + i] *= 1.0 + g[i] * f;
+                        p[D + i] *= 1.0 + g[i] * f;
                     }
                 }
                 Effect::JointCompliance if t.basis == Basis::KnownMasses => {
-                    let tau = gravity_torques(
-                        &self.model,
-                        &Params::from_array(&est.p),
-                        &q0,
-                        &self.masses,
-                    );
+                    let tau =
+                        gravity_torques(&self.model, &Params::from_array(&est.p), q0, &self.masses);
                     for j in 0..6 {
                         q[j] += c[j] * tau[j];
                     }
@@ -866,7 +1026,7 @@ impl Problem {
                             &self.model.base,
                             &Params::from_array(&est.p).dh,
                             &self.model.flange,
-                            &q0,
+                            q0,
                         )
                     });
                     let cols = effect_cols(Effect::JointCompliance, Basis::Standard);
@@ -879,11 +1039,7 @@ impl Problem {
                 Effect::Geometric | Effect::ServoLag => {}
             }
         }
-        (
-            q,
-            Params::from_array(&p),
-            est.offsets[self.off_of[k] as usize],
-        )
+        (q, Params::from_array(&p))
     }
 
     /// Fills the regressor values of row k for `cols`; returns the residual measured − model
@@ -914,11 +1070,8 @@ impl Problem {
             Some((v, a)) => (v[k], a[k]),
             None => (self.qdot[k], self.qddot[k]),
         };
-        let sens = || -> f64 {
-            (0..6)
-                .map(|i| est.p[A + i] * j[A + i] + est.p[D + i] * j[D + i])
-                .sum()
-        };
+        let sens_link = |i: usize| -> f64 { est.p[A + i] * j[A + i] + est.p[D + i] * j[D + i] };
+        let sens = || -> f64 { (0..6).map(sens_link).sum() };
         let (fg, og) = (self.fix_of[k] as usize, self.off_of[k] as usize);
         for (o, c) in out.iter_mut().zip(cols) {
             *o = match *c {
@@ -954,11 +1107,21 @@ impl Problem {
                     Some((_, tau)) => sens() * lag(self.since[k], tau).0,
                     None => 0.0,
                 },
+                Col::ThermAmpLink(i) => match est.lag() {
+                    Some((_, tau)) => sens_link(i) * lag(self.since[k], tau).0,
+                    None => 0.0,
+                },
                 Col::ThermTau => match est.lag() {
-                    Some((amp, tau)) => sens() * amp * lag(self.since[k], tau).1,
+                    Some((amp, tau)) => {
+                        (0..6).map(|i| amp[i] * sens_link(i)).sum::<f64>()
+                            * lag(self.since[k], tau).1
+                    }
                     None => 0.0,
                 },
                 Col::ThermTemp => sens() * self.temp_rise.as_ref().map_or(0.0, |r| r[k]),
+                Col::ThermTempLink(i) => {
+                    sens_link(i) * self.temp_rise.as_ref().map_or(0.0, |r| r[k])
+                }
                 Col::Comp(jj, i, comp) => match &fr {
                     Some(fr) => j[THETA + jj] * gravity_basis(fr, jj, i, comp),
                     None => 0.0,
@@ -998,6 +1161,14 @@ impl Problem {
         let (q, p, _) = self.apply(est, &prep, k);
         (q, p)
     }
+}
+
+/// The thermal state of a pose: the time since its run's start (s) and the logged
+/// temperature's rise since then (K).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct ThermalAt {
+    pub since: f64,
+    pub rise: f64,
 }
 
 /// Per-row joint velocities and accelerations.
@@ -1102,7 +1273,7 @@ pub(crate) fn prepare(problem: &Problem, est: &Estimate) -> Prep {
 
 /// Torque about joint j per unit mass (comp 0, mass at frame i's origin) or per unit first
 /// moment along frame i's axis comp (1..3), gravity −z of the base.
-fn gravity_basis(fr: &[crate::robot::Frame; 8], j: usize, i: usize, comp: usize) -> f64 {
+pub(crate) fn gravity_basis(fr: &[crate::robot::Frame; 8], j: usize, i: usize, comp: usize) -> f64 {
     let z = fr[j].r.column(2);
     let f = Vector3::new(0.0, 0.0, -G);
     let arm = if comp == 0 {
@@ -1518,8 +1689,9 @@ fn add_step(est: &mut Estimate, cols: &[Col], x: &DVector<f64>) {
             *v += x[k];
             k += 1;
         }
-        if t.effect == Effect::ThermalDrift && t.basis == Basis::Lag {
-            t.coef[1] = t.coef[1].clamp(TAU_RANGE.0, TAU_RANGE.1);
+        if t.effect == Effect::ThermalDrift && t.basis.is_lag() {
+            let last = t.coef.len() - 1;
+            t.coef[last] = t.coef[last].clamp(TAU_RANGE.0, TAU_RANGE.1);
         }
     }
 }

@@ -225,6 +225,31 @@ pub fn effect_report(e: Effect, basis: Basis, coef: &[f64], var: &[f64]) -> Effe
             params.insert("alpha_per_k".into(), round(coef[0], 12).into());
             std.insert("alpha_per_k".into(), sane(round_std(sd(0), 12)));
         }
+        Effect::ThermalDrift if !basis.links().is_empty() => {
+            // One growth per link (DH row; null: a row of no length, not grown).
+            let links = basis.links();
+            let per = |f: &dyn Fn(usize) -> serde_json::Value| -> serde_json::Value {
+                (0..6)
+                    .map(|i| match links.iter().position(|l| *l == i) {
+                        Some(n) => f(n),
+                        None => serde_json::Value::Null,
+                    })
+                    .collect::<Vec<_>>()
+                    .into()
+            };
+            let key = if basis.is_lag() {
+                "scale_per_link"
+            } else {
+                "alpha_per_k_per_link"
+            };
+            params.insert(key.into(), per(&|n| round(coef[n], 12).into()));
+            std.insert(key.into(), per(&|n| sane(round_std(sd(n), 12))));
+            if basis.is_lag() {
+                let k = links.len();
+                params.insert("time_constant_s".into(), round(coef[k], 3).into());
+                std.insert("time_constant_s".into(), sane(round_std(sd(k), 3)));
+            }
+        }
         Effect::ThermalDrift => {
             // Lengths scale by 1 + s·(1 − exp(−t/τ)): the scale reached and the time constant.
             params.insert("scale".into(), round(coef[0], 12).into());
@@ -380,7 +405,7 @@ fn locate(m: &Measured, r: &[f64]) -> Option<Where> {
 
 /// A standard uncertainty rounded to `d` decimals, or to two significant digits where that
 /// would print a nonzero one as 0 (a servo lag known to 0.3 µs is not known exactly).
-fn round_std(v: f64, d: i32) -> f64 {
+pub(crate) fn round_std(v: f64, d: i32) -> f64 {
     let r = round(v, d);
     if r != 0.0 || v == 0.0 || !v.is_finite() {
         return r;
@@ -484,6 +509,8 @@ pub fn form_name(e: Effect, b: Basis) -> String {
         (Effect::JointCompliance, _) => "general_basis".into(),
         (_, Basis::Lag) => "lag".into(),
         (_, Basis::Temperature) => "temperature".into(),
+        (_, Basis::LagLinks(_)) => "lag per link".into(),
+        (_, Basis::TemperatureLinks(_)) => "temperature per link".into(),
         (_, Basis::SecondOrder) => "second_order".into(),
         (Effect::ServoLag, _) => "delay".into(),
         _ => "play".into(),
@@ -811,10 +838,20 @@ pub fn select(
         // The linearised score judged the forms at a geometry that still absorbs the effect;
         // an effect with two forms (joint compliance with and without known masses) is
         // refitted in both and the better BIC kept, so the small model wins where it is right.
-        let forms: Vec<Basis> = if e == Effect::JointCompliance && !problem.masses.is_empty() {
-            vec![Basis::KnownMasses, Basis::Standard]
-        } else {
-            vec![basis]
+        // A thermal drift likewise: one scale for the whole arm, or one per link (a link that
+        // warms more than another, a motor on the upper arm), the small one where it is right.
+        let links = fit::grown_links(&problem.model.nominal);
+        let forms: Vec<Basis> = match (e, basis) {
+            (Effect::JointCompliance, _) if !problem.masses.is_empty() => {
+                vec![Basis::KnownMasses, Basis::Standard]
+            }
+            (Effect::ThermalDrift, Basis::Lag) if links.count_ones() > 1 => {
+                vec![Basis::Lag, Basis::LagLinks(links)]
+            }
+            (Effect::ThermalDrift, Basis::Temperature) if links.count_ones() > 1 => {
+                vec![Basis::Temperature, Basis::TemperatureLinks(links)]
+            }
+            _ => vec![basis],
         };
         let mut chosen: Option<(Estimate, fit::Stats, f64, Basis)> = None;
         for b in forms {

@@ -118,6 +118,23 @@ impl MeasurementModel {
         (self.map_position(p, q) - p.fix).norm()
     }
 
+    /// The length the bar reads on a robot with `effects` (a calibrated robot file's)
+    /// commanded `q`, each joint coming from `approach`, at the reference state of a drift.
+    pub fn reached_length(
+        &self,
+        p: &Params,
+        effects: &crate::robot::effects::Effects,
+        q: &[f64; 6],
+        approach: &[f64; 6],
+    ) -> f64 {
+        if effects.act_on_poses() {
+            let load = effects.load(&self.base, &p.dh, &self.flange, q, approach);
+            (self.map_position(p, &load) - p.fix).norm()
+        } else {
+            self.length(p, q)
+        }
+    }
+
     /// One row of the identification Jacobian, ∂L/∂p at (q, p), computed analytically from the
     /// joint frames (the kinematic regressor of the DH chain). Returns L. Allocation-free.
     ///

@@ -124,7 +124,12 @@ fn moves(ck: &Checker, planned: &Planned, path: &Path, dwell: f64) -> Vec<Move> 
                 time_s: t,
                 cruise_s: cruise,
                 blend_value: w.blend_value,
-                length_mm: to_mm(model.length(&model.nominal, &w.q)),
+                length_mm: to_mm(model.reached_length(
+                    &model.nominal,
+                    &ck.robot.effects,
+                    &w.q,
+                    &[0.0; 6],
+                )),
                 note: String::new(),
                 pause: String::new(),
                 pause_before: String::new(),

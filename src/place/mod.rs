@@ -1,4 +1,4 @@
-//! Fixture placement (issue 15): in = a robot, its cell and candidate fixture positions (a grid
+//! Fixture placement: in = a robot, its cell and candidate fixture positions (a grid
 //! over a region, positions the user names, the cell's own fixture); out = every candidate
 //! scored by what a calibration from a compile there would buy, the ranking, and the best
 //! campaign of K fixtures. No file I/O, no printing.

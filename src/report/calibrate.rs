@@ -274,11 +274,52 @@ pub fn page(c: &Calibration, robot: &str, inputs_sha256: &str) -> Result<Page, R
         });
     }
     if !effects.is_empty() {
+        let sizes: Vec<Vec<String>> = r
+            .effect_sizes
+            .iter()
+            .map(|e| {
+                vec![
+                    match e.joint {
+                        Some(j) => format!("{} (joint {j})", e.effect),
+                        None => e.effect.to_string(),
+                    },
+                    fmt_fixed(e.workspace_rms_um, 2),
+                    fmt_fixed(e.workspace_p95_um, 2),
+                    fmt_fixed(e.measured_region_rms_um, 2),
+                    e.at.clone(),
+                    if e.delivered { "yes" } else { "no" }.to_string(),
+                    fmt_fixed(p.model_workspace_rms, 2),
+                    fmt_fixed(e.prediction_without_um, 2),
+                ]
+            })
+            .collect();
+        let carried = if r.delivered.content == "geometry only" {
+            "The robot file was written with the geometry only (--geometry-only): every command evaluates the robot without these effects, and the predicted accuracy includes what they do."
+        } else {
+            "The calibrated robot file carries them in its [effects] section (a URDF in the sidecar its header names): compensate, simulate and every command that evaluates the robot apply them."
+        };
         sections.push(Section {
             heading: "Effects fitted with the geometry".into(),
             blocks: vec![
-                Block::text("Not part of the calibrated robot file: a DH table or a URDF has no place for them."),
+                Block::text(carried),
                 Block::table(&["effect", "parameter", "value", "std"], effects),
+                Block::text(format!(
+                    "What each effect does: the MAP displacement it causes, after a best rigid registration, over random poses of the joint space and where measured; the predicted accuracy over the joint space with it applied and without it. A thermal drift is referred to {}.",
+                    r.delivered.thermal_reference
+                )),
+                Block::table(
+                    &[
+                        "effect",
+                        "joint space RMS [µm]",
+                        "p95 [µm]",
+                        "where measured RMS [µm]",
+                        "taken",
+                        "in the robot file",
+                        "predicted with it [µm]",
+                        "predicted without it [µm]",
+                    ],
+                    sizes,
+                ),
             ],
         });
     }

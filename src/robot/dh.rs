@@ -16,6 +16,9 @@ struct Spec {
     #[serde(default)]
     tool: Option<[f64; 3]>,
     joints: Vec<JointSpec>,
+    /// A calibration's effects (`robot::effects`).
+    #[serde(default)]
+    effects: Option<toml::Value>,
 }
 
 #[derive(Deserialize)]
@@ -115,6 +118,10 @@ pub fn from_str(text: &str, path: &Path) -> Result<Robot, LoadError> {
             }),
         }
     });
+    let effects = match spec.effects {
+        Some(v) => super::effects::from_toml(v).map_err(|e| LoadError::invalid(path, e))?,
+        None => Default::default(),
+    };
     Ok(Robot {
         name: spec.name,
         source: path
@@ -130,6 +137,7 @@ pub fn from_str(text: &str, path: &Path) -> Result<Robot, LoadError> {
         passive: Vec::new(),
         notes: Vec::new(),
         masses: Vec::new(),
+        effects,
         digest: String::new(),
     })
 }
@@ -142,12 +150,14 @@ const CALIBRATION_MARK: &str = "# --- edbbgen calibration ---";
 /// `tool` (the MAP) set to the calibrated values in the file's own units; comments, names,
 /// limits, speeds and every other key kept; `header` lines as a comment block on top.
 /// Lengths are written to 1e-9 of the unit, angles to 1e-10 (far below any instrument).
+/// `effects` (the `[effects]` table as text, or empty) replaces an earlier calibration's.
 pub fn calibrated(
     text: &str,
     path: &Path,
     dh: &[Dh; 6],
     tool: &Vector3<f64>,
     header: &[String],
+    effects: &str,
 ) -> Result<String, LoadError> {
     // The same checks as loading: the units, six joints.
     from_str(text, path)?;
@@ -217,6 +227,7 @@ pub fn calibrated(
             doc.insert("tool", toml_edit::value(arr));
         }
     }
+    doc.remove("effects");
     let mut out = String::from(CALIBRATION_MARK);
     out.push('\n');
     for l in header {
@@ -225,7 +236,14 @@ pub fn calibrated(
         out.push('\n');
     }
     out.push_str("# ---\n");
-    out.push_str(&doc.to_string());
+    let body = doc.to_string();
+    if effects.is_empty() {
+        out.push_str(&body);
+    } else {
+        out.push_str(body.trim_end());
+        out.push_str("\n\n");
+        out.push_str(effects);
+    }
     Ok(out)
 }
 

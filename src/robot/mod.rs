@@ -5,6 +5,7 @@
 //! model (Eq. 1-6) and its 30-parameter vector work the same for all of them.
 
 pub mod dh;
+pub mod effects;
 pub mod kinematics;
 pub mod urdf;
 
@@ -179,6 +180,10 @@ pub struct Robot {
     /// Link masses from the URDF inertials, by frame; empty when the file has none.
     #[serde(default)]
     pub masses: Vec<PointMass>,
+    /// The effects a calibration adopted beside the geometry (`[effects]` of a `.dh.toml`, a
+    /// URDF's sidecar file); none for a nominal robot.
+    #[serde(default)]
+    pub effects: effects::Effects,
     /// SHA-256 of the robot file's bytes (set by [`load`]): part of the program's input hash.
     pub digest: String,
 }
@@ -263,8 +268,29 @@ pub fn load(path: &Path, opts: &LoadOptions) -> Result<Robot, LoadError> {
         }
     }
     robot.validate(path)?;
+    // A calibrated URDF names the sidecar file its effects are in: read it, or fail (a robot
+    // whose effects are dropped silently is not the robot that was calibrated).
+    let mut digest_text = text.clone();
+    if matches!(ext.as_str(), "urdf" | "xml") {
+        if let Some(name) = effects::sidecar_name(&text) {
+            let side = path.parent().unwrap_or(Path::new("")).join(&name);
+            let side_text = crate::files::read_text(&side, crate::files::Kind::Robot).map_err(
+                |e| {
+                    LoadError::invalid(
+                        path,
+                        format!(
+                            "names its effects file {name} (the calibration's sidecar), which cannot be read: {e}"
+                        ),
+                    )
+                },
+            )?;
+            robot.effects =
+                effects::from_sidecar(&side_text).map_err(|e| LoadError::invalid(&side, e))?;
+            digest_text.push_str(&side_text);
+        }
+    }
     Ok(Robot {
-        digest: sha256_hex(text.as_bytes()),
+        digest: sha256_hex(digest_text.as_bytes()),
         ..robot
     })
 }

@@ -59,49 +59,9 @@ fn convert(text: &str, path: &Path, opts: &LoadOptions) -> Result<Robot, String>
     } = layout(&doc, opts)?;
     let n_links = doc.links.len();
 
-    // The six joint axes as lines in the root frame at q = 0, signs kept.
-    let mut axes = [Line {
-        p: V3::zeros(),
-        z: V3::z(),
-    }; 6];
-    for (k, &j) in revolute.iter().enumerate() {
-        let joint = &doc.joints[j];
-        let a = V3::from(joint.axis.xyz.0);
-        let n = a.norm();
-        if !(n.is_finite() && n > 1e-12) {
-            return Err(format!("joint {}: axis is zero or not finite", joint.name));
-        }
-        let child = &pose0[tree.link_of[joint.child.link.as_str()]];
-        axes[k] = Line {
-            p: child.t,
-            z: child.r * (a / n),
-        };
-    }
+    let (dh, frames, base, flange) =
+        chain_of(&doc, &tree, &revolute, &pose0, &group, flange_link, opts)?;
     let flange0 = pose0[flange_link];
-    let size = axes
-        .iter()
-        .map(|l| l.p.norm())
-        .fold(flange0.t.norm(), f64::max)
-        .max(1e-3);
-    let (dh, frames) = dh_from_axes(&axes, &flange0, size);
-    // The robot base frame: the root link's, or a link rigid with it (e.g. ROS-I `base`).
-    let base = match &opts.base_link {
-        None => frames[0],
-        Some(name) => {
-            let l = *tree
-                .link_of
-                .get(name.as_str())
-                .ok_or_else(|| format!("base link {name}: no link of that name in the URDF"))?;
-            if group[l] != Some(0) {
-                return Err(format!(
-                    "base link {name}: it moves with the joints; the base must be the root link {} or fixed to it",
-                    doc.links[tree.root].name
-                ));
-            }
-            pose0[l].inverse().mul(&frames[0])
-        }
-    };
-    let flange = frames[6].inverse().mul(&flange0);
 
     let joints: [Joint; 6] = std::array::from_fn(|k| {
         let joint = &doc.joints[revolute[k]];
@@ -281,8 +241,85 @@ fn convert(text: &str, path: &Path, opts: &LoadOptions) -> Result<Robot, String>
         passive,
         notes,
         masses,
+        effects: Default::default(),
         digest: String::new(),
     })
+}
+
+/// The DH chain of a URDF's six joints: the DH table from the joint axes at q = 0 and the
+/// fixed transforms base → DH frame 0 and DH frame 6 → flange.
+#[allow(clippy::too_many_arguments)]
+fn chain_of(
+    doc: &urdf_rs::Robot,
+    tree: &Tree,
+    revolute: &[usize],
+    pose0: &[Frame],
+    group: &[Option<usize>],
+    flange_link: usize,
+    opts: &LoadOptions,
+) -> Result<([Dh; 6], [Frame; 7], Frame, Frame), String> {
+    // The six joint axes as lines in the root frame at q = 0, signs kept.
+    let mut axes = [Line {
+        p: V3::zeros(),
+        z: V3::z(),
+    }; 6];
+    for (k, &j) in revolute.iter().enumerate() {
+        let joint = &doc.joints[j];
+        let a = V3::from(joint.axis.xyz.0);
+        let n = a.norm();
+        if !(n.is_finite() && n > 1e-12) {
+            return Err(format!("joint {}: axis is zero or not finite", joint.name));
+        }
+        let child = &pose0[tree.link_of[joint.child.link.as_str()]];
+        axes[k] = Line {
+            p: child.t,
+            z: child.r * (a / n),
+        };
+    }
+    let flange0 = pose0[flange_link];
+    let size = axes
+        .iter()
+        .map(|l| l.p.norm())
+        .fold(flange0.t.norm(), f64::max)
+        .max(1e-3);
+    let (dh, frames) = dh_from_axes(&axes, &flange0, size);
+    // The robot base frame: the root link's, or a link rigid with it (e.g. ROS-I `base`).
+    let base = match &opts.base_link {
+        None => frames[0],
+        Some(name) => {
+            let l = *tree
+                .link_of
+                .get(name.as_str())
+                .ok_or_else(|| format!("base link {name}: no link of that name in the URDF"))?;
+            if group[l] != Some(0) {
+                return Err(format!(
+                    "base link {name}: it moves with the joints; the base must be the root link {} or fixed to it",
+                    doc.links[tree.root].name
+                ));
+            }
+            pose0[l].inverse().mul(&frames[0])
+        }
+    };
+    let flange = frames[6].inverse().mul(&flange0);
+    Ok((dh, frames, base, flange))
+}
+
+/// The DH chain (base transform, DH table, flange transform) a URDF text loads to, without
+/// its meshes: what a calibrated URDF's effects are referred to.
+pub fn dh_chain(text: &str, opts: &LoadOptions) -> Result<(Frame, [Dh; 6], Frame), String> {
+    let patched = with_default_velocity(text);
+    let doc = urdf_rs::read_from_string(&patched).map_err(|e| format!("not a valid URDF: {e}"))?;
+    let lay = layout(&doc, opts)?;
+    let (dh, _, base, flange) = chain_of(
+        &doc,
+        &lay.tree,
+        &lay.revolute,
+        &lay.pose0,
+        &lay.group,
+        lay.flange_link,
+        opts,
+    )?;
+    Ok((base, dh, flange))
 }
 
 /// The chain of a URDF: its tree, flange link, the six revolute joints on the root → flange

@@ -10,7 +10,7 @@
 //! the end of the first move with the start of the second (a parabolic blend, LinuxCNC's). The
 //! checker proves it safe as a surface ([`crate::safety::Checker::patch`]).
 //!
-//! edbbgen's intended blend (the old convention, kept for the LDBB circle's own planning): the
+//! edbbgen's intended blend (used only for the LDBB circle's own planning): the
 //! controller leaves the incoming move where the MAP comes within the blend distance of its
 //! position at k, and joins the second where the MAP leaves that distance again, each on at most
 //! half of its move, following the joint-space quadratic Bézier with k as control point.

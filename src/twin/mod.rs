@@ -21,8 +21,14 @@ pub use truth::Truth;
 
 use crate::dialect::Parsed;
 use crate::model::{MeasurementModel, Params, A, D, N_PARAMS};
-use crate::robot::Robot;
+use crate::robot::effects::{Effects as RobotEffects, ThermalState};
+use crate::robot::{Dh, Frame, Robot};
 use rand::{Rng, SeedableRng};
+
+/// Steps of the motion between two samples a play operator follows (the motor may turn
+/// between samples: where it does, the load is pushed to within (step/2)² of the turn's
+/// curvature of where a continuous operator would leave it).
+const PLAY_STEPS: usize = 32;
 
 #[derive(Clone, Debug)]
 pub struct SimOptions {
@@ -113,6 +119,12 @@ pub struct Sampler<'a> {
     t0: f64,
     /// The backlash joint's load-side angle at the previous sample.
     load_b: Option<f64>,
+    /// The robot file's own effects (a calibrated robot) and its reference geometry: the
+    /// robot the truth's deviations are added to.
+    effects: RobotEffects,
+    reference: (Frame, [Dh; 6], Frame),
+    /// Per backlash of the robot file: the load-side angle at the previous sample.
+    load_file: Vec<Option<f64>>,
     /// Program time of the previous sample.
     prev_ts: Option<f64>,
     rng: rand_chacha::ChaCha8Rng,
@@ -142,6 +154,9 @@ impl<'a> Sampler<'a> {
             masses: truth.compliance_masses(robot),
             t0,
             load_b: None,
+            effects: robot.effects.clone(),
+            reference: (robot.base, robot.dh, robot.flange),
+            load_file: vec![None; robot.effects.backlash.len()],
             prev_ts: None,
             rng: rand_chacha::ChaCha8Rng::seed_from_u64(seed),
         }
@@ -152,21 +167,62 @@ impl<'a> Sampler<'a> {
     pub fn sample(&mut self, ts: f64, t: f64) -> ([f64; 6], f64) {
         let truth = self.truth;
         let setpoint = self.traj.position(ts);
-        // Servo lag: the axes follow the logged setpoints with a delay.
-        let motor = match truth.servo_lag {
-            Some(tau) => self.traj.position(ts - tau),
-            None => setpoint,
+        // Servo lag: the axes follow the logged setpoints with a delay (the truth's and the
+        // robot file's, in series; the file's with its second-order term).
+        let lag =
+            truth.servo_lag.unwrap_or(0.0) + self.effects.servo_lag.as_ref().map_or(0.0, |l| l.tau);
+        let mut motor = match (truth.servo_lag, &self.effects.servo_lag) {
+            (None, None) => setpoint,
+            _ => self.traj.position(ts - lag),
         };
+        if let Some(l) = self
+            .effects
+            .servo_lag
+            .as_ref()
+            .filter(|l| l.second_order != 0.0)
+        {
+            let h = 1e-3;
+            let (a, b) = (
+                self.traj.position(ts - lag - h),
+                self.traj.position(ts - lag + h),
+            );
+            for j in 0..6 {
+                motor[j] += l.second_order * (a[j] - 2.0 * motor[j] + b[j]) / (h * h);
+            }
+        }
         let mut load = motor;
+        // The robot file's effects: cyclic errors and compliance on the motor angles, its
+        // backlash through a play operator of its own along the motion.
+        if self.effects.act_on_poses() {
+            let (b, dh, f) = &self.reference;
+            load = self.effects.load(b, dh, f, &motor, &[0.0; 6]);
+            for (k, bl) in self.effects.backlash.iter().enumerate() {
+                let j = bl.joint;
+                let x = motor[j];
+                let y = match (self.load_file[k], self.prev_ts) {
+                    (Some(mut y), Some(tp)) => {
+                        for i in 1..=PLAY_STEPS {
+                            let ti = tp + (ts - tp) * i as f64 / PLAY_STEPS as f64;
+                            y = effects::play(y, self.traj.position(ti - lag)[j], bl.play);
+                        }
+                        y
+                    }
+                    (Some(y), None) => effects::play(y, x, bl.play),
+                    (None, _) => x - 0.5 * bl.play * self.traj.first_direction(j, self.t0),
+                };
+                self.load_file[k] = Some(y);
+                load[j] += y - x;
+            }
+        }
         if let Some(b) = &truth.backlash {
             let x = motor[b.joint];
             let y = match (self.load_b, self.prev_ts) {
                 // The play follows the motor through the motion since the last sample (it
                 // may have turned between samples): 8 steps along the trajectory.
                 (Some(mut y), Some(tp)) => {
-                    for i in 1..=8 {
-                        let ti = tp + (ts - tp) * i as f64 / 8.0;
-                        let xi = self.traj.position(ti - truth.servo_lag.unwrap_or(0.0))[b.joint];
+                    for i in 1..=PLAY_STEPS {
+                        let ti = tp + (ts - tp) * i as f64 / PLAY_STEPS as f64;
+                        let xi = self.traj.position(ti - lag)[b.joint];
                         y = effects::play(y, xi, b.play);
                     }
                     y
@@ -194,6 +250,21 @@ impl<'a> Sampler<'a> {
             }
         }
         let mut p = self.truep;
+        // The robot file's thermal drift: a lag from the recording's start (its reference
+        // state), one referred to a temperature at the temperature the twin logs.
+        if self.effects.thermal.is_some() {
+            let state = match self.effects.thermal {
+                Some(crate::robot::effects::Thermal::Temperature { .. }) => {
+                    ThermalState::Temperature(self.file_temperature(t))
+                }
+                _ => ThermalState::Elapsed(t),
+            };
+            let g = self.effects.growth(state);
+            for i in 0..6 {
+                p[A + i] *= 1.0 + g[i];
+                p[D + i] *= 1.0 + g[i];
+            }
+        }
         if let Some(th) = &truth.thermal {
             let s = 1.0 + th.alpha * th.delta(t);
             for i in 0..6 {
@@ -216,12 +287,24 @@ impl<'a> Sampler<'a> {
             l
         };
         // Encoders see the motor side; with servo lag the controller logs its setpoints.
-        let logged = if truth.servo_lag.is_some() {
+        let logged = if truth.servo_lag.is_some() || self.effects.servo_lag.is_some() {
             setpoint
         } else {
             motor
         };
         (logged, l)
+    }
+
+    /// The temperature a robot file's drift referred to a temperature sees: the twin's log
+    /// when the truth has a drift, else the file's reference (no growth).
+    fn file_temperature(&self, t: f64) -> f64 {
+        match (&self.truth.thermal, &self.effects.thermal) {
+            (Some(_), _) => self.temperature(t),
+            (None, Some(crate::robot::effects::Thermal::Temperature { reference_c, .. })) => {
+                *reference_c
+            }
+            _ => truth::AMBIENT_C,
+        }
     }
 
     /// The temperature the log's `temp_c` column holds at time t (°C).

@@ -13,8 +13,8 @@
 
 pub mod trace;
 
-/// The RS274/NGC reader under its old path (`verify::gcode::parse` reads ngc text with the
-/// identity mapping); the readers live in [`crate::dialect`].
+/// The RS274/NGC reader as `verify::gcode::parse` (ngc text with the identity mapping); the
+/// readers live in [`crate::dialect`].
 pub mod gcode {
     pub use crate::dialect::{Line, ParseError, Parsed, Step, Timing};
 

@@ -9,12 +9,21 @@ pub fn root() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
 }
 
-/// The shared public robots (../shared/robots, never copied into the project).
+/// The shared folder of public robots and measured data, `../shared` beside the checkout (never
+/// copied into the project; the library's unit tests look there too).
+pub fn shared() -> PathBuf {
+    let dir = root().join("../shared");
+    assert!(
+        dir.join("robots").is_dir(),
+        "the shared robots are not at {}: the checkout must sit beside shared/",
+        dir.display()
+    );
+    dir
+}
+
+/// A shared public robot's URDF (`shared()/robots/NAME/robot.urdf`).
 pub fn shared_robot(name: &str) -> PathBuf {
-    root()
-        .join("../shared/robots")
-        .join(name)
-        .join("robot.urdf")
+    shared().join("robots").join(name).join("robot.urdf")
 }
 
 pub const SHARED_ROBOTS: &[&str] = &[

@@ -136,6 +136,32 @@ def setup(dir, program, vel, acc, period_ns, driver):
         f.write("")
 
 
+def realtime_servo():
+    """Gives this machine's servo thread a real-time priority, as LinuxCNC has on a real-time
+    kernel. On a stock kernel uspace runs it as an ordinary thread, at the niceness of the test
+    run: on a loaded host it then misses servo periods while the task times each dwell on the
+    wall clock, and a 2 s dwell came out as 0.29 s of periods in the trace. Best effort (the
+    run's own PID namespace holds only this machine; without the privilege nothing changes)."""
+    for pid in os.listdir("/proc"):
+        if not pid.isdigit():
+            continue
+        try:
+            tids = os.listdir(f"/proc/{pid}/task")
+        except OSError:
+            continue
+        for tid in tids:
+            try:
+                with open(f"/proc/{pid}/task/{tid}/comm") as f:
+                    if not f.read().startswith("rtapi_app:T#"):
+                        continue
+                os.sched_setscheduler(int(tid), os.SCHED_FIFO, os.sched_param(10))
+            except OSError:
+                try:
+                    os.setpriority(os.PRIO_PROCESS, int(tid), -20)
+                except OSError:
+                    pass
+
+
 def drive(program):
     """LinuxCNC's DISPLAY: run the program, resume every M0, exit when it ends."""
     import linuxcnc
@@ -149,6 +175,7 @@ def drive(program):
             if time.time() > deadline:
                 sys.exit("sim.py: task did not come up")
             time.sleep(0.1)
+    realtime_servo()
 
     def wait(cond, what, secs=180):
         end = time.time() + secs
@@ -205,7 +232,12 @@ def run(program, vel, acc, period_us, opts):
     dir = tempfile.mkdtemp(prefix="edbb-lcnc-", dir=opts.get("--dir", "/var/tmp"))
     os.chmod(dir, 0o777)
     shutil.copy(program, f"{dir}/program.ngc")
-    setup(dir, f"{dir}/program.ngc", vel, acc, period_us * 1000, os.path.abspath(__file__))
+    # The driver too: LinuxCNC starts it inside the private /tmp, where a checkout under /tmp
+    # (a clone there, CI's) is hidden ("Can't execute DISPLAY program").
+    driver = f"{dir}/sim.py"
+    shutil.copy(os.path.abspath(__file__), driver)
+    os.chmod(driver, 0o755)
+    setup(dir, f"{dir}/program.ngc", vel, acc, period_us * 1000, driver)
     env = dict(os.environ)
     env.pop("DISPLAY", None)
     if os.geteuid() == 0:

@@ -85,13 +85,18 @@ impl Arm {
 
     /// Frames 0..6 (base to flange) at q, every link's translation scaled by `grow`.
     pub fn frames(&self, q: &[f64; 6], grow: f64) -> [Matrix4<f64>; 7] {
+        self.frames_grown(q, &[grow; 6])
+    }
+
+    /// Frames 0..6 at q, link i's translation scaled by `grow[i]`.
+    pub fn frames_grown(&self, q: &[f64; 6], grow: &[f64; 6]) -> [Matrix4<f64>; 7] {
         let mut f = [Matrix4::identity(); 7];
         for i in 0..6 {
             let [alpha, a, d, theta] = self.dh[i];
             f[i + 1] = f[i]
                 * rot_z(theta + q[i])
-                * shift(0.0, 0.0, d * grow)
-                * shift(a * grow, 0.0, 0.0)
+                * shift(0.0, 0.0, d * grow[i])
+                * shift(a * grow[i], 0.0, 0.0)
                 * rot_x(alpha);
         }
         f
@@ -335,6 +340,47 @@ pub fn walk(arm: &Arm, w: &Walk) -> Path {
     path
 }
 
+/// A path that stops at every knot in turn (a stop-and-go program: quintic moves with zero
+/// velocity and acceleration at both ends follow the straight joint line between knots), each
+/// move timed by its slowest axis at `speed` of the axis speeds (at least 0.5 s), with
+/// `dwell` seconds at every knot.
+pub fn through(arm: &Arm, knots: &[[f64; 6]], speed: f64, dwell: f64) -> Path {
+    through_dwelling(arm, knots, speed, &vec![dwell; knots.len()])
+}
+
+/// [`through`] with a dwell of its own at each knot (`dwell[k]` seconds after arriving at
+/// knot k).
+pub fn through_dwelling(arm: &Arm, knots: &[[f64; 6]], speed: f64, dwell: &[f64]) -> Path {
+    let mut path = Path {
+        t: vec![0.0],
+        q: vec![knots[0]],
+        v: vec![[0.0; 6]],
+        a: vec![[0.0; 6]],
+    };
+    if dwell.first().is_some_and(|d| *d > 0.0) {
+        path.t.push(dwell[0]);
+        path.q.push(knots[0]);
+        path.v.push([0.0; 6]);
+        path.a.push([0.0; 6]);
+    }
+    for (k, w) in knots.windows(2).enumerate() {
+        let dt = (0..6)
+            .map(|j| (w[1][j] - w[0][j]).abs() / (speed * arm.speed[j]))
+            .fold(0.5, f64::max)
+            * 1.875; // a quintic's peak speed is 1.875 times its mean
+        for (t, q) in [(dt, w[1]), (dwell[k + 1], w[1])] {
+            if t > 0.0 {
+                let t0 = path.duration();
+                path.t.push(t0 + t);
+                path.q.push(q);
+                path.v.push([0.0; 6]);
+                path.a.push([0.0; 6]);
+            }
+        }
+    }
+    path
+}
+
 /// True when the path ends at rest (its last two knots equal).
 fn path_stopped(p: &Path) -> bool {
     let n = p.q.len();
@@ -357,6 +403,8 @@ pub struct Physics {
     pub compliance: Option<(Vec<Mass>, [f64; 6])>,
     /// α (1/K), final rise R (K), starting rise T₀ (K), τ (s).
     pub thermal: Option<(f64, f64, f64, f64)>,
+    /// The links (0-based) the thermal drift grows; empty: every link.
+    pub thermal_links: Vec<usize>,
     /// Joint, and (order, amplitude rad, phase rad) per harmonic.
     pub cyclic: Option<(usize, Vec<Harmonic>)>,
     /// Joint, full play (rad).
@@ -428,6 +476,34 @@ impl Truth {
         }
     }
 
+    /// Each link's growth factor at time t: the drift's on the links it grows, 1 elsewhere.
+    fn grow_links(&self, t: f64) -> [f64; 6] {
+        let g = self.grow(t);
+        let links = &self.physics.thermal_links;
+        std::array::from_fn(|i| {
+            if links.is_empty() || links.contains(&i) {
+                g
+            } else {
+                1.0
+            }
+        })
+    }
+
+    /// The true tool point when the controller commands `motor` and stands still: the
+    /// backlash joint's load side at `play_load` (where the play operator left it), the
+    /// other effects on the motor angles, the links as at time t of a recording.
+    pub fn reached(&self, motor: &[f64; 6], play_load: Option<f64>, t: f64) -> Vector3<f64> {
+        let mut m = *motor;
+        if let (Some((j, _)), Some(y)) = (self.physics.backlash, play_load) {
+            m[j] = y;
+        }
+        let load = self.load(&m);
+        apply(
+            &self.arm.frames_grown(&load, &self.grow_links(t))[6],
+            &self.tool,
+        )
+    }
+
     fn fixture_at(&self, t: f64) -> Vector3<f64> {
         match self.physics.slip {
             Some((at, d)) => self.fixture + d * ((t - at) / 0.2).clamp(0.0, 1.0),
@@ -469,7 +545,10 @@ impl Truth {
     /// recording: a thermal drift's robot at the start of the recording is what the
     /// calibration describes (it cannot know the temperature before the data began).
     pub fn point_at(&self, q: &[f64; 6], t: f64) -> Vector3<f64> {
-        apply(&self.arm.frames(q, self.grow(t))[6], &self.tool)
+        apply(
+            &self.arm.frames_grown(q, &self.grow_links(t))[6],
+            &self.tool,
+        )
     }
 }
 
@@ -500,6 +579,12 @@ impl Recording {
 /// follow (servo loop, backlash, cyclic error, compliance), the links grow, the fixture may
 /// slide, and the bar reads the distance with noise and resolution.
 pub fn record(truth: &Truth, path: &Path, rate: f64, seed: u64) -> Recording {
+    record_from(truth, path, rate, seed, 0.0)
+}
+
+/// [`record`] of a path that starts `t0` seconds into the robot's day (its thermal state);
+/// the recording's times still start at 0.
+pub fn record_from(truth: &Truth, path: &Path, rate: f64, seed: u64, t0: f64) -> Recording {
     let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0xba5e);
     let n = (path.duration() * rate).floor() as usize;
     let mut out = Recording::default();
@@ -542,10 +627,9 @@ pub fn record(truth: &Truth, path: &Path, rate: f64, seed: u64) -> Recording {
             motor[j] = y;
         }
         let load = truth.load(&motor);
-        let grow = truth.grow(t);
-        let f = truth.arm.frames(&load, grow);
+        let f = truth.arm.frames_grown(&load, &truth.grow_links(t0 + t));
         let p = apply(&f[6], &truth.tool);
-        let mut l = (p - truth.fixture_at(t)).norm() + truth.noise * normal(&mut rng);
+        let mut l = (p - truth.fixture_at(t0 + t)).norm() + truth.noise * normal(&mut rng);
         if let Some((_, e)) = truth.physics.spikes.iter().find(|(i, _)| *i == k) {
             l += e;
         }
