@@ -73,6 +73,8 @@ pub const PERTURB_TRIES: usize = 32;
 pub const MAX_DEPTH: u32 = 3;
 pub const INSERT_TRIES: usize = 16;
 pub const INSERT_WITH_SUPPORT: usize = 3;
+/// Whole turns of a section tried for a transit besides the nearest ([`other_turns`]).
+pub const TURN_TRIES: usize = 8;
 
 pub fn plan(
     ck: &Checker,
@@ -373,7 +375,8 @@ pub fn plan_sections(ck: &Checker, sections: &[Section], speeds: &[f64; 6], seed
 /// direct; else, for joints that turn a whole turn or more, the section's poses turned by
 /// whole turns where that shortens the move (the same poses of the arm: a wrist that would
 /// turn 310° one way through its own forearm turns 50° the other way), the section planned
-/// again (`planned`); else through a roadmap of poses the arm reaches without the bar
+/// again (`planned`); else the first of the other whole turns ([`other_turns`], nearest first)
+/// whose direct move passes; else through a roadmap of poses the arm reaches without the bar
 /// ([`super::roadmap::free_route`]); else through perturbed midpoints. Returns the support
 /// poses and the section's plan, or the direct move's violation. Dropped poses keep the
 /// values of `sec`.
@@ -416,6 +419,34 @@ fn transit(
             .is_ok()
     {
         return Ok((Vec::new(), candidates.swap_remove(0)));
+    }
+    // Other whole turns, nearest first: where a wrist turns about 180°, the nearest way round
+    // may sweep the tool through the forearm and the other way be free.
+    let nearest = whole_turns((&lo, &hi), last, &first, &sec.tour);
+    for turn in other_turns((&lo, &hi), last, &first, &sec.tour, speeds, nearest) {
+        let turned = |qs: &[[f64; 6]]| -> Vec<[f64; 6]> {
+            qs.iter()
+                .map(|q| crate::emit::emitted(&std::array::from_fn(|i| q[i] + turn[i])))
+                .collect()
+        };
+        let to = turned(std::slice::from_ref(&first))[0];
+        if free.line(last, &to, &mut Extremes::default()).is_err() {
+            continue;
+        }
+        let mut t = planned(&turned(&sec.tour), &turned(&sec.pool));
+        let measures = !t.waypoints.is_empty()
+            && t.dropped.len() <= candidates.last().map_or(0, |c| c.dropped.len());
+        if measures
+            && (t.waypoints[0].q == to
+                || free
+                    .line(last, &t.waypoints[0].q, &mut Extremes::default())
+                    .is_ok())
+        {
+            for d in &mut t.dropped {
+                d.q = crate::emit::emitted(&std::array::from_fn(|i| d.q[i] - turn[i]));
+            }
+            return Ok((Vec::new(), t));
+        }
     }
     for k in 0..candidates.len() {
         let to = candidates[k].waypoints[0].q;
@@ -465,6 +496,58 @@ fn whole_turns(
             .1
     });
     turn.iter().any(|&t| t != 0.0).then_some(turn)
+}
+
+/// Whole turns other than `nearest` (and none) that keep a section's poses `tour` within the
+/// joint range [lo, hi], by the time of the move from `last` to its turned first pose (Eq. 7;
+/// ties by the sum of the joints' times, then in a fixed order): at most [`TURN_TRIES`].
+fn other_turns(
+    (lo, hi): (&[f64; 6], &[f64; 6]),
+    last: &[f64; 6],
+    first: &[f64; 6],
+    tour: &[[f64; 6]],
+    speeds: &[f64; 6],
+    nearest: Option<[f64; 6]>,
+) -> Vec<[f64; 6]> {
+    let tau = std::f64::consts::TAU;
+    let allowed: Vec<Vec<f64>> = (0..6)
+        .map(|i| {
+            [0.0, -tau, tau]
+                .into_iter()
+                .filter(|t| tour.iter().all(|q| q[i] + t >= lo[i] && q[i] + t <= hi[i]))
+                .collect()
+        })
+        .collect();
+    let mut combos: Vec<[f64; 6]> = vec![[0.0; 6]];
+    for (i, ts) in allowed.iter().enumerate() {
+        combos = combos
+            .iter()
+            .flat_map(|c| {
+                ts.iter().map(move |&t| {
+                    let mut c = *c;
+                    c[i] = t;
+                    c
+                })
+            })
+            .collect();
+    }
+    let cost = |turn: &[f64; 6]| -> (f64, f64) {
+        let t: [f64; 6] = std::array::from_fn(|i| (first[i] + turn[i] - last[i]).abs() / speeds[i]);
+        (t.iter().fold(0.0, |m: f64, &x| m.max(x)), t.iter().sum())
+    };
+    let mut keyed: Vec<((f64, f64), usize, [f64; 6])> = combos
+        .into_iter()
+        .enumerate()
+        .filter(|(_, c)| c.iter().any(|&t| t != 0.0) && Some(*c) != nearest)
+        .map(|(k, c)| (cost(&c), k, c))
+        .collect();
+    keyed.sort_by(|a, b| {
+        a.0 .0
+            .total_cmp(&b.0 .0)
+            .then(a.0 .1.total_cmp(&b.0 .1))
+            .then(a.1.cmp(&b.1))
+    });
+    keyed.into_iter().take(TURN_TRIES).map(|k| k.2).collect()
 }
 
 /// What [`blend_corners`] blends by: the controller's corner model, the blend distance at the
@@ -691,5 +774,59 @@ mod tests {
         assert_eq!(whole_turns((&lo, &hi), &last, &first, &wide), None);
         // Nothing to turn when every joint is nearest already.
         assert_eq!(whole_turns((&lo, &hi), &first, &tour[1], &tour), None);
+    }
+
+    #[test]
+    fn other_turns_come_nearest_first_without_the_nearest_and_stay_in_range() {
+        let d = |v: f64| v.to_radians();
+        let lo = [
+            d(-359.0),
+            d(-359.0),
+            d(-179.0),
+            d(-359.0),
+            d(-359.0),
+            d(-359.0),
+        ];
+        let hi = lo.map(|v| -v);
+        let speeds = [1.0; 6];
+        // Wrist 1 from -10 to 170 deg: 180 deg either way round; wrist 2 200 deg the short way.
+        let last = [d(80.0), d(-20.0), d(-90.0), d(-10.0), d(-150.0), d(160.0)];
+        let first = [d(-90.0), d(-140.0), d(60.0), d(170.0), d(50.0), d(30.0)];
+        let tour = vec![first];
+        let nearest = whole_turns((&lo, &hi), &last, &first, &tour);
+        let turns = other_turns((&lo, &hi), &last, &first, &tour, &speeds, nearest);
+        assert_eq!(turns.len(), TURN_TRIES);
+        let deg = |t: &[f64; 6]| t.map(|x| x.to_degrees().round());
+        assert!(turns
+            .iter()
+            .all(|t| Some(*t) != nearest && t.iter().any(|&x| x != 0.0)));
+        // The elbow never turns (its range is one turn), every turned pose stays in range.
+        for t in &turns {
+            assert_eq!(t[2], 0.0);
+            assert!((0..6).all(|i| first[i] + t[i] >= lo[i] && first[i] + t[i] <= hi[i]));
+        }
+        // Nearest first: the move's slowest joint, then the sum, never decreasing.
+        let cost = |t: &[f64; 6]| -> (f64, f64) {
+            let x: Vec<f64> = (0..6).map(|i| (first[i] + t[i] - last[i]).abs()).collect();
+            (x.iter().fold(0.0, |m: f64, &v| m.max(v)), x.iter().sum())
+        };
+        for w in turns.windows(2) {
+            let (a, b) = (cost(&w[0]), cost(&w[1]));
+            assert!(
+                a.0 < b.0 || (a.0 == b.0 && a.1 <= b.1),
+                "{:?} before {:?}",
+                deg(&w[0]),
+                deg(&w[1])
+            );
+        }
+        // Wrist 1's other way round is among them, at the same cost as the nearest.
+        let nearest = nearest.expect("wrist 2 turns");
+        let mut other = nearest;
+        other[3] = if nearest[3] == 0.0 {
+            -std::f64::consts::TAU
+        } else {
+            0.0
+        };
+        assert_eq!(turns[0], other, "{:?}", deg(&turns[0]));
     }
 }
