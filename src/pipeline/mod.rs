@@ -311,8 +311,20 @@ pub fn make_cell(
     })
 }
 
-/// The cell for choosing measurement poses: the limits pulled in by the pose inset.
+/// The cell for choosing measurement poses: the limits pulled in by the pose inset, and the
+/// harness ranges by the joint margin, as the joint ranges are (a compensated program moves
+/// its poses by a fraction of a degree: a pose on a harness limit would cross it).
 pub fn inset_cell(cell: &Cell) -> Cell {
+    let m = cell.joint_margin;
+    let cables = cell.cables.map(|r| {
+        r.map(|[lo, hi]| {
+            if hi - lo > 2.0 * m {
+                [lo + m, hi - m]
+            } else {
+                [0.5 * (lo + hi); 2]
+            }
+        })
+    });
     let d = POSE_INSET_BAR_MM * 1e-3;
     let a = POSE_INSET_CONE_DEG.to_radians();
     let shrink = |c: f64| {
@@ -328,6 +340,7 @@ pub fn inset_cell(cell: &Cell) -> Cell {
         bar_max: (cell.bar_max - d).max(mid),
         fixture_cone_cos: shrink(cell.fixture_cone_cos),
         tool_cone_cos: shrink(cell.tool_cone_cos),
+        cables,
         ..cell.clone()
     }
 }
