@@ -94,7 +94,7 @@ pub fn registered_um(a: &[Vector3<f64>], b: &[Vector3<f64>]) -> f64 {
 }
 
 /// What the bar and the encoders record when the cell's program runs on `truth` (50 Hz).
-fn record(c: &Cell, truth: &Truth, seed: u64) -> twin::Measured {
+pub fn record(c: &Cell, truth: &Truth, seed: u64) -> twin::Measured {
     twin::simulate(
         &c.robot,
         &c.model,

@@ -91,8 +91,9 @@ pub struct Case {
     pub given_tool: Vector3<f64>,
 }
 
-pub fn nj130_case(physics: Physics, minutes: f64, seed: u64) -> Case {
-    let arm = Arm::from_file(&nj130_dh());
+/// The true NJ-130 of a case and the set-up it is given: the fixture 50-80 µm and the tool
+/// 0.2 mm off the given ones, DH errors up to 0.2 mm / 0.02°, 1 µm bar noise.
+pub fn nj130_truth(arm: &Arm, physics: Physics, seed: u64) -> (Truth, Vector3<f64>, Vector3<f64>) {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let given_fixture = Vector3::new(0.258, 1.468, 0.708);
     let given_tool = Vector3::new(0.06, 0.03, 0.12);
@@ -106,6 +107,13 @@ pub fn nj130_case(physics: Physics, minutes: f64, seed: u64) -> Case {
         noise: 1e-6,
         resolution: 0.1e-6,
     };
+    (truth, given_fixture, given_tool)
+}
+
+pub fn nj130_case(physics: Physics, minutes: f64, seed: u64) -> Case {
+    let arm = Arm::from_file(&nj130_dh());
+    let (truth, given_fixture, given_tool) = nj130_truth(&arm, physics, seed);
+    let (fixture, tool) = (truth.fixture, truth.tool);
     let path = walk(
         &arm,
         &Walk {
@@ -131,16 +139,32 @@ pub fn nj130_case(physics: Physics, minutes: f64, seed: u64) -> Case {
 /// nominal file against the same.
 fn score(case: &Case, out: &Path, seed: u64) -> (f64, f64) {
     let arm = Arm::from_file(&nj130_dh());
-    let qs = poses(&arm, 2000, seed);
+    score_at(case, out, &arm, &poses(&arm, 2000, seed))
+}
+
+/// The same at given joint poses.
+fn score_at(case: &Case, out: &Path, arm: &Arm, qs: &[[f64; 6]]) -> (f64, f64) {
     let want: Vec<Vector3<f64>> = qs
         .iter()
         .map(|q| case.truth.reached(q, None, 0.0))
         .collect();
     let nominal: Vec<Vector3<f64>> = qs.iter().map(|q| arm.point(q, &case.given_tool)).collect();
     (
-        registered_um(&file_points(out, &qs), &want),
+        registered_um(&file_points(out, qs), &want),
         registered_um(&nominal, &want),
     )
+}
+
+/// The same where the data reached: at the recorded poses (every k-th, up to 2000).
+fn score_measured(case: &Case, out: &Path) -> f64 {
+    let arm = Arm::from_file(&nj130_dh());
+    let q = &case.recording.q;
+    let qs: Vec<[f64; 6]> = q
+        .iter()
+        .step_by(q.len().div_ceil(2000).max(1))
+        .copied()
+        .collect();
+    score_at(case, out, &arm, &qs).0
 }
 
 #[test]
@@ -207,6 +231,7 @@ fn every_effect_of_the_library_from_another_simulator_calibrates_within_10_um_as
     let mut lines = Vec::new();
     let mut failures = Vec::new();
     let (mut ms_real, mut ms_pred) = (0.0, 0.0);
+    let (mut ms_real_measured, mut ms_pred_measured) = (0.0, 0.0);
     // To re-measure one case over more robots: ONLY_CASE=backlash REPS=6 cargo test --test main
     // every_effect_of_the_library -- --nocapture (each repeat a new robot and noise seed;
     // SEED_BASE sets the first seed, VERBOSE=1 prints each report's effects and predictions).
@@ -238,11 +263,23 @@ fn every_effect_of_the_library_from_another_simulator_calibrates_within_10_um_as
         assert_eq!(code, 0, "{name}: {}", run.stderr);
         sane(&report, name);
         let (err, nominal) = score(&case, &out, seed);
-        let pred = report["predicted_position_std_um"]["workspace_rms"]
-            .as_f64()
-            .unwrap();
-        ms_real += err * err;
-        ms_pred += pred * pred;
+        let err_measured = score_measured(&case, &out);
+        let predicted = &report["predicted_position_std_um"];
+        let pred = predicted["workspace_rms"].as_f64().unwrap();
+        let pred_measured = predicted["measured_region_rms"].as_f64().unwrap();
+        // An effect's form beyond the joint range measured is a bound the report states, not
+        // an estimate: there the prediction is only required not to be optimistic.
+        let extrapolated = report["warnings"].as_array().unwrap().iter().any(|w| {
+            w.as_str()
+                .unwrap()
+                .contains("extrapolated beyond the range measured")
+        });
+        if !extrapolated {
+            ms_real += err * err;
+            ms_pred += pred * pred;
+        }
+        ms_real_measured += err_measured * err_measured;
+        ms_pred_measured += pred_measured * pred_measured;
         let effects: Vec<String> = report["effects"]
             .as_array()
             .unwrap()
@@ -250,7 +287,8 @@ fn every_effect_of_the_library_from_another_simulator_calibrates_within_10_um_as
             .map(|e| format!("{} {}", e["effect"], e["joint"]))
             .collect();
         lines.push(format!(
-            "{name}: {err:.2} um (nominal {nominal:.0} um), predicted {pred:.2} um, effects {effects:?}, held out {} um",
+            "{name}: {err:.2} um (nominal {nominal:.0} um), predicted {pred:.2} um{}; where measured {err_measured:.2} um, predicted {pred_measured:.2} um; effects {effects:?}, held out {} um",
+            if extrapolated { " (extrapolated, stated)" } else { "" },
             report["validation"]["heldout_rms_um"]["calibrated"]
         ));
         if std::env::var("VERBOSE").is_ok() {
@@ -267,7 +305,14 @@ fn every_effect_of_the_library_from_another_simulator_calibrates_within_10_um_as
         // µm against 0.51-0.98 µm predicted, ratios 0.23-1.39, pooled 0.69: one robot's error
         // lies along a few directions, so a single ratio scatters; the pooled ratio below is
         // the factor-2 check).
-        if !(err <= 10.0 && err < nominal && err <= 2.0 * pred + 0.5) {
+        // Where the data reached, the same within 10 µm and the factor 2. Beyond it, over the
+        // whole joint space, a cyclic error's harmonics are extrapolated (the walk measures
+        // joint 2 over about 85 deg): more than 10 µm there is allowed only when the report
+        // says so and predicts it.
+        let honest = err <= 2.0 * pred + 0.5 && err < nominal;
+        let within = err <= 10.0 || extrapolated;
+        let measured_ok = err_measured <= 10.0 && err_measured <= 2.0 * pred_measured + 0.5;
+        if !(honest && within && measured_ok) {
             failures.push(lines.last().unwrap().clone());
         }
         // The effect present is the one adopted, on held-out data; the others are listed.
@@ -292,13 +337,15 @@ fn every_effect_of_the_library_from_another_simulator_calibrates_within_10_um_as
         assert!(report["candidates"].as_array().unwrap().len() > 10);
     }
     let pooled = (ms_real / ms_pred).sqrt();
+    let pooled_measured = (ms_real_measured / ms_pred_measured).sqrt();
     eprintln!(
-        "{}\npooled realised/predicted {pooled:.2}",
+        "{}\npooled realised/predicted {pooled:.2} over the joint space (cases not extrapolated), {pooled_measured:.2} where measured",
         lines.join("\n")
     );
     assert!(failures.is_empty(), "{}", failures.join("\n"));
     // Over the cases, realised and predicted agree within a factor 2.
     assert!((0.5..=2.0).contains(&pooled), "{pooled}");
+    assert!((0.5..=2.0).contains(&pooled_measured), "{pooled_measured}");
 }
 
 /// A scratch folder beside which the NJ-130's files resolve.

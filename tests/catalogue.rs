@@ -718,6 +718,27 @@ fn cases(f: &Fixtures) -> Vec<Case> {
             ],
             "baseline.json",
         ),
+        case(
+            "calibrate bar log of a program without a dwell",
+            &[
+                "calibrate",
+                nj,
+                "--bar-log",
+                &w(
+                    "bar.csv",
+                    &(0..50).fold("t_s,length_mm\n".to_string(), |t, k| {
+                        t + &format!("{:.2},400.0000\n", 0.02 * k as f64)
+                    }),
+                ),
+                "--program",
+                &f.path("prog.nc"),
+                "--fixture",
+                fix,
+                "-o",
+                &o("c.dh.toml"),
+            ],
+            "prog.nc: the program has no dwell (G4 P seconds)",
+        ),
         // ---- compensate
         case(
             "compensate targets",

@@ -9,11 +9,10 @@
 //! plus 1 µm.
 
 use crate::calibrate::registered_um;
-use crate::calibrate_real::{calibrate_cli, sane, Case};
+use crate::calibrate_real::{calibrate_cli, nj130_truth, sane, Case};
 use crate::common::*;
 use crate::othersim::*;
 use edbbgen::dialect::Step;
-use nalgebra::Vector3;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -22,7 +21,7 @@ use rand_chacha::ChaCha8Rng;
 /// pauses (the operator mounts or removes the bar).
 fn compiled_program(dir: &std::path::Path) -> Vec<([f64; 6], bool)> {
     let prog = dir.join("nj130.nc");
-    let r = edbbgen(&[
+    let r = edbbgen([
         nj130_dh().to_str().unwrap(),
         "--fixture",
         "258,1468,708",
@@ -54,19 +53,7 @@ fn compiled_program(dir: &std::path::Path) -> Vec<([f64; 6], bool)> {
 /// handling at every pause; the bar's readings at 50 Hz while it is mounted.
 fn program_case(program: &[([f64; 6], bool)], physics: Physics, passes: usize, seed: u64) -> Case {
     let arm = Arm::from_file(&nj130_dh());
-    let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let given_fixture = Vector3::new(0.258, 1.468, 0.708);
-    let given_tool = Vector3::new(0.06, 0.03, 0.12);
-    let fixture = given_fixture + direction(&mut rng) * rng.random_range(50e-6..80e-6);
-    let tool = given_tool + direction(&mut rng) * 0.2e-3;
-    let truth = Truth {
-        arm: arm.perturbed(&dh_errors(&mut rng, 0.2, 0.02)),
-        tool,
-        fixture,
-        physics,
-        noise: 1e-6,
-        resolution: 0.1e-6,
-    };
+    let (truth, given_fixture, given_tool) = nj130_truth(&arm, physics, seed);
     let knots: Vec<[f64; 6]> = (0..passes)
         .flat_map(|_| program.iter().map(|k| k.0))
         .collect();
@@ -255,7 +242,7 @@ fn one_effect_robots_of_another_simulator_get_the_accuracy_calibrate_predicted()
         let t_csv = dir.path().join(format!("d{k}.targets.csv"));
         std::fs::write(&t_csv, csv(&qs)).unwrap();
         let c_csv = dir.path().join(format!("d{k}.comp.csv"));
-        let r = edbbgen(&[
+        let r = edbbgen([
             "compensate",
             out.to_str().unwrap(),
             "--nominal",
@@ -397,7 +384,7 @@ fn a_program_compensated_for_a_backlash_lands_every_measurement_pose_from_either
         .iter()
         .any(|e| e["effect"] == "backlash"));
     let comp = dir.path().join("nj130.comp.nc");
-    let r = edbbgen(&[
+    let r = edbbgen([
         "compensate",
         out.to_str().unwrap(),
         "--nominal",

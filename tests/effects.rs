@@ -4,6 +4,7 @@
 //! (`Problem::pose_model`, the code the calibration fits with) — the file's evaluation
 //! (`robot::effects`) is separate code, and the two must agree to 0.01 µm.
 
+use crate::calibrate::record;
 use crate::common::*;
 use crate::diagnose::{nj130_cell, truth_with, urdf_cell, Cell, Hidden};
 use edbbgen::calibrate::{self, CalibrateOptions, Calibration};
@@ -18,18 +19,6 @@ use nalgebra::Vector3;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use std::path::Path;
-
-/// The cell's program recorded on `truth` at 50 Hz.
-fn record(c: &Cell, truth: &Truth, seed: u64) -> twin::Measured {
-    twin::simulate(
-        &c.robot,
-        &c.model,
-        &c.program,
-        truth,
-        &SimOptions { rate: 50.0, seed },
-    )
-    .expect("simulates")
-}
 
 /// The calibrated robot file as `calibrate -o` writes it, loaded back from `dir` by the
 /// loader (a URDF with its sidecar).
@@ -289,7 +278,7 @@ fn a_urdf_whose_sidecar_is_missing_or_bad_is_refused_with_one_line() {
     );
     let path = dir.path().join("r.urdf");
     std::fs::write(&path, named).unwrap();
-    let r = edbbgen(&["model", path.to_str().unwrap(), "--fixture", "1400,400,700"]);
+    let r = edbbgen(["model", path.to_str().unwrap(), "--fixture", "1400,400,700"]);
     assert_eq!(r.code, 2, "{}", r.stderr);
     assert_eq!(r.stderr.trim().lines().count(), 1, "{}", r.stderr);
     assert!(r.stderr.contains("gone.effects.toml"), "{}", r.stderr);
@@ -298,7 +287,7 @@ fn a_urdf_whose_sidecar_is_missing_or_bad_is_refused_with_one_line() {
         "[effects]\nschema = \"edbbgen.effects/1\"\n[[effects.backlash]]\njoint = 9\nplay_deg = 0.01\n",
     )
     .unwrap();
-    let r = edbbgen(&["model", path.to_str().unwrap(), "--fixture", "1400,400,700"]);
+    let r = edbbgen(["model", path.to_str().unwrap(), "--fixture", "1400,400,700"]);
     assert_eq!(r.code, 2, "{}", r.stderr);
     assert!(r.stderr.contains("joint 9"), "{}", r.stderr);
 }

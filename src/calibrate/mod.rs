@@ -365,6 +365,9 @@ pub struct Report {
     /// What the written robot files carry: `geometry and effects` or `geometry only`, and
     /// the effects they leave out (with why).
     pub delivered: Delivered,
+    /// Each joint's range over the rows the fit kept, [min, max] (deg): where the data reached;
+    /// beyond it an effect's form is extrapolated.
+    pub measured_joint_ranges_deg: [[f64; 2]; 6],
 }
 
 /// What the written files deliver.
@@ -657,6 +660,7 @@ fn assemble(
         },
         effect_sizes,
         delivered,
+        measured_joint_ranges_deg: parts::joint_ranges(problem).map(|r| r.map(|x| round(x / DEG, 3))),
     };
     let summary = summary(&report);
     Calibration {

@@ -102,6 +102,9 @@ pub(super) fn diagnostics(
             ));
         }
     }
+    if let Some(w) = extrapolated(problem, est, u) {
+        warnings.push(w);
+    }
     if opts.fixture_known {
         if let Some(w) = fixture_check(problem, est, free) {
             warnings.push(w);
@@ -195,6 +198,49 @@ fn std_of(free: &[Param], var: &[f64], q: Param) -> Option<f64> {
 }
 
 /// One line per run: its fixture as given and fitted, its zero and residuals.
+/// The joints' measured ranges (rad), over the rows the fit kept.
+pub(super) fn joint_ranges(problem: &Problem) -> [[f64; 2]; 6] {
+    let mut r = [[f64::INFINITY, f64::NEG_INFINITY]; 6];
+    for (q, w) in problem.m.q.iter().zip(&problem.weight) {
+        if *w > 0.0 {
+            for (r, q) in r.iter_mut().zip(q) {
+                r[0] = r[0].min(*q);
+                r[1] = r[1].max(*q);
+            }
+        }
+    }
+    r
+}
+
+/// A cyclic error's form beyond the joint range the data reached rests on a bound, not on the
+/// data: say so when that bound is most of the prediction over the joint space.
+fn extrapolated(problem: &Problem, est: &Estimate, u: &Uncertainty) -> Option<String> {
+    let m = u.predicted.from_effect_model;
+    if !(m.workspace_rms > 1.0 && m.workspace_rms > 3.0 * m.measured_region_rms) {
+        return None;
+    }
+    let ranges = joint_ranges(problem);
+    let joints: Vec<String> = est
+        .effects
+        .iter()
+        .filter_map(|t| match t.effect {
+            Effect::CyclicError(j) => Some(format!(
+                "joint {} measured over {}..{} deg",
+                j + 1,
+                fmt_fixed(ranges[j][0] / DEG, 1),
+                fmt_fixed(ranges[j][1] / DEG, 1)
+            )),
+            _ => None,
+        })
+        .collect();
+    Some(format!(
+        "a cyclic error is extrapolated beyond the range measured ({}): harmonics of the next orders, as large as those fitted, that the data cannot exclude put {} um RMS into the prediction over the joint space ({} um where measured); measure the joint over more of its turn to bound them",
+        joints.join(", "),
+        fmt_fixed(m.workspace_rms, 2),
+        fmt_fixed(m.measured_region_rms, 2)
+    ))
+}
+
 pub(super) fn runs(
     problem: &Problem,
     f: &Fit,

@@ -50,6 +50,9 @@ pub(super) fn fit(
     let (_, at_given) = structural(problem, known, &est);
     let setup: Vec<Param> = at_given.iter().copied().filter(Param::is_setup).collect();
     start::setup(problem, &mut est, &setup);
+    // The set-up the data found with the nominal robot: where a set-up parameter the fit
+    // cannot determine is held (never at the tape-measure value it was given).
+    let started = est.clone();
     // Which parameters the poses separate, judged where the set-up really is.
     let (_, structural_free) = structural(problem, known, &est);
 
@@ -106,7 +109,7 @@ pub(super) fn fit(
             break;
         }
         for (q, _) in &dropped {
-            let v = held_value(problem, &nominal, &est, *q);
+            let v = held_value(problem, &nominal, &started, &est, *q);
             est.set(*q, v);
         }
         weak.extend(dropped);
@@ -233,8 +236,8 @@ fn determine(
 /// others with the standard uncertainty each would have, in units of its prior (in the order
 /// they were ruled out). Pivoted Cholesky takes the best-seen column next while its conditional
 /// uncertainty stays below prior/κ; then any column whose marginal uncertainty exceeds prior/κ
-/// is dropped, worst first. Shared by [`run`] (on fitted data) and
-/// [`predict::expected`] (on the information a planned campaign would collect).
+/// is dropped, worst first. Shared by [`super::run`] (on fitted data) and
+/// [`super::predict::expected`] (on the information a planned campaign would collect).
 pub fn determined_columns(
     ss: &DMatrix<f64>,
     sigma: f64,
@@ -370,9 +373,16 @@ fn reweight(problem: &mut Problem, residual: &[f64]) -> bool {
     changed
 }
 
-/// The value a parameter the data do not determine is held at: nominal (the given value) for
-/// the robot and a run's own set-up; a segment's fixture or zero keeps its run's first one.
-fn held_value(problem: &Problem, nominal: &Estimate, est: &Estimate, q: Param) -> f64 {
+/// The value a parameter the data do not determine is held at: nominal for the robot; a
+/// run's own set-up where the start found it (`started`: fitted to the nominal robot, from
+/// a start that needs none); a segment's fixture or zero keeps its run's first one.
+fn held_value(
+    problem: &Problem,
+    nominal: &Estimate,
+    started: &Estimate,
+    est: &Estimate,
+    q: Param,
+) -> f64 {
     match q {
         Param::Fixture { group, axis } if !problem.fix_groups[group].given => {
             est.fixtures[problem.fix_groups[group].run][axis]
@@ -380,6 +390,7 @@ fn held_value(problem: &Problem, nominal: &Estimate, est: &Estimate, q: Param) -
         Param::Offset { group } if !problem.off_groups[group].given => {
             est.offsets[problem.off_groups[group].run]
         }
+        q if q.is_setup() => started.get(q),
         _ => nominal.get(q),
     }
 }

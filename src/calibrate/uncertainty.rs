@@ -13,7 +13,7 @@ use crate::robot::Robot;
 use crate::twin::effects::gravity_torques;
 use crate::twin::effects::Effect;
 use crate::units::fmt_fixed;
-use nalgebra::DMatrix;
+use nalgebra::{DMatrix, DVector};
 use predict::JointTerms;
 
 /// What step 6 leaves for the report.
@@ -57,6 +57,11 @@ impl<'a> EffectTerms<'a> {
             .iter()
             .flat_map(|t| fit::effect_cols(t.effect, t.basis))
             .collect();
+        EffectTerms { problem, est, cols }
+    }
+
+    /// Terms for explicit effect columns (a richer model's).
+    fn of(problem: &'a Problem, est: &'a Estimate, cols: Vec<fit::Col>) -> Self {
         EffectTerms { problem, est, cols }
     }
 }
@@ -253,33 +258,76 @@ fn effect_model_spread<const N: usize>(
                 cols.push(fit::Col::Cyc(j, o, false));
                 cols.push(fit::Col::Cyc(j, o, true));
             }
-            let (n, b, _, _) = accumulate(problem, est, &cols, 1).total();
+            let (mut n, b, _, _) = accumulate(problem, est, &cols, 1).total();
+            // An order the data do not determine (a joint measured over part of its range) is
+            // bounded by what a gearbox does, not by the data: its amplitude is taken as at most
+            // the largest the fit found on that joint (a prior of that size on each richer
+            // order), so that where the data did not reach the bound is physical, not infinite.
+            let amplitude = t.coef.iter().fold(0.0f64, |m, c| m.max(c.abs()));
+            let prior = amplitude.max(1e-12);
+            for k in base.len()..cols.len() {
+                n[(k, k)] += (sigma / prior).powi(2);
+            }
             let big = fit::inverse(&n);
-            let diff = DMatrix::from_fn(shared.len(), shared.len(), |a, b| {
-                let (x, y) = (shared[a].0, shared[b].0);
-                (big[(x, y)] - small[(x, y)]) * sigma * sigma
+            // The geometry and every effect coefficient, the richer orders' included: the
+            // robot delivered applies the harmonics, and where the data did not reach, an order
+            // they cannot reject moves the MAP through them (the joint's zero it trades with
+            // included).
+            let g = free.len();
+            let rows: Vec<usize> = shared.iter().map(|s| s.0).chain(g..cols.len()).collect();
+            let small_at = |x: usize, y: usize| {
+                if x < small.nrows() && y < small.ncols() {
+                    small[(x, y)]
+                } else {
+                    0.0
+                }
+            };
+            let diff = DMatrix::from_fn(rows.len(), rows.len(), |a, b| {
+                let (x, y) = (rows[a], rows[b]);
+                (big[(x, y)] - small_at(x, y)) * sigma * sigma
             });
+            let terms = EffectTerms::of(problem, est, cols[g..].to_vec());
             // The larger model's own estimate, one Gauss-Newton step from the fitted one (at
-            // which the smaller model's step is nil): how far the geometry moves were the
-            // form one order richer. Without model error its square is the variance above on
-            // average; a higher order the data hold but the selection left out (a joint's
-            // third harmonic mimicked by the second over a short range) shows in it alone.
+            // which the smaller model's step is nil): how far the MAP moves were the form one
+            // order richer. Without model error its square is the variance above on average; a
+            // higher order the data hold but the selection left out (a joint's third harmonic
+            // mimicked by the second over a short range) shows in it alone.
             let all: Vec<usize> = (0..cols.len()).collect();
             let (step, _, _) = fit::solve(&n, &b, &all);
-            let shift = DMatrix::from_fn(shared.len(), shared.len(), |a, b| {
-                step[shared[a].0] * step[shared[b].0]
-            });
+            let shift =
+                DMatrix::from_fn(rows.len(), rows.len(), |a, b| step[rows[a]] * step[rows[b]]);
             for (i, set) in poses.iter().enumerate() {
-                let v = predict::position_std(&problem.model, &p, set, &w, &diff);
-                let d = predict::position_std(&problem.model, &p, set, &w, &shift);
+                let v = predict::position_std_with(&problem.model, &p, set, &w, &terms, &diff);
+                let d = predict::position_std_with(&problem.model, &p, set, &w, &terms, &shift);
                 for ((m, x), y) in worst[i].iter_mut().zip(v).zip(d) {
                     *m = m.max(x).max(y);
                 }
             }
         }
+        // Where the data did not reach, the form's error is bounded by the effect's own size
+        // (a smooth error whose variance is what the fit found, not more): the largest of the
+        // effect's contributions over the poses, per pose at most that.
+        let own_cols = fit::effect_cols(t.effect, t.basis);
+        let coef = DVector::from_column_slice(&t.coef);
+        let own = EffectTerms::of(problem, est, own_cols);
+        let none = predict::selection(&[]);
+        let size = poses
+            .iter()
+            .map(|set| {
+                let v = predict::position_std_with(
+                    &problem.model,
+                    &p,
+                    set,
+                    &none,
+                    &own,
+                    &(&coef * coef.transpose()),
+                );
+                predict::spread(&v).rms
+            })
+            .fold(0.0f64, f64::max);
         for i in 0..N {
             for (o, x) in out[i].iter_mut().zip(&worst[i]) {
-                *o = o.hypot(*x);
+                *o = o.hypot(x.min(size));
             }
         }
     }

@@ -593,7 +593,7 @@ fn effects_setup(
     let e = &mut calibrated.effects;
     if let Some(p) = &a.payload {
         let v = numbers("--payload", p, None)?;
-        if !(v.len() == 1 || v.len() == 4) || !(v[0] >= 0.0) {
+        if !(v.len() == 1 || v.len() == 4) || v[0].is_nan() || v[0] < 0.0 {
             return Err(usage(format!(
                 "--payload: '{p}' needs a mass (kg, >= 0) and optionally its centre X,Y,Z (mm, flange frame)"
             )));

@@ -32,6 +32,8 @@ pub(super) struct Program {
     pub path: PathBuf,
     pub parsed: Parsed,
     pub sha256: String,
+    /// The dialect it was read in (`ngc`, `krl`, ...).
+    pub dialect: &'static str,
 }
 
 /// Reads a program with its dialect's default controller mapping (the one `edbbgen` writes
@@ -62,6 +64,7 @@ pub(super) fn read_program(robot: &Robot, path: &Path) -> Result<Program, Error>
         path: path.to_path_buf(),
         parsed,
         sha256: robot::sha256_hex(text.as_bytes()),
+        dialect: dialect.name.as_str(),
     })
 }
 
@@ -275,18 +278,49 @@ fn stop_and_measure(
     let traj = twin::Trajectory::from_program(robot, model, &p.parsed)
         .map_err(|e| file_err(&p.path, e))?;
     let tpl = twin::logsim::template(&traj, model);
+    let instruction = crate::dialect::dwell_instruction(p.dialect);
+    if traj.dwells.is_empty() {
+        return Err(file_err(
+            &p.path,
+            format!(
+                "the program has no dwell ({instruction}): a bar log alone needs a stop-and-measure program, a dwell after each measurement move (edbbgen writes one with --dwell), or give --joint-log"
+            ),
+        ));
+    }
     if tpl.slots.is_empty() {
         return Err(file_err(
             &p.path,
-            "the program has no measurement dwell: a bar log alone needs a stop-and-measure program (compile with --dwell), or give --joint-log",
+            format!(
+                "the program has no measurement dwell: none of its dwells ({instruction}) follows a move with the bar in place (between a mount pause and the next removal); a bar log alone needs a stop-and-measure program (edbbgen writes one with --dwell), or give --joint-log"
+            ),
         ));
     }
-    // The header's key must be the program's own poses, at this fixture and tool.
+    // The measurement poses are the program's dwells; edbbgen's header list, when present, is
+    // a check that they are the poses it was compiled for, at this fixture and tool.
+    let mut from_dwells = None;
     match logs::measure_list(&p.parsed).map_err(|e| file_err(&p.path, e))? {
-        None => return Err(file_err(
-            &p.path,
-            "the header lists no measurement poses (measure ...): compile the program with --dwell",
-        )),
+        None => {
+            let sorted = twin::logsim::measurement_dwells(&traj);
+            let mut left_out = String::new();
+            if !sorted.settling.is_empty() {
+                left_out += &format!(
+                    ", {} shorter dwells (under {} s, half the longest) taken as settling, not measured",
+                    sorted.settling.len(),
+                    fmt_fixed(twin::logsim::SETTLING_SHARE * tpl.dwell, 2)
+                );
+            }
+            if !sorted.off.is_empty() {
+                left_out += &format!(
+                    ", {} dwells with the bar off (before the first pause, or between a removal pause and the next mount) not measured",
+                    sorted.off.len()
+                );
+            }
+            from_dwells = Some(format!(
+                "{}: {} measurement poses taken from its dwells ({instruction} after a move, the bar in place){left_out}; no measure list in its header to check them against",
+                name(&p.path),
+                tpl.slots.len(),
+            ));
+        }
         Some(list) => {
             if list.len() != tpl.slots.len() {
                 return Err(file_err(
@@ -343,7 +377,8 @@ fn stop_and_measure(
         .map(|&(_, j)| sm.plateaus[j].last_row - sm.plateaus[j].first_row + 1)
         .sum();
     let unmatched = sm.report.iter().filter(|r| r.pose.is_none()).count();
-    let mut summary = vec![format!(
+    let mut summary: Vec<String> = from_dwells.into_iter().collect();
+    summary.push(format!(
         "{}: {} of {} poses matched to plateaus{}{}; clock offset {} s (the program's time, its first pause taken out), drift {} ppm; bar reads nominal + {} mm",
         name(bar_path),
         sm.readings.len(),
@@ -382,7 +417,7 @@ fn stop_and_measure(
             None => fmt_fixed(sm.clock.drift_ppm, 0),
         },
         fmt_fixed(to_mm(sm.zero), 3)
-    )];
+    ));
     let spreads: Vec<f64> = sm
         .readings
         .iter()

@@ -904,6 +904,31 @@ impl Problem {
         new
     }
 
+    /// Undoes the last [`Problem::split`] (`group` is what it returned) and drops the new
+    /// segment's set-up from `est`.
+    pub fn unsplit(&mut self, est: &mut Estimate, fixture: bool, group: usize) {
+        let (groups, of) = if fixture {
+            (&mut self.fix_groups, &mut self.fix_of)
+        } else {
+            (&mut self.off_groups, &mut self.off_of)
+        };
+        debug_assert_eq!(group + 1, groups.len(), "only the last split is undone");
+        let g = groups.pop().expect("a split group");
+        let old = groups
+            .iter()
+            .position(|h| h.run == g.run && h.rows.end == g.rows.start)
+            .expect("the group the split cut");
+        groups[old].rows.end = g.rows.end;
+        for o in &mut of[g.rows.clone()] {
+            *o = old as u32;
+        }
+        if fixture {
+            est.fixtures.truncate(group);
+        } else {
+            est.offsets.truncate(group);
+        }
+    }
+
     /// 1-based segment number of a group within its run (by its first row) and the number of
     /// groups of that kind in the run.
     pub fn segment_of(&self, fixture: bool, group: usize) -> (usize, usize) {
@@ -978,7 +1003,7 @@ impl Problem {
 
     /// The model of one pose: the load-side joints and the parameters (fixture group `group`)
     /// the estimate gives for the motor-side angles `q0`, each backlash joint's load offset
-    /// from its motor (`backlash`, rad) and the thermal state. [`Problem::apply`] evaluates the
+    /// from its motor (`backlash`, rad) and the thermal state. `Problem::apply` evaluates the
     /// rows with it; a pose that was not recorded can be evaluated with it too.
     pub fn pose_model(
         &self,

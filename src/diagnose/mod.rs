@@ -822,6 +822,28 @@ pub fn select(
                     free.push(Param::Offset { group });
                 }
                 let st = fit::refit_stats(problem, &mut trial, &free);
+                // A step must beat the model's own systematic residual, not the noise alone:
+                // the change-point test again on the refitted residual, its rows counted as
+                // the independent readings they are worth (a model error that wanders with the
+                // pose makes consecutive residuals alike, and any split of it "explains" a
+                // share; a real step leaves a residual as white as before).
+                let before = kept_of(&residual, &problem.weight);
+                let after = kept_of(&st.residual, &problem.weight);
+                let ss = |r: &[f64]| r.iter().map(|v| v * v).sum::<f64>();
+                let n_eff = after.len() as f64 / fit::correlation_time(&after).max(1.0);
+                let params = if split.fixture { 4.0 } else { 2.0 };
+                let gain = n_eff * (ss(&before) / ss(&after).max(1e-300)).ln()
+                    - params * n_eff.max(1.0).ln();
+                if gain <= 10.0 {
+                    if split.fixture {
+                        free.truncate(free.len() - 3);
+                    } else {
+                        free.pop();
+                    }
+                    problem.unsplit(&mut trial, split.fixture, group);
+                    steps_added = opts.max_steps;
+                    continue;
+                }
                 s = trial;
                 residual = st.residual;
                 found.push(Step {

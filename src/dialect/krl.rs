@@ -2,9 +2,12 @@
 //! mapping; out = the motions, in program order.
 //!
 //! The subset a joint-space measurement program needs, strictly:
-//! - `&` attribute lines, then `DEF name( )` … `END`; declarations (`DECL type name[…]`) only
-//!   before the first statement; every variable a statement assigns must be declared;
-//! - `PTP {A1 v, …, A6 v}` (axis-specific, degrees; the first PTP names all six), optionally
+//! - `&` attribute lines, then `DEF name( )` … `END`; declarations (`DECL type name[…]`, DECL
+//!   left out for the simple and position types, `= value` allowed) only before the first
+//!   statement; every variable a statement assigns must be declared;
+//! - `PTP {A1 v, …, A6 v}` (axis-specific, degrees; the first PTP names all six) or `PTP name`
+//!   with a declared `E6AXIS`/`AXIS` variable assigned in the program (an aggregate sets the
+//!   components it names; `E1`..`E6` are external axes, not read), optionally
 //!   `C_DIS` (approximate with `$APO.CDIS` mm at the TCP). `C_PTP` is refused: its criterion
 //!   is a percentage of the axis angle, which verify cannot check;
 //! - `$VEL_AXIS[i] = n` (1..100 %: every PTP runs the slowest axis at its percentage, all axes
@@ -13,6 +16,14 @@
 
 use super::{number, perr, push_header, Line, ParseError, Parsed, Step, Timing};
 use crate::controller::ControllerMap;
+
+/// Types whose variables hold joint values (an E6AXIS's external axes E1..E6 are not read).
+const AXIS_TYPES: &[&str] = &["AXIS", "E6AXIS"];
+
+/// Types a declaration may name without DECL.
+const IMPLICIT_TYPES: &[&str] = &[
+    "INT", "REAL", "BOOL", "CHAR", "AXIS", "E6AXIS", "POS", "E6POS", "FRAME",
+];
 
 /// Splits a line into code and the comment after `;` (outside strings).
 fn split(raw: &str) -> (&str, Option<&str>) {
@@ -70,6 +81,11 @@ fn axis_aggregate(line: usize, agg: &str) -> Result<[Option<f64>; 6], ParseError
             "A4" => 3,
             "A5" => 4,
             "A6" => 5,
+            // An E6AXIS's external axes: not the robot's joints (a value is still a number).
+            "E1" | "E2" | "E3" | "E4" | "E5" | "E6" => {
+                number(line, &name, value)?;
+                continue;
+            }
             _ => return Err(perr(line, format!("'{name}' is not a robot axis (A1..A6)"))),
         };
         if out[i].is_some() {
@@ -86,6 +102,9 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
         ..Parsed::default()
     };
     let mut declared: Vec<String> = Vec::new();
+    // Declared names with their types, and the values axis variables hold (latest last).
+    let mut types: Vec<(String, String)> = Vec::new();
+    let mut axis_vars: Vec<(String, [Option<f64>; 6])> = Vec::new();
     let (mut in_def, mut statements, mut ended, mut moved) = (false, false, false, false);
     let mut pos: [Option<f64>; 6] = [None; 6];
     let mut vel: [Option<f64>; 6] = [None; 6];
@@ -130,34 +149,71 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
             ended = true;
             continue;
         }
-        if let Some(rest) = upper.strip_prefix("DECL ") {
+        // A declaration: `DECL type name [= value]`, or without DECL for the simple and
+        // position types (KRL lets it out).
+        let decl = upper
+            .strip_prefix("DECL ")
+            .map(|_| code[5..].trim())
+            .or_else(|| {
+                let ty = upper.split_whitespace().next().unwrap_or("");
+                (IMPLICIT_TYPES.contains(&ty) && upper.len() > ty.len()).then_some(code)
+            });
+        if let Some(rest) = decl {
             if statements {
                 return Err(perr(
                     line,
                     "DECL after the first statement: declarations come first",
                 ));
             }
-            let mut it = rest.split_whitespace();
-            let (Some(_ty), Some(name)) = (it.next(), it.next()) else {
-                return Err(perr(line, "DECL needs a type and a name"));
+            let (ty, rest) = rest
+                .split_once(char::is_whitespace)
+                .ok_or_else(|| perr(line, "DECL needs a type and a name"))?;
+            let (names, value) = match rest.split_once('=') {
+                Some((n, v)) => (n, Some(v.trim())),
+                None => (rest, None),
             };
-            let name = base_name(name);
-            if !valid_name(&name) {
-                return Err(perr(
-                    line,
-                    format!("'{name}' is not a KRL name (letters, digits, _, at most 24)"),
-                ));
+            let ty = ty.to_ascii_uppercase();
+            for name in names.split(',') {
+                let name = base_name(name.trim());
+                if !valid_name(&name) {
+                    return Err(perr(
+                        line,
+                        format!("'{name}' is not a KRL name (letters, digits, _, at most 24)"),
+                    ));
+                }
+                if let (Some(v), true) = (value, AXIS_TYPES.contains(&ty.as_str())) {
+                    axis_vars.push((name.clone(), axis_aggregate(line, v)?));
+                }
+                declared.push(name.clone());
+                types.push((name, ty.clone()));
             }
-            declared.push(name);
             continue;
         }
         statements = true;
         if let Some(rest) = upper.strip_prefix("PTP ").map(|_| code[4..].trim()) {
-            let close = rest
-                .rfind('}')
-                .ok_or_else(|| perr(line, "PTP needs an axis aggregate {A1 …, A6 …}"))?;
-            let (agg, tail) = rest.split_at(close + 1);
-            let axis = axis_aggregate(line, agg)?;
+            let (axis, tail) = if rest.starts_with('{') {
+                let close = rest
+                    .rfind('}')
+                    .ok_or_else(|| perr(line, "PTP needs an axis aggregate {A1 …, A6 …}"))?;
+                let (agg, tail) = rest.split_at(close + 1);
+                (axis_aggregate(line, agg)?, tail)
+            } else {
+                // A declared axis variable.
+                let (name, tail) = rest.split_once(char::is_whitespace).unwrap_or((rest, ""));
+                let name = name.to_ascii_uppercase();
+                let axis = match axis_vars.iter().rev().find(|(n, _)| *n == name) {
+                    Some((_, a)) if a.iter().all(Option::is_some) => *a,
+                    Some(_) => return Err(perr(line, format!("{name} does not give all six axes A1..A6"))),
+                    None => {
+                        return Err(perr(line, match types.iter().find(|(n, _)| *n == name) {
+                            Some((_, ty)) if AXIS_TYPES.contains(&ty.as_str()) => format!("{name} has no value yet"),
+                            Some((_, ty)) => format!("PTP {name}: a {ty} is a Cartesian target; edbbgen reads axis targets (an E6AXIS or AXIS, or {{A1 …, A6 …}})"),
+                            None => format!("PTP {name}: not a declared E6AXIS or AXIS (a target in $config.dat or a .dat file is not read)"),
+                        }))
+                    }
+                };
+                (axis, tail)
+            };
             let blend = match tail.trim().to_ascii_uppercase().as_str() {
                 "" => None,
                 "C_DIS" => Some(cdis.ok_or_else(|| perr(line, "C_DIS before $APO.CDIS is set"))?),
@@ -284,6 +340,31 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                     format!("'{name}' is not declared (DECL before the first statement)"),
                 ));
             }
+            if types
+                .iter()
+                .any(|(n, ty)| *n == name && AXIS_TYPES.contains(&ty.as_str()))
+            {
+                // An axis variable takes the components given; the others keep their values.
+                if lhs.trim() != name {
+                    return Err(perr(
+                        line,
+                        format!("{lhs}: edbbgen reads whole axis aggregates assigned to {name}"),
+                    ));
+                }
+                let new = axis_aggregate(line, rhs)?;
+                let mut value = axis_vars
+                    .iter()
+                    .rev()
+                    .find(|(n, _)| *n == name)
+                    .map_or([None; 6], |(_, a)| *a);
+                for (v, n) in value.iter_mut().zip(new) {
+                    if n.is_some() {
+                        *v = n;
+                    }
+                }
+                axis_vars.push((name, value));
+                continue;
+            }
             if rhs.is_empty()
                 || rhs.matches('{').count() != rhs.matches('}').count()
                 || rhs.matches('(').count() != rhs.matches(')').count()
@@ -349,6 +430,37 @@ mod tests {
             let text = OK.replacen(from, to, 1);
             let e = parse(&text, &map()).unwrap_err();
             assert!(e.msg.contains(msg), "{to:?}: {e}");
+        }
+    }
+
+    #[test]
+    fn reads_axis_variables() {
+        let text = "DEF mine( )\nDECL E6AXIS xHome = {A1 0, A2 -90, A3 90, A4 0, A5 0, A6 0, E1 0}\n\
+            E6AXIS xP1, xP2\nE6POS pC\n$VEL_AXIS[1] = 20\n$VEL_AXIS[2] = 20\n$VEL_AXIS[3] = 20\n\
+            $VEL_AXIS[4] = 20\n$VEL_AXIS[5] = 20\n$VEL_AXIS[6] = 20\nxP1 = {A1 10, A2 -80, A3 80, A4 5, A5 6, A6 7}\n\
+            xP2 = xP1\nxP2 = {A1 20}\nPTP xHome\nPTP xP1 ; pose\nWAIT SEC 2\nPTP xP2 C_DIS\nEND\n";
+        // `xP2 = xP1` is a copy edbbgen does not follow: refused.
+        let e = parse(text, &map()).unwrap_err();
+        assert!(e.msg.contains("axis aggregate"), "{e}");
+        let text = text.replace(
+            "xP2 = xP1\n",
+            "xP2 = {A1 10, A2 -80, A3 80, A4 5, A5 6, A6 7}\n",
+        );
+        let e = parse(&text, &map()).unwrap_err();
+        assert!(e.msg.contains("C_DIS before $APO.CDIS"), "{e}");
+        let text = text.replace(" C_DIS", "");
+        let p = parse(&text, &map()).unwrap();
+        let t: Vec<[f64; 6]> = p.targets().map(|(_, t)| *t).collect();
+        assert_eq!(t[0], [0.0, -90.0, 90.0, 0.0, 0.0, 0.0]);
+        assert_eq!(t[1], [10.0, -80.0, 80.0, 5.0, 6.0, 7.0]);
+        assert_eq!(t[2], [20.0, -80.0, 80.0, 5.0, 6.0, 7.0]);
+        assert!(matches!(p.lines[2].step, Step::Dwell(d) if d == 2.0));
+        for (from, to, msg) in [
+            ("PTP xHome", "PTP pC", "Cartesian target"),
+            ("PTP xHome", "PTP XHOME_CFG", "not a declared E6AXIS"),
+        ] {
+            let e = parse(&text.replacen(from, to, 1), &map()).unwrap_err();
+            assert!(e.msg.contains(msg), "{to}: {e}");
         }
     }
 }

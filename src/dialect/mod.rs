@@ -200,6 +200,19 @@ pub fn by_name(name: &str) -> Option<&'static Dialect> {
     all().iter().find(|d| d.name == name)
 }
 
+/// How a dialect writes a dwell, as its reader takes it (for messages).
+pub fn dwell_instruction(name: &str) -> &'static str {
+    match name {
+        "ngc" => "G4 P seconds",
+        "sinumerik" => "G4 F seconds",
+        "krl" => "WAIT SEC seconds",
+        "rapid" => "WaitTime seconds;",
+        "urscript" => "sleep(seconds)",
+        "fanuc" => "WAIT seconds(sec)",
+        _ => "a dwell",
+    }
+}
+
 pub fn names() -> Vec<&'static str> {
     BUNDLED.iter().map(|(n, _)| *n).collect()
 }

@@ -12,6 +12,7 @@
 //! - G64, with or without P (LinuxCNC's path blending, P its tolerance on X Y Z), and G61
 //!   (exact stop); G4 P (dwell, s);
 //! - M0/M1 (pause), M2/M30 (end); comments in parentheses or after ';'; optional N words;
+//!   `%` lines; the safe-start words G17, G40, G49, G54, G80 (no effect on joint moves);
 //! - G21 only (millimetre mode; G20 is refused: degrees do not scale with inches).
 
 use super::{Line, ParseError, Parsed, Step, Timing};
@@ -47,7 +48,8 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
         let err = |msg: String| ParseError { line, msg };
         let (code, comment) = split_comment(raw).map_err(|m| err(m.to_string()))?;
         let code = code.trim();
-        if code.is_empty() {
+        // `%` opens and closes a program file (RS274/NGC, LinuxCNC): no code.
+        if code.is_empty() || code == "%" {
             if !seen_code {
                 if let Some(c) = comment {
                     out.header.push(c);
@@ -73,7 +75,10 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                     Some(0) => g_motion = Some(true),
                     Some(1) => g_motion = Some(false),
                     Some(4) => dwell = true,
-                    Some(21) => {}
+                    // Modal states a CNC's safe-start line sets that do nothing to joint
+                    // moves: XY plane, no cutter compensation, no tool length offset, the
+                    // first work offset (as without any), no canned cycle.
+                    Some(17 | 21 | 40 | 49 | 54 | 80) => {}
                     Some(20) => {
                         return Err(err(
                             "G20 (inch) is not supported: joint values are degrees, use G21".into(),
@@ -355,5 +360,15 @@ mod tests {
         let p = parse("G0 X0 Y0 Z0 A0 B0 C0\nG91 G0 X10 C-5\nG0 X10\n").unwrap();
         let last = p.targets().last().unwrap().1;
         assert_eq!(*last, [20.0, 0.0, 0.0, 0.0, 0.0, -5.0]);
+    }
+
+    #[test]
+    fn reads_percent_lines_and_a_safe_start() {
+        let p = parse(
+            "%\n(by hand)\nG21 G90 G94 G17 G40 G49 G80 G54\nG0 X1 Y2 Z3 A4 B5 C6\nG4 P2\nM2\n%\n",
+        )
+        .unwrap();
+        assert_eq!(p.header, vec!["by hand".to_string()]);
+        assert!(matches!(p.lines[1].step, Step::Dwell(t) if t == 2.0));
     }
 }

@@ -3,7 +3,8 @@
 //!
 //! The subset a joint-space measurement program needs, strictly:
 //! - `MODULE name` … `ENDMODULE`; data declarations (`CONST|PERS|VAR type name := value;`)
-//!   before the routine; one `PROC main()` … `ENDPROC`; comments are `!` lines of their own;
+//!   before the routine; one `PROC main()` … `ENDPROC`; comments are `!` lines of their own
+//!   or follow a statement's `;`;
 //! - `MoveAbsJ jointtarget[\NoEOffs], speed[\T:=t], zone, tool;` with the jointtarget literal
 //!   (`[[j1..j6], [external axes]]`, degrees) or a declared one; `\T` is the move's time (a
 //!   move without it runs at speed data that verify cannot turn into joint speeds: only the
@@ -111,9 +112,24 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
             }
             continue;
         }
-        if split_top(code, '!').len() > 1 {
-            return Err(perr(line, "a RAPID comment ('!') takes a line of its own"));
-        }
+        // A comment after a complete statement or declaration goes with it.
+        let parts = split_top(code, '!');
+        let code = match parts.as_slice() {
+            [_] => code,
+            [stmt, ..] if stmt.trim_end().ends_with(';') => {
+                let c = code[stmt.len() + 1..].trim().to_string();
+                if at == At::Proc {
+                    pending_comment = Some(c);
+                }
+                stmt.trim_end()
+            }
+            _ => {
+                return Err(perr(
+                    line,
+                    "a RAPID comment ('!') follows a complete statement (';') or takes a line of its own",
+                ))
+            }
+        };
         let upper = code.to_ascii_uppercase();
         match at {
             At::Start => {
@@ -460,5 +476,16 @@ mod tests {
             let e = parse(&text, &map()).unwrap_err();
             assert!(e.msg.contains(msg), "{to:?}: {e}");
         }
+    }
+
+    #[test]
+    fn reads_a_comment_after_a_statement() {
+        let text = "MODULE Mine\n  CONST jointtarget jHome := [[0, 0, 0, 0, 90, 0], [9E9, 9E9, 9E9, 9E9, 9E9, 9E9]]; ! home\n\
+            PROC main()\n    MoveAbsJ jHome\\NoEOffs, v500, fine, tool0; ! go home\n    WaitTime \\InPos, 2; ! measure\n  ENDPROC\nENDMODULE\n";
+        let p = parse(text, &map()).unwrap();
+        assert_eq!(p.lines[0].comment.as_deref(), Some("go home"));
+        assert!(matches!(p.lines[1].step, Step::Dwell(t) if t == 2.0));
+        let e = parse(&text.replace("tool0; !", "tool0 !"), &map()).unwrap_err();
+        assert!(e.msg.contains("complete statement"), "{e}");
     }
 }

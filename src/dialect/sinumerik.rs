@@ -3,7 +3,7 @@
 //!
 //! The subset a joint-space measurement program needs, strictly:
 //! - blocks with an optional `N` number; comments after `;`; `MSG("…")` and `FGROUP(…)` alone in
-//!   their block;
+//!   their block (after its `N` number, if any);
 //! - axes as `NAME=value` with the mapping's machine-axis names, absolute (G90) or incremental
 //!   (G91); `G71`/`G710` (metric) only;
 //! - G0 (every axis at its maximum speed) and G1 with G93 (inverse time: F = 1/min per block,
@@ -61,7 +61,19 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
             return Err(perr(line, "code after the program end (M30/M2/M17)"));
         }
         let upper = code.to_ascii_uppercase();
-        // Statements that stand alone in their block.
+        // Statements that stand alone in their block (after its optional block number).
+        let upper = match upper.split_once(char::is_whitespace) {
+            Some((n, rest))
+                if n.len() > 1
+                    && n.starts_with('N')
+                    && n[1..].bytes().all(|b| b.is_ascii_digit())
+                    && (rest.trim_start().starts_with("MSG(")
+                        || rest.trim_start().starts_with("FGROUP(")) =>
+            {
+                rest.trim_start().to_string()
+            }
+            _ => upper,
+        };
         if let Some(rest) = upper.strip_prefix("MSG(") {
             if !rest.ends_with(')') {
                 return Err(perr(line, "MSG( without its closing parenthesis"));
@@ -306,5 +318,13 @@ mod tests {
             assert_eq!(e.line, line, "{text:?}: {e}");
             assert!(e.msg.contains(msg), "{text:?}: {e}");
         }
+    }
+
+    #[test]
+    fn reads_block_numbers_before_msg_and_fgroup() {
+        let text = "; BY HAND\nN10 G71 G90 G60\nN20 FGROUP(X1, Y1, Z1, A1, B1, C1)\n\
+                    N30 G0 X1=1 Y1=2 Z1=3 A1=4 B1=5 C1=6\nN40 MSG(\"MOUNT\")\nN50 M0\nN60 G4 F2.0\nN70 M30\n";
+        let p = parse(text, &map()).unwrap();
+        assert!(matches!(p.lines[2].step, Step::Dwell(t) if t == 2.0));
     }
 }

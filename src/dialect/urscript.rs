@@ -2,7 +2,9 @@
 //! program and the controller mapping; out = the motions, in program order.
 //!
 //! The subset a joint-space measurement program needs, strictly:
-//! - one `def name():` … `end`; comments after `#`; one call per line, no control flow;
+//! - one `def name():` … `end`; comments after `#`; one call or assignment per line, no
+//!   control flow; a name assigned joint positions `[q1, …, q6]` or a number (`global`/`local`
+//!   allowed) stands for them in later calls; `d2r(x)` converts a literal in degrees;
 //! - `movej([q1, …, q6], a=…, v=…, t=…, r=…)` (positional or named; radians; `t` > 0 is the
 //!   move's time, else `v` the leading joint's speed; `r` the blend radius in metres at the TCP,
 //!   0 = stop);
@@ -50,12 +52,80 @@ fn args(s: &str) -> Vec<&str> {
     out
 }
 
+/// A value a program assigns to a name: joint positions or a number.
+#[derive(Clone, Copy)]
+enum Value {
+    Joints([f64; 6]),
+    Number(f64),
+}
+
+/// A number: a literal, `d2r(literal)` (degrees to radians), or a variable holding one.
+fn scalar(line: usize, what: &str, s: &str, vars: &[(String, Value)]) -> Result<f64, ParseError> {
+    let s = s.trim();
+    if let Some(deg) = s.strip_prefix("d2r(").and_then(|r| r.strip_suffix(')')) {
+        return Ok(number(line, what, deg)?.to_radians());
+    }
+    if s.starts_with(|c: char| c.is_ascii_alphabetic() || c == '_') {
+        return match vars.iter().rev().find(|(n, _)| n == s) {
+            Some((_, Value::Number(x))) => Ok(*x),
+            Some(_) => Err(perr(
+                line,
+                format!("{what}: {s} holds joint positions, not a number"),
+            )),
+            None => Err(perr(line, format!("{what}: '{s}' is not assigned before"))),
+        };
+    }
+    number(line, what, s)
+}
+
+/// Joint positions: a list `[q1, ..., q6]` (numbers or `d2r(…)`) or a variable holding one.
+fn joints(line: usize, s: &str, vars: &[(String, Value)]) -> Result<[f64; 6], ParseError> {
+    let s = s.trim();
+    let Some(list) = s.strip_prefix('[').and_then(|r| r.strip_suffix(']')) else {
+        return match vars.iter().rev().find(|(n, _)| n == s) {
+            Some((_, Value::Joints(q))) => Ok(*q),
+            _ => Err(perr(
+                line,
+                "movej takes the joint positions as a list [q1, ..., q6] (radians) or a name assigned one",
+            )),
+        };
+    };
+    let v: Vec<f64> = args(list)
+        .iter()
+        .map(|x| scalar(line, "joint position", x, vars))
+        .collect::<Result<_, _>>()?;
+    if v.len() != 6 {
+        return Err(perr(
+            line,
+            format!("movej needs 6 joint positions, not {}", v.len()),
+        ));
+    }
+    Ok(std::array::from_fn(|i| v[i]))
+}
+
+/// `name = value` (optionally `global`/`local`), if the line is an assignment.
+fn assignment(code: &str) -> Option<(&str, &str)> {
+    let code = code
+        .strip_prefix("global ")
+        .or_else(|| code.strip_prefix("local "))
+        .unwrap_or(code);
+    let (lhs, rhs) = code.split_once('=')?;
+    let lhs = lhs.trim();
+    let ident = lhs
+        .chars()
+        .next()
+        .is_some_and(|c| c.is_ascii_alphabetic() || c == '_')
+        && lhs.chars().all(|c| c.is_ascii_alphanumeric() || c == '_');
+    (ident && !rhs.starts_with('=')).then_some((lhs, rhs.trim()))
+}
+
 pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
     let mut out = Parsed {
         map: map.clone(),
         ..Parsed::default()
     };
     let (mut in_def, mut ended, mut moved) = (false, false, false);
+    let mut vars: Vec<(String, Value)> = Vec::new();
     for (k, raw) in text.lines().enumerate() {
         let line = k + 1;
         let (code, comment) = split(raw);
@@ -92,6 +162,20 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
             ended = true;
             continue;
         }
+        if let Some((name, value)) = assignment(code) {
+            let v = if value.starts_with('[') {
+                Value::Joints(joints(line, value, &vars)?)
+            } else {
+                Value::Number(scalar(line, name, value, &vars).map_err(|_| {
+                    perr(
+                        line,
+                        format!("{name} = {value}: edbbgen reads names assigned joint positions [q1, ..., q6] or a number"),
+                    )
+                })?)
+            };
+            vars.push((name.to_string(), v));
+            continue;
+        }
         let (name, rest) = code
             .split_once('(')
             .ok_or_else(|| perr(line, format!("'{code}' is not a call edbbgen reads")))?;
@@ -109,27 +193,7 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
         let comment = comment.map(str::to_string);
         match name.trim() {
             "movej" => {
-                let q = a.first().copied().unwrap_or("");
-                let list = q
-                    .strip_prefix('[')
-                    .and_then(|r| r.strip_suffix(']'))
-                    .ok_or_else(|| {
-                        perr(
-                            line,
-                            "movej takes the joint positions as a list [q1, ..., q6] (radians)",
-                        )
-                    })?;
-                let v: Vec<f64> = list
-                    .split(',')
-                    .map(|x| number(line, "joint position", x))
-                    .collect::<Result<_, _>>()?;
-                if v.len() != 6 {
-                    return Err(perr(
-                        line,
-                        format!("movej needs 6 joint positions, not {}", v.len()),
-                    ));
-                }
-                let axes: [f64; 6] = std::array::from_fn(|i| v[i]);
+                let axes = joints(line, a.first().copied().unwrap_or(""), &vars)?;
                 // Positional a, v, t, r after q, or named.
                 let positional: Vec<&str> = a[1..]
                     .iter()
@@ -148,7 +212,7 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                 let arg = |key: &str, idx: usize, default: f64| -> Result<f64, ParseError> {
                     match named(key).or(positional.get(idx).copied()) {
                         Some(s) => {
-                            let x = number(line, key, s)?;
+                            let x = scalar(line, key, s, &vars)?;
                             if x < 0.0 {
                                 return Err(perr(line, format!("movej {key} must be >= 0")));
                             }
@@ -206,7 +270,7 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                 });
             }
             "sleep" => {
-                let t = number(line, "sleep", a.first().copied().unwrap_or(""))?;
+                let t = scalar(line, "sleep", a.first().copied().unwrap_or(""), &vars)?;
                 if t < 0.0 {
                     return Err(perr(line, "sleep needs a time >= 0"));
                 }
@@ -308,6 +372,34 @@ mod tests {
             let text = OK.replacen(from, to, 1);
             let e = parse(&text, &map()).unwrap_err();
             assert!(e.msg.contains(msg), "{to:?}: {e}");
+        }
+    }
+
+    #[test]
+    fn reads_named_joint_lists_numbers_and_degrees() {
+        let text = "def mine():\n  # by hand\n  global home = [d2r(0), d2r(-90), d2r(90), 0, 0, 0]\n  \
+            p1 = [0.1, 0.2, 0.3, 0.4, 0.5, 0.6]\n  vel = 0.5\n  wait = 2\n  movej(home, a=1.2, v=vel)\n  \
+            movej(p1, 1.2, vel)\n  sleep(wait)\nend\n";
+        let p = parse(text, &map()).unwrap();
+        let steps: Vec<&Step> = p.lines.iter().map(|l| &l.step).collect();
+        assert!(
+            matches!(steps[0], Step::Move { timing: Timing::LeadSpeed(v), target, .. }
+            if *v == 0.5 && (target[1] + 90.0).abs() < 1e-9 && (target[2] - 90.0).abs() < 1e-9)
+        );
+        assert!(
+            matches!(steps[1], Step::Move { target, .. } if (target[5] - 0.6f64.to_degrees()).abs() < 1e-12)
+        );
+        assert!(matches!(steps[2], Step::Dwell(t) if *t == 2.0));
+        for (bad, msg) in [
+            ("movej(p2, a=1.2, v=vel)", "a name assigned one"),
+            ("sleep(p1)", "holds joint positions"),
+            (
+                "q = get_actual_joint_positions()",
+                "edbbgen reads names assigned",
+            ),
+        ] {
+            let e = parse(&text.replace("sleep(wait)", bad), &map()).unwrap_err();
+            assert!(e.msg.contains(msg), "{bad}: {e}");
         }
     }
 }

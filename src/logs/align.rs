@@ -56,11 +56,19 @@ pub struct Slot {
     pub before_pause: bool,
 }
 
+impl Slot {
+    /// How long the program dwells at the pose (s).
+    pub fn dwell(&self) -> f64 {
+        self.end - self.start
+    }
+}
+
 /// A stop-and-measure program as the bar log is matched against it.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Template {
     pub slots: Vec<Slot>,
-    /// The dwell (s).
+    /// The longest dwell (s): what the plateau finder looks for (a slot's own is
+    /// [`Slot::dwell`]).
     pub dwell: f64,
     /// Total number of poses the program names (`N` of `pose k/N`).
     pub poses: usize,
@@ -248,11 +256,16 @@ impl Scorer<'_> {
         &self.tpl.slots[k]
     }
 
+    /// The dwells of slots a..b (s): a program may dwell longer at some poses than at others.
+    fn held(&self, a: usize, b: usize) -> f64 {
+        self.tpl.slots[a..b].iter().map(Slot::dwell).sum()
+    }
+
     /// A plateau's duration against the dwell (any pose), and in pass 2 its length.
     fn unary(&self, k: usize, j: usize) -> f64 {
         let s = self.slot(k);
         let o = &self.obs[j];
-        let dwell = self.tpl.dwell;
+        let dwell = s.dwell();
         let dur = o.to - o.from;
         // A standstill lasts at least the dwell (the controller times it exactly); its
         // detected edges are good to a few samples.
@@ -318,7 +331,7 @@ impl Scorer<'_> {
         let standing: f64 = (jp + 1..j).map(|x| self.obs[x].to - self.obs[x].from).sum();
         let got = (self.obs[j].from - self.obs[jp].to - standing).max(0.0);
         let want = self.slot(k).start - self.slot(kp).end;
-        let dwells = (k - kp - 1) as f64 * self.tpl.dwell;
+        let dwells = self.held(kp + 1, k);
         (got, (want - dwells).max(0.0), dwells)
     }
 
@@ -431,21 +444,19 @@ impl Scorer<'_> {
         let Some(p) = &self.pass2 else {
             return MISS;
         };
-        let dwell = self.tpl.dwell;
         let s = self.slot(x);
+        let dwell = s.dwell();
         let due = match (before, after) {
             (_, Some((k, j))) if self.slot(k).section == s.section => {
-                let n = (k - x - 1) as f64;
-                let end = self.obs[j].from
-                    - p.move_ratio * (self.slot(k).start - s.end - n * dwell).max(0.0)
-                    - n * dwell;
+                let n = self.held(x + 1, k);
+                let end =
+                    self.obs[j].from - p.move_ratio * (self.slot(k).start - s.end - n).max(0.0) - n;
                 Some((end - dwell, end))
             }
             (Some((k, j)), _) if self.slot(k).section == s.section => {
-                let n = (x - k - 1) as f64;
-                let start = self.obs[j].to
-                    + p.move_ratio * (s.start - self.slot(k).end - n * dwell).max(0.0)
-                    + n * dwell;
+                let n = self.held(k + 1, x);
+                let start =
+                    self.obs[j].to + p.move_ratio * (s.start - self.slot(k).end - n).max(0.0) + n;
                 Some((start, start + dwell))
             }
             _ => None,
@@ -471,30 +482,26 @@ impl Scorer<'_> {
     /// Bar time by which slot k's section has ended its last dwell, from match (k, j) (less a
     /// tolerance): the bar may come off after it.
     fn section_end(&self, p: &Pass2, k: usize, j: usize) -> f64 {
-        let dwell = self.tpl.dwell;
         let a = self.slot(k);
         let last = self.last_slot[a.section];
-        let n = (last - k) as f64;
-        self.obs[j].to
-            + p.move_ratio * (self.slot(last).end - a.end - n * dwell).max(0.0)
-            + n * dwell
+        let n = self.held(k + 1, last + 1);
+        self.obs[j].to + p.move_ratio * (self.slot(last).end - a.end - n).max(0.0) + n
             - (3.0 * p.time_sigma + 0.3)
     }
 
     /// Bar time at which slot k's section begins its first dwell, from match (k, j) (plus a
     /// tolerance): the bar may have gone on before it.
     fn section_start(&self, p: &Pass2, k: usize, j: usize) -> f64 {
-        let dwell = self.tpl.dwell;
         let b = self.slot(k);
         let first = self.first_slot[b.section];
         if k == first {
             return self.obs[j].from + 3.0 * p.time_sigma + 0.3;
         }
-        let n = (k - first - 1) as f64;
+        let n = self.held(first + 1, k);
         self.obs[j].from
-            - p.move_ratio * (b.start - self.slot(first).end - n * dwell).max(0.0)
-            - n * dwell
-            - dwell
+            - p.move_ratio * (b.start - self.slot(first).end - n).max(0.0)
+            - n
+            - self.slot(first).dwell()
             + 3.0 * p.time_sigma
             + 0.3
     }

@@ -19,6 +19,10 @@ pub fn plateau_core_samples(dwell: f64, rate: f64) -> usize {
     (core * rate).floor() as usize
 }
 
+/// The plateau finder looks for standstills at least this share of the program's longest
+/// dwell: a dwell shorter than that is no measurement (a settling dwell).
+pub const MIN_PLATEAU_SHARE: f64 = 0.5;
+
 /// A plateau shorter than this many core samples is no reading (its mean is not a standstill
 /// the bar can vouch for).
 pub const MIN_PLATEAU_SAMPLES: usize = 5;
@@ -237,7 +241,8 @@ pub fn stop_and_measure(tpl: &Template, bar: &BarLog) -> Result<StopAndMeasure, 
             fmt_fixed(need, 1)
         )));
     }
-    let (plateaus, stats) = match plateau::detect(&bar.t, &bar.length, dwell, 0.5 * dwell) {
+    let (plateaus, stats) = match plateau::detect(&bar.t, &bar.length, dwell, MIN_PLATEAU_SHARE * dwell)
+    {
         Ok(x) => x,
         Err(e) if span > 100.0 * need => {
             return Err(bad(format!(
@@ -251,7 +256,7 @@ pub fn stop_and_measure(tpl: &Template, bar: &BarLog) -> Result<StopAndMeasure, 
     if plateaus.is_empty() {
         return Err(bad(format!(
             "no plateau: the reading never stands still for {} s (half the program's {} s dwell); is this the log of a stop-and-measure run?",
-            fmt_fixed(0.5 * dwell, 2),
+            fmt_fixed(MIN_PLATEAU_SHARE * dwell, 2),
             fmt_fixed(dwell, 2)
         )));
     }

@@ -547,7 +547,7 @@ pub fn from_toml(value: toml::Value) -> Result<Effects, String> {
                 c.joint
             ));
         }
-        if c.orders.iter().any(|h| *h == 0) || c.orders.windows(2).any(|w| w[0] >= w[1]) {
+        if c.orders.contains(&0) || c.orders.windows(2).any(|w| w[0] >= w[1]) {
             return Err(format!(
                 "effects.cyclic_error (joint {}): orders must be ascending and at least 1",
                 c.joint

@@ -295,11 +295,7 @@ pub fn simulate_logs(
     let a = 1.0 + opts.drift;
     let to_bar = |tc: f64| opts.offset + a * tc;
     // The measurement dwells (bar mounted) and their standstill with the bar on.
-    let measuring: Vec<&super::Dwell> = traj
-        .dwells
-        .iter()
-        .filter(|d| traj.window_at(0.5 * (d.from + d.to)).is_some())
-        .collect();
+    let measuring = measurement_dwells(traj).poses;
     let standstill: Vec<(f64, f64)> = measuring
         .iter()
         .map(|d| {
@@ -439,12 +435,62 @@ pub fn simulate_logs(
     })
 }
 
-/// A stop-and-measure program as a bar log is matched against it: its measurement dwells (the
-/// bar mounted), in order, with their poses' nominal lengths, sections and program times (the
-/// twin's timing of the program: [`Trajectory`]).
+/// A program's dwells sorted into measurement poses and settling dwells.
+#[derive(Clone, Debug, PartialEq)]
+pub struct MeasurementDwells {
+    /// The measurement poses' standstills, in program order.
+    pub poses: Vec<super::Dwell>,
+    /// Dwells with the bar in place too short to be a measurement (shorter than
+    /// [`SETTLING_SHARE`] of the longest), in program order.
+    pub settling: Vec<super::Dwell>,
+    /// Dwells with the bar off (before the first pause of a program that has one, or between a
+    /// removal and the next mount): never measurements.
+    pub off: Vec<super::Dwell>,
+}
+
+/// A standstill shorter than this share of the program's longest dwell is a settling dwell,
+/// not a measurement: the plateau finder looks for standstills of at least this share of the
+/// longest dwell ([`crate::logs::stop_and_measure`]), so a shorter one leaves no plateau to
+/// match.
+pub const SETTLING_SHARE: f64 = crate::logs::MIN_PLATEAU_SHARE;
+
+/// The measurement poses of a stop-and-measure program: every dwell after the first move with
+/// the bar in place (the whole program without an M0, else between a mount pause and the
+/// next removal), dwells with no move between them taken as one standstill, except those
+/// shorter than [`SETTLING_SHARE`] of the longest (a controller's settling time, not a
+/// measurement).
+pub fn measurement_dwells(traj: &Trajectory) -> MeasurementDwells {
+    let mut stands: Vec<super::Dwell> = Vec::new();
+    let mut off = Vec::new();
+    for d in &traj.dwells {
+        if traj.window_at(0.5 * (d.from + d.to)).is_none() {
+            off.push(*d);
+            continue;
+        }
+        match stands.last_mut() {
+            // No move between them: the robot stands on at the same pose.
+            Some(last) if (d.from - last.to).abs() < 1e-9 && last.q == d.q => last.to = d.to,
+            _ => stands.push(*d),
+        }
+    }
+    let longest = stands.iter().map(|d| d.to - d.from).fold(0.0, f64::max);
+    let (poses, settling) = stands
+        .into_iter()
+        .partition(|d| d.to - d.from >= SETTLING_SHARE * longest && d.to > d.from);
+    MeasurementDwells {
+        poses,
+        settling,
+        off,
+    }
+}
+
+/// A stop-and-measure program as a bar log is matched against it: its measurement dwells
+/// ([`measurement_dwells`]), in order, with their poses' nominal lengths, sections and program
+/// times (the twin's timing of the program: [`Trajectory`]).
 pub fn template(traj: &Trajectory, model: &MeasurementModel) -> crate::logs::Template {
     let mut slots = Vec::new();
-    for d in &traj.dwells {
+    let measuring = measurement_dwells(traj).poses;
+    for d in &measuring {
         let Some(section) = traj.window_at(0.5 * (d.from + d.to)) else {
             continue;
         };
@@ -462,11 +508,7 @@ pub fn template(traj: &Trajectory, model: &MeasurementModel) -> crate::logs::Tem
                 && traj.pauses.iter().any(|p| (p - b).abs() < 1e-9),
         });
     }
-    let dwell = traj
-        .dwells
-        .iter()
-        .map(|d| d.to - d.from)
-        .fold(0.0, f64::max);
+    let dwell = measuring.iter().map(|d| d.to - d.from).fold(0.0, f64::max);
     let poses = slots.len();
     crate::logs::Template {
         slots,
