@@ -18,7 +18,7 @@ pub use sections::{
 use crate::cell::CellSpec;
 use crate::collision::{self, Scene, SceneReport};
 use crate::controller::ControllerMap;
-use crate::dialect::{Dialect, Template};
+use crate::dialect::{Dialect, MoveTime, Template};
 use crate::emit;
 use crate::ir::{Candidate, Cell, Path, Pool, Program, Reason, Selection};
 use crate::model::{self, Identifiability, IdentifyOptions, MeasurementModel, N_PARAMS};
@@ -912,6 +912,10 @@ fn blend(
     }
 }
 
+/// The resolution whole-move time words are timed in (s): RAPID prints `\T` to 1 ms, URScript
+/// prints `t` to 0.1 ms (a whole millisecond exactly).
+pub const WHOLE_MOVE_TICK: f64 = 1e-3;
+
 /// The path on exactly the joint values the program carries (the 0.001° grid every dialect
 /// prints), each move timed on those values (so the emitted feed never asks an axis for more
 /// than its speed): its cruise at the slowest joint's speed (Eq. 7) and its duration with the
@@ -928,10 +932,34 @@ pub fn timed_path(
         .iter()
         .map(|w| w.q.map(|r| emit::round_deg(to_deg(r)).to_radians()))
         .collect();
-    let cruise_times: Vec<f64> = std::iter::once(0.0)
+    let mut cruise_times: Vec<f64> = std::iter::once(0.0)
         .chain(wq.windows(2).map(|w| timing::eq7(&w[0], &w[1], &lim.speed)))
         .collect();
     let blended: Vec<bool> = plan.waypoints.iter().map(|w| w.blend > 0.0).collect();
+    if dialect.move_time == MoveTime::Total {
+        // A whole-move time word (RAPID `\T`, URScript `t`) is printed rounded up, and read
+        // back (by the controller's model, `verify`, the twin) as the cruise that fills it,
+        // [`timing::cruise_of`]. Near a triangle (T = 2·T_a) that cruise grows like
+        // √(T_a·ε) with the rounding ε: 0.8 ms on \T made one move's cruise 13 ms longer and
+        // let the blend before it overlap 13 ms more, so the text ran faster than the plan
+        // stated. Each move is therefore timed as its printed word reads: its duration rounded
+        // up to `WHOLE_MOVE_TICK`, its cruise the one that fills it.
+        let m = timing::moves(
+            &wq,
+            &cruise_times,
+            &blended,
+            lim,
+            dialect.corner.blend_acceleration,
+        );
+        for k in 1..wq.len() {
+            if m[k].duration > 0.0 {
+                let stated =
+                    (m[k].duration / WHOLE_MOVE_TICK * (1.0 - 1e-12)).ceil() * WHOLE_MOVE_TICK;
+                let ta = timing::accel_time(&wq[k - 1], &wq[k], &lim.accel);
+                cruise_times[k] = timing::cruise_of(stated, ta).max(cruise_times[k]);
+            }
+        }
+    }
     let (move_times, time_sorted) = timing::program(
         &wq,
         &cruise_times,
