@@ -73,7 +73,7 @@ pub const PERTURB_TRIES: usize = 32;
 pub const MAX_DEPTH: u32 = 3;
 pub const INSERT_TRIES: usize = 16;
 pub const INSERT_WITH_SUPPORT: usize = 3;
-/// Whole turns of a section tried for a transit besides the nearest ([`other_turns`]).
+/// Whole turns of a section tried for a transit besides the nearest (`other_turns`).
 pub const TURN_TRIES: usize = 8;
 
 pub fn plan(
@@ -302,7 +302,7 @@ pub struct Section {
     pub pool: Vec<[f64; 6]>,
 }
 
-/// Plans every section (bar mounted) and the transits between them (bar removed, [`transit`]).
+/// Plans every section (bar mounted) and the transits between them (bar removed, `transit`).
 /// A section whose transit cannot be made safe is dropped whole.
 pub fn plan_sections(ck: &Checker, sections: &[Section], speeds: &[f64; 6], seed: u64) -> Plan {
     let free = ck.unmounted();
