@@ -805,6 +805,22 @@ fn calibrate_refuses_bad_input_with_one_line_and_writes_nothing() {
                 &csv_s,
                 "--fixture",
                 "258,1468,708",
+                "--joint-resolution",
+                "-0.1",
+                "-o",
+                &out,
+            ]
+            .into_iter()
+            .map(String::from)
+            .collect(),
+            "--joint-resolution",
+        ),
+        (
+            vec![
+                "--measured",
+                &csv_s,
+                "--fixture",
+                "258,1468,708",
                 "-o",
                 "/nonexistent/dir/out.dh.toml",
             ]

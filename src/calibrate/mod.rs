@@ -22,7 +22,7 @@
 //!    that moved, a length zero that changed — which splits the run into segments with their
 //!    own fixture or zero ([`crate::diagnose::steps`]). Every candidate is listed with its
 //!    held-out score.
-//! 4. **Determined or not.** Columns scaled by their prior (1 mm, 0.05°; the set-up's 1 mm
+//! 4. **Determined or not.** Columns scaled by their prior (1 mm, 0.05°; the set-up's 10 mm
 //!    unless given) are taken by pivoted Cholesky on the normal matrix (the effects' columns
 //!    eliminated first) while the next one's conditional standard uncertainty stays below
 //!    prior/κ; then any parameter whose marginal uncertainty exceeds prior/κ is dropped, worst
@@ -44,6 +44,7 @@ pub mod delivered;
 mod parts;
 pub mod plot;
 pub mod predict;
+pub mod resolution;
 mod steps;
 mod uncertainty;
 
@@ -115,6 +116,9 @@ pub struct CalibrateOptions {
     /// Write the adopted effects into the robot file (else the geometry only, and the
     /// prediction includes what the effects left out do over the joint space).
     pub write_effects: bool,
+    /// The step the joints were logged to (rad; `Some(0.0)`: exact), for every joint; `None`:
+    /// read from each run's logged values ([`resolution::detect`]).
+    pub joint_resolution: Option<f64>,
     /// Random joint poses of the workspace prediction, and their seed.
     pub workspace_poses: usize,
     pub seed: u64,
@@ -122,10 +126,13 @@ pub struct CalibrateOptions {
 
 pub const DEFAULT_PRIOR_MM: f64 = 1.0;
 pub const DEFAULT_PRIOR_DEG: f64 = 0.05;
-/// The given fixture, tool point and length zero: like the robot's lengths unless told (a
-/// draw-wire's anchor and attachment point may be tens of millimetres off: `--prior 1,0.05,100`).
-/// It is also the yardstick of "determined": a tool point known to a millimetre only is not.
-pub const DEFAULT_PRIOR_SETUP_MM: f64 = 1.0;
+/// The given fixture, tool point and length zero: what a tape measure tells of a fixture's
+/// place in the robot's base frame (a point inside the robot's base) and of a tool point
+/// (`--prior 1,0.05,S` when the set-up is known better, e.g. measured by a tracker). The fit
+/// does not depend on it (it starts from the data, [`crate::diagnose::start`]); it is the
+/// yardstick of "determined" for the set-up, the Type B uncertainty of a set-up parameter the
+/// data do not determine, and the scale of the "moved by more than 3 prior sigmas" warning.
+pub const DEFAULT_PRIOR_SETUP_MM: f64 = 10.0;
 pub const DEFAULT_KAPPA: f64 = 3.0;
 pub const WORKSPACE_POSES: usize = 2000;
 /// Poses of the measured region the prediction is evaluated on (evenly spaced rows).
@@ -156,6 +163,7 @@ impl Default for CalibrateOptions {
             kappa: DEFAULT_KAPPA,
             max_steps: 12,
             write_effects: true,
+            joint_resolution: None,
             workspace_poses: WORKSPACE_POSES,
             seed: 1,
         }
@@ -220,6 +228,10 @@ pub struct Predicted {
     /// cyclic error fitted with harmonic orders 1..H to take one or two orders more (which
     /// the data do not reject): a bound on the error of the fitted form.
     pub from_effect_model: Component,
+    /// What the model misses on poses it was not fitted to: the held-out residual (blocks of
+    /// every run in the order taken) beyond the reading noise, times √3 (a reading sees the
+    /// MAP's error along the bar only); the same at every pose.
+    pub from_model_error: Component,
     /// What the priors say of the nominal robot: every parameter of the robot (and the tool
     /// point) off by its prior, after registration, RMS over the joint space. The calibrated
     /// robot must predict better than this to be written.
@@ -257,6 +269,29 @@ pub struct ToolReport {
     /// Null per coordinate not determined (held at the given value).
     pub std_mm: [Option<f64>; 3],
     pub moved_mm: f64,
+}
+
+/// The set-up fitted with the nominal geometry (a report of a robot not calibrated). When
+/// `delivered`, the robot file written holds the nominal geometry with this tool point, and
+/// `calibrate` exits 3 (DESIGN.md, exit codes).
+#[derive(Clone, Debug, Serialize)]
+pub struct SetupReport {
+    pub delivered: bool,
+    pub tool_mm: [f64; 3],
+    /// Standard uncertainties (mm; Type A of the set-up-only fit, its residual's correlation
+    /// counted); null for a coordinate not determined (held at the given value).
+    pub tool_std_mm: [Option<f64>; 3],
+    /// Per run, its first segment's fixture.
+    pub fixtures_mm: Vec<[f64; 3]>,
+    pub fixtures_std_mm: Vec<[Option<f64>; 3]>,
+    pub length_offsets_mm: Vec<f64>,
+    pub length_offsets_std_mm: Vec<Option<f64>>,
+    /// Held out, the nominal geometry with this set-up predicts the readings to this RMS.
+    pub heldout_rms_um: f64,
+    /// How close the data put the true geometry to the nominal one (RMS over the joint space:
+    /// the fitted deviation plus twice its predicted uncertainty); null when the data
+    /// determine no parameter of the robot.
+    pub geometry_within_um: Option<f64>,
 }
 
 /// A run split at a detected step: one entry per segment of a split run.
@@ -368,6 +403,25 @@ pub struct Report {
     /// Each joint's range over the rows the fit kept, [min, max] (deg): where the data reached;
     /// beyond it an effect's form is extrapolated.
     pub measured_joint_ranges_deg: [[f64; 2]; 6],
+    /// A robot not calibrated: the set-up fitted with the nominal geometry.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub setup: Option<SetupReport>,
+    /// Readings weighted by their own uncertainty (joints logged coarsely).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub reading_weights: Option<ReadingWeights>,
+}
+
+/// How the readings were weighted: the joints' logged resolution and the reading
+/// uncertainties it makes with the instrument's noise.
+#[derive(Clone, Debug, Serialize)]
+pub struct ReadingWeights {
+    /// Per run, per joint (deg; 0: none found or given).
+    pub joint_resolution_deg: Vec<[f64; 6]>,
+    /// The instrument's noise estimated for runs that state none (µm).
+    pub instrument_noise_um: Option<f64>,
+    /// The rounding's share of a reading, RMS and largest over the readings (µm).
+    pub rounding_rms_um: f64,
+    pub rounding_max_um: f64,
 }
 
 /// What the written files deliver.
@@ -417,6 +471,17 @@ impl Calibration {
     pub fn params(&self) -> Params {
         self.file.params
     }
+
+    /// A robot file is to be written: calibrated, or the set-up fitted with the nominal
+    /// geometry.
+    pub fn writes_robot(&self) -> bool {
+        self.report.calibrated || self.setup_only()
+    }
+
+    /// Not calibrated, but the set-up found is delivered with the nominal geometry.
+    pub fn setup_only(&self) -> bool {
+        !self.report.calibrated && self.report.setup.as_ref().is_some_and(|s| s.delivered)
+    }
 }
 
 /// The robot's own parameters among the free ones: (column in the fit, Eq. 6 index). Fixtures
@@ -452,7 +517,39 @@ fn prior(opts: &CalibrateOptions, q: Param) -> f64 {
 }
 
 /// Calibrates the robot of `model` on a campaign of runs (`labels` name them in the report).
+///
+/// Where the joints were logged coarsely enough that rounding them makes some readings worth
+/// less than others, the campaign is fitted again with each reading weighted by its own
+/// uncertainty: the instrument's noise (a run's stated `std`, or what the first fit's residual
+/// leaves beyond the rounding) combined with the rounding's share at its pose
+/// ([`resolution`]).
 pub fn run(
+    model: &MeasurementModel,
+    robot: &Robot,
+    runs: &[Run],
+    labels: &[String],
+    opts: &CalibrateOptions,
+) -> Result<Calibration, CalibrateError> {
+    let first = run_once(model, robot, runs, labels, opts)?;
+    let Some((weighted, how)) = resolution::reweighted(model, runs, &first, opts.joint_resolution)
+    else {
+        return Ok(first);
+    };
+    let again: Vec<Run> = weighted
+        .iter()
+        .zip(runs)
+        .map(|(m, r)| Run {
+            measured: m,
+            fixture: r.fixture,
+        })
+        .collect();
+    let mut cal = run_once(model, robot, &again, labels, opts)?;
+    cal.report.reading_weights = Some(how);
+    cal.summary = summary(&cal.report);
+    Ok(cal)
+}
+
+fn run_once(
     model: &MeasurementModel,
     robot: &Robot,
     runs: &[Run],
@@ -611,7 +708,30 @@ fn assemble(
     let residual = f.fitted.residual.clone();
     let run_reports = parts::runs(problem, &f, &u.var, labels, &residual_nominal);
     let (undetermined, held) = parts::undetermined(problem, &f, &u.status, opts);
-    let (is_calibrated, verdict) = parts::verdict(problem, &f, held_out, &u, opts, diag.structure);
+    let (is_calibrated, mut verdict) =
+        parts::verdict(problem, &f, held_out, &u, opts, diag.structure);
+    // Not calibrated: the set-up found is the result, with the nominal geometry.
+    let setup = (!is_calibrated).then(|| {
+        let robot_determined = f.free.iter().any(|q| !q.is_setup());
+        parts::setup(model, problem, &f, held_out, &u, robot_determined)
+    });
+    if let Some(s) = setup.as_ref().filter(|s| s.delivered) {
+        let reason = verdict.trim_start_matches("not calibrated: ");
+        verdict = match s.geometry_within_um {
+            Some(x) => format!(
+                "geometry confirmed within {} um of nominal; set-up fitted (written with the nominal geometry): {reason}",
+                fmt_fixed(x, 1)
+            ),
+            None => format!(
+                "geometry not determined (nominal kept); set-up fitted (written with the nominal geometry): {reason}"
+            ),
+        };
+        file = delivered::FileModel {
+            params: held_out.setup.0.params(0),
+            effects: Default::default(),
+            reference: file.reference,
+        };
+    }
     let nruns = problem.runs();
     let shared_offset = (nruns == 1 || matches!(opts.length_offset, LengthOffset::Known(_)))
         .then(|| round(f.est.offsets[0] / MM, 6));
@@ -653,7 +773,7 @@ fn assemble(
                 calibrated: round(held_out.calibrated * 1e6, 3),
             },
             split: format!(
-                "{} contiguous blocks of the rows in the order taken (time order; the campaign's runs one after the other), each predicted by the model fitted to the others (linearised at the fit to all rows); nominal: the nominal robot with the set-up (tool point, fixtures, length zeros) fitted",
+                "{} contiguous blocks of each run's rows in the order taken, the same block of every run held out together and predicted by the model fitted to the others (linearised at the fit to all rows); nominal: the nominal robot with the set-up (tool point, fixtures, length zeros) fitted",
                 held_out.folds
             ),
             rows: held_out.rows,
@@ -661,6 +781,8 @@ fn assemble(
         effect_sizes,
         delivered,
         measured_joint_ranges_deg: parts::joint_ranges(problem).map(|r| r.map(|x| round(x / DEG, 3))),
+        setup,
+        reading_weights: None,
     };
     let summary = summary(&report);
     Calibration {
@@ -675,6 +797,22 @@ fn assemble(
         file,
         summary,
     }
+}
+
+/// "x, y, z" (mm), each with "+/- u" where determined: the uncertainty to two significant
+/// digits and the value to the same place (at most 0.1 µm), else to 0.01 mm.
+fn xyz_with_std(v: &[f64; 3], sd: &[Option<f64>; 3]) -> String {
+    v.iter()
+        .zip(sd)
+        .map(|(x, u)| match u {
+            Some(u) if *u > 0.0 => {
+                let d = (1 - u.log10().floor() as i32).clamp(0, 4) as usize;
+                format!("{} +/- {}", fmt_fixed(*x, d), fmt_fixed(*u, d))
+            }
+            _ => fmt_fixed(*x, 2),
+        })
+        .collect::<Vec<_>>()
+        .join(", ")
 }
 
 /// The printed summary of a report (also rebuilt when a report is restated, see
@@ -815,6 +953,38 @@ pub fn summary(r: &Report) -> String {
         fmt_fixed(r.validation.heldout_rms_um.nominal, 3),
         fmt_fixed(r.validation.heldout_rms_um.calibrated, 3)
     );
+    if let Some(w) = &r.reading_weights {
+        s += &format!(
+            "readings weighted by their own uncertainty: joints logged to {} deg; rounding {} um RMS, up to {} um per reading{}\n",
+            w.joint_resolution_deg
+                .first()
+                .map(|g| {
+                    let mut v: Vec<String> = g.iter().map(|x| format!("{x}")).collect();
+                    v.dedup();
+                    v.join("/")
+                })
+                .unwrap_or_default(),
+            fmt_fixed(w.rounding_rms_um, 1),
+            fmt_fixed(w.rounding_max_um, 1),
+            match w.instrument_noise_um {
+                Some(n) => format!(", instrument noise {} um", fmt_fixed(n, 1)),
+                None => String::new(),
+            }
+        );
+    }
+    if let Some(set) = r.setup.as_ref().filter(|s| s.delivered) {
+        s += &format!(
+            "set-up with the nominal geometry: tool point {} mm{}; held out {} um RMS\n",
+            xyz_with_std(&set.tool_mm, &set.tool_std_mm),
+            set.fixtures_mm
+                .iter()
+                .zip(&set.fixtures_std_mm)
+                .enumerate()
+                .map(|(k, (f, sd))| format!(", fixture {} {} mm", k + 1, xyz_with_std(f, sd)))
+                .collect::<String>(),
+            fmt_fixed(set.heldout_rms_um, 1)
+        );
+    }
     for w in &r.warnings {
         s += &format!("warning: {w}\n");
     }

@@ -7,8 +7,8 @@ use super::steps::{Fit, HeldOutScore};
 use super::uncertainty::{confounding, Uncertainty};
 use super::{
     predict, prior, round, CalibrateOptions, CandidateReport, Delivered, Effects, OutlierReport,
-    Predicted, RunReport, SegmentReport, ToolReport, Undetermined, FLAG_SIGMAS, STEEL_EXPANSION,
-    WRITE_SHARE,
+    Predicted, RunReport, SegmentReport, SetupReport, ToolReport, Undetermined, FLAG_SIGMAS,
+    STEEL_EXPANSION, WRITE_SHARE,
 };
 use crate::diagnose::fit::{self, accumulate, model_cols, score, structural, Known};
 use crate::diagnose::{self, Basis, Estimate, Param, Problem};
@@ -51,14 +51,7 @@ pub(super) fn diagnostics(
     ) {
         warnings.push(w);
     }
-    let live: Vec<f64> = f
-        .fitted
-        .residual
-        .iter()
-        .zip(&problem.weight)
-        .filter(|(_, w)| **w > 0.0)
-        .map(|(r, _)| *r)
-        .collect();
+    let live = fit::kept_values(&f.fitted.residual, &problem.weight);
     let noise_hf = fit::noise_estimate(&live);
     let rms_after = fit::rms(&live);
     // Structure above the noise: the residual clearly larger than its high-frequency part, or
@@ -506,6 +499,71 @@ pub(super) fn verdict(
                 fmt_fixed(heldout_nom * 1e6, 3)
             ),
         )
+    }
+}
+
+/// The set-up found with the nominal geometry, when the robot itself is not calibrated: the
+/// tool point, each run's fixture (first segment) and length zero with their standard
+/// uncertainties, and how close the data put the true geometry to the nominal one. Delivered
+/// (written into the robot file with the nominal geometry) when the data determine the tool
+/// point or a whole fixture; a length zero alone is no robot's property.
+pub(super) fn setup(
+    model: &MeasurementModel,
+    problem: &Problem,
+    f: &Fit,
+    held_out: &HeldOutScore,
+    u: &Uncertainty,
+    robot_determined: bool,
+) -> SetupReport {
+    let (e, fitted) = &held_out.setup;
+    let free = &fitted.free;
+    // Type A of the set-up-only fit: its residual holds what the nominal geometry leaves,
+    // counted as the independent readings it is worth.
+    let kept = fit::kept_values(&fitted.residual, &problem.weight);
+    let dof = kept.len().saturating_sub(free.len()).max(1) as f64;
+    let s2 = fitted.rss / dof * fit::correlation_time(&kept);
+    let cov = fit::inverse(&fitted.normal) * s2;
+    let var: Vec<f64> = (0..cov.nrows()).map(|k| cov[(k, k)]).collect();
+    let tool_std = [0, 1, 2].map(|a| std_of(free, &var, Param::Shared(MAP + a)));
+    let runs = problem.runs();
+    let whole_fixture =
+        |r: usize| (0..3).all(|axis| free.contains(&Param::Fixture { group: r, axis }));
+    let delivered = tool_std.iter().any(Option::is_some) || (0..runs).any(whole_fixture);
+    // The geometry: the calibrated one's distance from the nominal (same tool point) over the
+    // joint space after a best rigid registration, plus twice its predicted uncertainty.
+    let within = robot_determined.then(|| {
+        let mut cal = f.est.params(0);
+        cal.map = e.params(0).map;
+        let nom = e.params(0);
+        let a: Vec<Vector3<f64>> = u
+            .space
+            .iter()
+            .map(|q| model.map_position(&cal, q))
+            .collect();
+        let b: Vec<Vector3<f64>> = u
+            .space
+            .iter()
+            .map(|q| model.map_position(&nom, q))
+            .collect();
+        let d = predict::register(&a, &b).0;
+        round(d * 1e6 + 2.0 * u.space_rms, 3)
+    });
+    SetupReport {
+        delivered,
+        tool_mm: [0, 1, 2].map(|a| round(e.p[MAP + a] / MM, 6)),
+        tool_std_mm: tool_std,
+        fixtures_mm: (0..runs)
+            .map(|r| e.fixtures[r].map(|v| round(v / MM, 6)).into())
+            .collect(),
+        fixtures_std_mm: (0..runs)
+            .map(|r| [0, 1, 2].map(|axis| std_of(free, &var, Param::Fixture { group: r, axis })))
+            .collect(),
+        length_offsets_mm: (0..runs).map(|r| round(e.offsets[r] / MM, 6)).collect(),
+        length_offsets_std_mm: (0..runs)
+            .map(|r| std_of(free, &var, Param::Offset { group: r }))
+            .collect(),
+        heldout_rms_um: round(held_out.nominal * 1e6, 3),
+        geometry_within_um: within,
     }
 }
 

@@ -152,6 +152,11 @@ pub(super) struct HeldOutScore {
     /// The variance factor Type A carries: the larger of the residual's integrated
     /// autocorrelation time and the held-out residual's mean square over the noise's.
     pub factor: f64,
+    /// The RMS (m, along the bar) of what the model misses on held-out rows beyond the noise.
+    pub model_error: f64,
+    /// The nominal geometry with the set-up fitted alone (the determined set-up parameters
+    /// of the calibration), and that fit: what is delivered when the geometry is not improved.
+    pub setup: (Estimate, Fitted),
 }
 
 pub(super) fn held_out(problem: &Problem, f: &Fit) -> HeldOutScore {
@@ -163,17 +168,17 @@ pub(super) fn held_out(problem: &Problem, f: &Fit) -> HeldOutScore {
     let st = accumulate(problem, est, &cols, folds);
     let cv_cal = score(&st, &all).3;
     let heldout_cal = (cv_cal / kept_rows as f64).sqrt();
-    let heldout_nom = {
+    let (heldout_nom, setup) = {
         let mut e = est.clone();
         e.p[crate::model::ALPHA..crate::model::MAP]
             .copy_from_slice(&f.nominal.p[crate::model::ALPHA..crate::model::MAP]);
         e.effects.clear();
         let setup: Vec<Param> = free.iter().copied().filter(Param::is_setup).collect();
-        fit::refit(problem, &mut e, &setup);
+        let fitted = fit::refit(problem, &mut e, &setup);
         let c = model_cols(&e, &setup);
         let s = accumulate(problem, &e, &c, folds);
         let sel: Vec<usize> = (0..c.len()).collect();
-        (score(&s, &sel).3 / kept_rows as f64).sqrt()
+        ((score(&s, &sel).3 / kept_rows as f64).sqrt(), (e, fitted))
     };
     // Type A's model-error factor: the held-out mean square over what the noise alone gives
     // held out (the noise plus the variance of predicting a block from the others, which on a
@@ -196,12 +201,39 @@ pub(super) fn held_out(problem: &Problem, f: &Fit) -> HeldOutScore {
             _ => 1.0,
         }
     };
+    // What the model misses on rows it was not fitted to, beyond the reading noise (its
+    // high-frequency estimate) and what predicting from fewer rows costs a right model; only
+    // an excess the noise estimate's own uncertainty (three standard errors of a variance from
+    // n rows) cannot explain counts.
+    let model_error = {
+        // Weighted as the held-out sums are.
+        let live: Vec<f64> = f
+            .fitted
+            .residual
+            .iter()
+            .zip(&problem.weight)
+            .filter(|(_, w)| **w > 0.0)
+            .map(|(r, w)| r * w)
+            .collect();
+        let noise = fit::noise_estimate(&live);
+        match fit::heldout_determined(&st, &all) {
+            Some((cv, units, rows)) if rows > 0 => {
+                let slack = 1.0 + 3.0 * (2.0 / rows as f64).sqrt();
+                ((cv - noise * noise * units * slack) / rows as f64)
+                    .max(0.0)
+                    .sqrt()
+            }
+            _ => 0.0,
+        }
+    };
     HeldOutScore {
         calibrated: heldout_cal,
         nominal: heldout_nom,
         folds,
         rows: kept_rows,
         factor: f.inflate.max(model_factor),
+        model_error,
+        setup,
     }
 }
 

@@ -155,11 +155,18 @@ pub(super) fn estimate(
     let b_space = predict::position_std(model, &calibrated, &space, &w_b, &cov_b);
     let [m_region, m_space] =
         effect_model_spread(problem, est, fitted, sigma_eff, &[&region, &space]);
+    // The model's error as data it was not fitted to show it: the held-out residual (blocks
+    // of every run's rows in the order taken, the same stretch of each run held out together)
+    // beyond the reading noise is what the model misses on new poses, however many readings
+    // are taken ([`HeldOutScore::model_error`]). A reading sees one component of the MAP's
+    // error, along the bar; an error with no preferred direction has √3 times that RMS in 3D.
+    // Added to every pose.
+    let model_error = 3f64.sqrt() * held_out.model_error;
     let combine = |a: &[f64], b: &[f64], m: &[f64]| -> Vec<f64> {
         a.iter()
             .zip(b)
             .zip(m)
-            .map(|((x, y), z)| x.hypot(*y).hypot(*z) * 1e6)
+            .map(|((x, y), z)| x.hypot(*y).hypot(*z).hypot(model_error) * 1e6)
             .collect()
     };
     let um = |v: &[f64]| -> Vec<f64> { v.iter().map(|x| x * 1e6).collect() };
@@ -200,6 +207,10 @@ pub(super) fn estimate(
         from_effect_model: Component {
             measured_region_rms: round(predict::spread(&um(&m_region)).rms, 3),
             workspace_rms: round(predict::spread(&um(&m_space)).rms, 3),
+        },
+        from_model_error: Component {
+            measured_region_rms: round(model_error * 1e6, 3),
+            workspace_rms: round(model_error * 1e6, 3),
         },
         nominal_workspace_rms: round(nominal_prior_rms * 1e6, 3),
         model_error_factor: round(factor, 3),

@@ -592,6 +592,12 @@ pub struct CalibrateArgs {
     /// over the joint space.
     #[arg(long)]
     pub geometry_only: bool,
+    /// The step the joints were logged to, deg (0.1 for a controller that logs tenths of a
+    /// degree; 0: exact). Each reading is then weighted by its own uncertainty: the
+    /// instrument's noise with what rounding the joints does to the length at its pose
+    /// [default: read from the logged values].
+    #[arg(long, value_name = "DEG", allow_negative_numbers = true)]
+    pub joint_resolution: Option<f64>,
     /// Estimate each run's fixture position where the data determine it (the default; the
     /// given position is a prior).
     #[arg(long, conflicts_with = "fixture_known")]

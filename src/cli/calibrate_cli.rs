@@ -192,6 +192,14 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
         tool_known: a.tool_known,
         length_offset: parse_length_offset(a.length_offset.as_deref())?,
         write_effects: !a.geometry_only,
+        joint_resolution: match a.joint_resolution {
+            Some(g) if !(g.is_finite() && (0.0..=10.0).contains(&g)) => {
+                return Err(usage(format!(
+                    "--joint-resolution: '{g}' is not a step in degrees from 0 to 10"
+                )))
+            }
+            g => g.map(|g| g * DEG),
+        },
         ..CalibrateOptions::default()
     };
     if let Some(p) = &a.prior {
@@ -388,9 +396,10 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
     }
     .unwrap_or_default()
         + "\n";
-    // Not calibrated (nothing of the robot determined, or no better than nominal held out):
-    // no robot file is written; the report says why, and so does one line on stderr.
-    if !cal.report.calibrated {
+    // Not calibrated (nothing of the robot determined, or no better than nominal held out)
+    // and no set-up found either: no robot file is written; the report says why, and so does
+    // one line on stderr.
+    if !cal.writes_robot() {
         if let Some(p) = &a.json {
             write_all_atomic(&[(p.as_path(), json.as_str())])?;
         }
@@ -494,7 +503,8 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
     if let Some(p) = &sidecar {
         println!("wrote {} (the effects the URDF names)", p.display());
     }
-    Ok(0)
+    // The set-up only, with the nominal geometry: a result, told apart from a calibration.
+    Ok(if cal.setup_only() { 3 } else { 0 })
 }
 
 /// The sidecar file of a calibrated URDF: `robot.cal.urdf` → `robot.cal.effects.toml`.
@@ -535,13 +545,21 @@ fn header_lines(
 ) -> Vec<String> {
     let r = &cal.report;
     let mut h = vec![format!(
-        "calibrated by edbbgen {} from {} (sha256 {})",
+        "{} by edbbgen {} from {} (sha256 {})",
+        if cal.setup_only() {
+            "set-up fitted (the geometry nominal)"
+        } else {
+            "calibrated"
+        },
         env!("CARGO_PKG_VERSION"),
         robot.source,
         &robot.digest[..16.min(robot.digest.len())]
     )];
     for (k, run) in r.runs.iter().enumerate() {
-        let f = run.fixture_fitted_mm.unwrap_or(run.fixture_mm);
+        let f = match &r.setup {
+            Some(s) if cal.setup_only() => s.fixtures_mm[k],
+            _ => run.fixture_fitted_mm.unwrap_or(run.fixture_mm),
+        };
         h.push(format!(
             "run {}: {} (sha256 {}, {} rows), fixture {}, {}, {} mm{}",
             k + 1,
@@ -589,12 +607,14 @@ fn header_lines(
         h.push(format!("held at nominal: {}: {}", u.param, u.why));
     }
     let p = &r.predicted_position_std_um;
-    h.push(format!(
+    if !cal.setup_only() {
+        h.push(format!(
         "predicted MAP position uncertainty (1 sigma, after rigid registration): {} um RMS where measured, {} um RMS and {} um p95 over the joint space",
         fmt_fixed(p.measured_region_rms, 2),
         fmt_fixed(p.workspace_rms, 2),
         fmt_fixed(p.workspace_p95, 2)
-    ));
+        ));
+    }
     for e in &r.effect_sizes {
         let name = match e.joint {
             Some(j) => format!("{} (joint {j})", e.effect),
@@ -613,6 +633,9 @@ fn header_lines(
     }
     for w in &r.warnings {
         h.push(format!("warning: {w}"));
+    }
+    if cal.setup_only() {
+        h.push(r.verdict.clone());
     }
     h
 }

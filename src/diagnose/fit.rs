@@ -904,9 +904,9 @@ impl Problem {
         new
     }
 
-    /// Undoes the last [`Problem::split`] (`group` is what it returned) and drops the new
-    /// segment's set-up from `est`.
-    pub fn unsplit(&mut self, est: &mut Estimate, fixture: bool, group: usize) {
+    /// Undoes the last [`Problem::split`] (`group` is what it returned); an estimate from
+    /// before the split fits the problem again.
+    pub fn unsplit(&mut self, fixture: bool, group: usize) {
         let (groups, of) = if fixture {
             (&mut self.fix_groups, &mut self.fix_of)
         } else {
@@ -921,11 +921,6 @@ impl Problem {
         groups[old].rows.end = g.rows.end;
         for o in &mut of[g.rows.clone()] {
             *o = old as u32;
-        }
-        if fixture {
-            est.fixtures.truncate(group);
-        } else {
-            est.offsets.truncate(group);
         }
     }
 
@@ -1336,17 +1331,22 @@ impl Stats {
 
 pub(crate) const CHUNK: usize = 256;
 
-/// The chunks of the rows: at most [`CHUNK`] rows each, inside fold f's block
-/// [f·n/folds, (f+1)·n/folds): (rows, fold).
-fn chunks(n: usize, folds: usize) -> Vec<(Range<usize>, usize)> {
+/// The rows in chunks of at most [`CHUNK`], in order, each with its fold: fold f is the f-th of
+/// `folds` contiguous blocks of every run's rows, so that a fold holds out the same stretch of
+/// each run (runs over the same poses to other fixtures are held out together: the held-out
+/// poses are new to the fit) and leaves every run's set-up determined by the others.
+fn chunks(ranges: &[Range<usize>], folds: usize) -> Vec<(Range<usize>, usize)> {
     let mut out = Vec::new();
-    for f in 0..folds {
-        let (a, b) = (f * n / folds, (f + 1) * n / folds);
-        let mut s = a;
-        while s < b {
-            let e = (s + CHUNK).min(b);
-            out.push((s..e, f));
-            s = e;
+    for run in ranges {
+        let n = run.len();
+        for f in 0..folds {
+            let (a, b) = (run.start + f * n / folds, run.start + (f + 1) * n / folds);
+            let mut s = a;
+            while s < b {
+                let e = (s + CHUNK).min(b);
+                out.push((s..e, f));
+                s = e;
+            }
         }
     }
     out
@@ -1370,7 +1370,7 @@ fn accumulate_with(
     let n = problem.rows();
     let c = cols.len();
     let folds = folds.max(1);
-    let parts: Vec<(Partial, usize)> = chunks(n, folds)
+    let parts: Vec<(Partial, usize)> = chunks(&problem.ranges, folds)
         .into_par_iter()
         .map(|(rows, f)| {
             let mut nn = vec![0.0; c * c];
@@ -1443,7 +1443,7 @@ pub(crate) fn rows_of(
     let prep = prepare(problem, est);
     let c = cols.len();
     let n = problem.rows();
-    let parts: Vec<(Vec<f64>, Vec<f64>)> = chunks(n, 1)
+    let parts: Vec<(Vec<f64>, Vec<f64>)> = chunks(&problem.ranges, 1)
         .into_par_iter()
         .map(|(rows, _)| {
             let mut xs = Vec::with_capacity(rows.len() * c);
@@ -1804,6 +1804,15 @@ pub fn structural(
 /// RMS of a residual.
 pub fn rms(r: &[f64]) -> f64 {
     (r.iter().map(|v| v * v).sum::<f64>() / r.len().max(1) as f64).sqrt()
+}
+
+/// The values of `r` at the rows that count (weight above zero).
+pub fn kept_values(r: &[f64], weight: &[f64]) -> Vec<f64> {
+    r.iter()
+        .zip(weight)
+        .filter(|(_, w)| **w > 0.0)
+        .map(|(v, _)| *v)
+        .collect()
 }
 
 /// RMS of the rows that count (weight above zero).

@@ -548,6 +548,40 @@ pub struct Step {
     pub heldout_after: f64,
 }
 
+/// Steps split off in a row, none proven yet: the model before the first of them, and the
+/// splits to undo (in the order made) with the parameters they added.
+struct Pending {
+    s: Estimate,
+    free: Vec<Param>,
+    residual: Vec<f64>,
+    noise: f64,
+    found: usize,
+    splits: Vec<(bool, usize)>,
+    /// Parameters of the splits: the place and the new segment's set-up.
+    params: f64,
+}
+
+impl Pending {
+    /// `params` is the chain's count with this split (as the test judged it).
+    fn add(&mut self, fixture: bool, group: usize, params: f64) {
+        self.splits.push((fixture, group));
+        self.params = params;
+    }
+
+    /// Undoes the splits, last first, and gives back the model before them.
+    fn restore(
+        self,
+        problem: &mut Problem,
+        found: &mut Vec<Step>,
+    ) -> (Estimate, Vec<Param>, Vec<f64>, f64) {
+        for &(fixture, group) in self.splits.iter().rev() {
+            problem.unsplit(fixture, group);
+        }
+        found.truncate(self.found);
+        (self.s, self.free, self.residual, self.noise)
+    }
+}
+
 /// A diagnosis with its final model: the estimate and the joint fit of the geometry and the
 /// named effects, the candidates considered and the steps split off.
 pub struct Selected {
@@ -651,17 +685,15 @@ pub fn select(
     }];
     let mut found: Vec<Step> = Vec::new();
 
-    let kept_of = |r: &[f64], w: &[f64]| -> Vec<f64> {
-        r.iter()
-            .zip(w)
-            .filter(|(_, w)| **w > 0.0)
-            .map(|(v, _)| *v)
-            .collect()
-    };
-    let mut noise = noise_estimate(&kept_of(&residual, &problem.weight));
+    let mut noise = noise_estimate(&fit::kept_values(&residual, &problem.weight));
     let (mut effects_added, mut steps_added) = (0, 0);
+    // Steps split off but not yet proven: the state before the first of them. Several faults
+    // in one run (a zero that jumps twice) leave the residual of the first split as
+    // correlated as before, the other jump in it; they are judged together, by the residual
+    // after the last.
+    let mut pending: Option<Pending> = None;
     while effects_added < opts.max_effects || steps_added < opts.max_steps {
-        let live = kept_of(&residual, &problem.weight);
+        let live = fit::kept_values(&residual, &problem.weight);
         noise = noise.min(noise_estimate(&live));
         let r_now = rms(&live);
         // At the noise level and white: nothing left to explain. The candidates are still
@@ -821,6 +853,15 @@ pub fn select(
         if settled {
             break;
         }
+        if pending.is_some() && !matches!(m, Move::Step(_)) {
+            // Unproven steps are not a model to add an effect to: back to the last proven one,
+            // and no more steps.
+            if let Some(p) = pending.take() {
+                (s, free, residual, noise) = p.restore(problem, &mut found);
+            }
+            steps_added = opts.max_steps;
+            continue;
+        }
         let heldout = (cv / n).sqrt();
         let (e, tau0) = match m {
             Move::Effect(e, _, tau) => (e, tau),
@@ -838,23 +879,36 @@ pub fn select(
                 // the change-point test again on the refitted residual, its rows counted as
                 // the independent readings they are worth (a model error that wanders with the
                 // pose makes consecutive residuals alike, and any split of it "explains" a
-                // share; a real step leaves a residual as white as before).
-                let before = kept_of(&residual, &problem.weight);
-                let after = kept_of(&st.residual, &problem.weight);
+                // share; a real step leaves a residual as white as before). Steps not yet
+                // proven are judged with this one, from the last proven model.
+                let params = if split.fixture { 4.0 } else { 2.0 };
+                let (before, params) = match &pending {
+                    Some(p) => (
+                        fit::kept_values(&p.residual, &problem.weight),
+                        p.params + params,
+                    ),
+                    None => (fit::kept_values(&residual, &problem.weight), params),
+                };
+                let after = fit::kept_values(&st.residual, &problem.weight);
                 let ss = |r: &[f64]| r.iter().map(|v| v * v).sum::<f64>();
                 let n_eff = after.len() as f64 / fit::correlation_time(&after).max(1.0);
-                let params = if split.fixture { 4.0 } else { 2.0 };
                 let gain = n_eff * (ss(&before) / ss(&after).max(1e-300)).ln()
                     - params * n_eff.max(1.0).ln();
-                if gain <= 10.0 {
-                    if split.fixture {
-                        free.truncate(free.len() - 3);
-                    } else {
-                        free.pop();
-                    }
-                    problem.unsplit(&mut trial, split.fixture, group);
-                    steps_added = opts.max_steps;
-                    continue;
+                let proven = gain > 10.0;
+                if !proven {
+                    pending
+                        .get_or_insert_with(|| Pending {
+                            s: s.clone(),
+                            free: free[..free.len() - if split.fixture { 3 } else { 1 }].to_vec(),
+                            residual: residual.clone(),
+                            noise,
+                            found: found.len(),
+                            splits: Vec::new(),
+                            params: 0.0,
+                        })
+                        .add(split.fixture, group, params);
+                } else {
+                    pending = None;
                 }
                 s = trial;
                 residual = st.residual;
@@ -932,6 +986,10 @@ pub fn select(
         });
         stages.push((label, residual.clone()));
     }
+    // Steps never proven are undone.
+    if let Some(p) = pending.take() {
+        (s, free, residual, noise) = p.restore(problem, &mut found);
+    }
     // The final model: the joint fit's normal matrix at the estimate.
     let cols = model_cols(&s, &free);
     let st = accumulate(problem, &s, &cols, 1);
@@ -943,7 +1001,7 @@ pub fn select(
         rss,
         rows,
     };
-    let live = kept_of(&residual, &problem.weight);
+    let live = fit::kept_values(&residual, &problem.weight);
     noise = noise.min(noise_estimate(&live));
     let rms_final = rms(&live);
     let l1 = lag1(&live);

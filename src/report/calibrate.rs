@@ -62,11 +62,12 @@ pub fn page(c: &Calibration, robot: &str, inputs_sha256: &str) -> Result<Page, R
             ),
         ),
         (
-            "of which from noise / from parameters held at nominal".into(),
+            "of which from noise / from parameters held at nominal / from model error".into(),
             format!(
-                "{} µm / {} µm RMS over the joint space",
+                "{} µm / {} µm / {} µm RMS over the joint space",
                 fmt_fixed(p.from_noise.workspace_rms, 2),
-                fmt_fixed(p.from_held.workspace_rms, 2)
+                fmt_fixed(p.from_held.workspace_rms, 2),
+                fmt_fixed(p.from_model_error.workspace_rms, 2)
             ),
         ),
     ];
