@@ -85,6 +85,8 @@ pub(super) fn fit(
         // A calibration keeps what predicts better (the held-out gain and the BIC judge
         // that); naming the cause is the diagnosis's business.
         min_explained_heldout: 0.0,
+        // The problem's harmonic caps already hold the robot's limits (`run`).
+        joint_ranges: None,
     };
     let sel = diagnose::select(problem, &free, est, &sel_opts);
     if max_effects > 0 && sel.diagnosis.report.unexplained {
@@ -333,11 +335,12 @@ pub fn determined_columns(
     (chosen, weak)
 }
 
-/// The form an effect named in `--effects` takes: cyclic errors with harmonic orders 1-3, a
-/// thermal drift linear in a logged temperature or a first-order lag, a servo delay.
+/// The form an effect named in `--effects` takes: cyclic errors with harmonic orders 1-3 (fewer
+/// where the joint's measured range determines fewer, `fit::harmonic_cap`), a thermal drift
+/// linear in a logged temperature or a first-order lag, a servo delay.
 fn list_basis(e: Effect, problem: &Problem) -> Basis {
     match e {
-        Effect::CyclicError(_) => Basis::Harmonics(0b111),
+        Effect::CyclicError(j) => Basis::Harmonics((1u8 << problem.harmonic_cap(j).min(3)) - 1),
         Effect::ThermalDrift if problem.has_temperature() => Basis::Temperature,
         Effect::ThermalDrift => Basis::Lag,
         _ => Basis::Standard,

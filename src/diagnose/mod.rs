@@ -56,6 +56,10 @@ pub struct DiagnoseOptions {
     /// library that is present explains 0.9 or more of it in the hidden-effect tests, a slip
     /// it mimics about 0.1.
     pub min_explained_heldout: f64,
+    /// The ranges the joints can turn through (the robot's limits, rad; `None`: the whole
+    /// turn), which cap a cyclic error's harmonic orders by how much of them was measured
+    /// (`fit::harmonic_cap`).
+    pub joint_ranges: Option<[(f64, f64); 6]>,
 }
 
 impl Default for DiagnoseOptions {
@@ -67,6 +71,7 @@ impl Default for DiagnoseOptions {
             max_steps: 0,
             min_explained: 0.6,
             min_explained_heldout: 0.6,
+            joint_ranges: None,
         }
     }
 }
@@ -488,14 +493,15 @@ fn candidates(problem: &Problem) -> Vec<Move> {
     c
 }
 
-/// The columns a move adds.
-fn move_cols(m: &Move) -> Vec<Col> {
+/// The columns a move adds: a cyclic error's, the harmonic orders its joint's measured range
+/// determines ([`fit::harmonic_cap`]).
+fn move_cols(m: &Move, problem: &Problem) -> Vec<Col> {
     match m {
         Move::Effect(Effect::ThermalDrift, Basis::Lag, tau) => vec![Col::ThermAt(*tau)],
         Move::Effect(e, b, _) => effect_cols(*e, *b),
         Move::Cyclic(j) => effect_cols(
             Effect::CyclicError(*j),
-            Basis::Harmonics((1u8 << fit::MAX_HARMONIC) - 1),
+            Basis::Harmonics(((1u16 << problem.harmonic_cap(*j)) - 1) as u8),
         ),
         Move::Step(s) if s.fixture => (0..3)
             .map(|axis| Col::StepFix {
@@ -618,6 +624,9 @@ pub fn run(
         }],
     )
     .with_masses(&opts.masses);
+    if let Some(ranges) = &opts.joint_ranges {
+        problem = problem.with_joint_ranges(ranges);
+    }
     let mut est = Estimate::nominal(&problem);
     let (_, free) = fit::structural(&problem, &Known::default(), &est);
     let setup: Vec<Param> = free.iter().copied().filter(Param::is_setup).collect();
@@ -713,7 +722,7 @@ pub fn select(
         // for 42 plateau means).
         let spare = base_cols.len();
         let mut add = |m: Move, cols: &mut Vec<Col>| {
-            let c = move_cols(&m);
+            let c = move_cols(&m, problem);
             let least = match m {
                 Move::Cyclic(_) => 2,
                 _ => c.len(),
@@ -767,16 +776,20 @@ pub fn select(
                         // HARMONIC_GAIN of the best: a higher order joins only when the data
                         // support it, and the first (which a joint short of a turn confuses
                         // with its zero offset) is never left out for a higher one that
-                        // happens to mimic it.
+                        // happens to mimic it. H is at most what the joint's measured range
+                        // determines over the turn (the move's columns stop there): held-out
+                        // blocks lie inside the range too, so they cannot judge the form
+                        // beyond it.
+                        let cap = range.len() / 2;
                         let upto = |h: usize| -> (f64, f64, f64) {
                             let sel: Vec<usize> = (range.start..range.start + 2 * h).collect();
                             with(&sel)
                         };
-                        let all: Vec<(f64, f64, f64)> = (1..=fit::MAX_HARMONIC).map(upto).collect();
+                        let all: Vec<(f64, f64, f64)> = (1..=cap).map(upto).collect();
                         let min = all.iter().map(|x| x.2).fold(f64::INFINITY, f64::min);
-                        let h = (1..=fit::MAX_HARMONIC)
+                        let h = (1..=cap)
                             .find(|&h| all[h - 1].2 * (1.0 - HARMONIC_GAIN) <= min)
-                            .unwrap_or(fit::MAX_HARMONIC);
+                            .unwrap_or(cap);
                         let best = all[h - 1];
                         let mask = ((1u16 << h) - 1) as u8;
                         (m.clone(), Basis::Harmonics(mask), best.0, best.1, best.2)
