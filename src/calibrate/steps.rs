@@ -335,12 +335,11 @@ pub fn determined_columns(
     (chosen, weak)
 }
 
-/// The form an effect named in `--effects` takes: cyclic errors with harmonic orders 1-3 (fewer
-/// where the joint's measured range determines fewer, `fit::harmonic_cap`), a thermal drift
-/// linear in a logged temperature or a first-order lag, a servo delay.
+/// The form an effect named in `--effects` takes: cyclic errors with harmonic orders 1-3, a
+/// thermal drift linear in a logged temperature or a first-order lag, a servo delay.
 fn list_basis(e: Effect, problem: &Problem) -> Basis {
     match e {
-        Effect::CyclicError(j) => Basis::Harmonics((1u8 << problem.harmonic_cap(j).min(3)) - 1),
+        Effect::CyclicError(_) => Basis::Harmonics(0b111),
         Effect::ThermalDrift if problem.has_temperature() => Basis::Temperature,
         Effect::ThermalDrift => Basis::Lag,
         _ => Basis::Standard,

@@ -124,7 +124,10 @@ pub const BOUND_HARMONIC: usize = MAX_HARMONIC + 2;
 /// steps (held out 8.5 um against 3.1 um with two orders), so the bound on what the data can
 /// hide, not on stable sampling, is the rule. The first order is always allowed: the gap never
 /// holds its whole period, and a joint short of a turn confuses it with its zero, which the
-/// fit's mean removal handles.
+/// fit's mean removal handles. Orders past the cap are not excluded outright: Remez's growth
+/// multiplies what the data leave uncertain, and very precise data can carry an order across
+/// the gap; the selection admits one only when the fitted form's standard uncertainty over the
+/// whole range is at most half its size (`diagnose::form_determined`).
 pub fn harmonic_cap(q: &[[f64; 6]], j: usize, range: Option<(f64, f64)>) -> usize {
     let gap = unmeasured_gap(q.iter().map(|x| x[j]), range);
     if gap <= 0.0 {
@@ -521,6 +524,9 @@ pub struct Problem {
     harmonic_means: [[(f64, f64); BOUND_HARMONIC]; 6],
     /// Per joint, the highest harmonic order its measured range determines ([`harmonic_cap`]).
     harmonic_caps: [usize; 6],
+    /// Per joint, the range it can turn through (rad; at most one turn): where the robot file
+    /// applies a cyclic error.
+    joint_ranges: [(f64, f64); 6],
     /// √weight of each row from its stated uncertainty (1 without one).
     pub base_weight: Vec<f64>,
     /// √weight in use: the stated one times the robust loss's; 0 drops the row.
@@ -767,6 +773,7 @@ impl Problem {
             masses: Vec::new(),
             harmonic_means: means,
             harmonic_caps: caps,
+            joint_ranges: [(-std::f64::consts::PI, std::f64::consts::PI); 6],
             weight: base_weight.clone(),
             base_weight,
             fix_groups: groups.clone(),
@@ -779,7 +786,20 @@ impl Problem {
     /// without them, of the whole turn).
     pub fn with_joint_ranges(mut self, ranges: &[(f64, f64); 6]) -> Self {
         self.harmonic_caps = std::array::from_fn(|j| harmonic_cap(&self.m.q, j, Some(ranges[j])));
+        self.joint_ranges = std::array::from_fn(|j| {
+            let (lo, hi) = ranges[j];
+            if hi - lo < std::f64::consts::TAU {
+                (lo, hi)
+            } else {
+                (-std::f64::consts::PI, std::f64::consts::PI)
+            }
+        });
         self
+    }
+
+    /// The range joint j can turn through (rad, at most one turn; the turn without limits).
+    pub fn joint_range(&self, j: usize) -> (f64, f64) {
+        self.joint_ranges[j]
     }
 
     /// The robot's link masses, for the known-mass form of joint compliance.
@@ -812,6 +832,7 @@ impl Problem {
     pub fn with_harmonic_means_of(mut self, other: &Problem) -> Self {
         self.harmonic_means = other.harmonic_means;
         self.harmonic_caps = other.harmonic_caps;
+        self.joint_ranges = other.joint_ranges;
         self
     }
 
@@ -954,6 +975,7 @@ impl Problem {
             masses: self.masses.clone(),
             harmonic_means: self.harmonic_means,
             harmonic_caps: self.harmonic_caps,
+            joint_ranges: self.joint_ranges,
             base_weight: keep.iter().map(|&k| self.base_weight[k]).collect(),
             weight: keep.iter().map(|&k| self.weight[k]).collect(),
             fix_groups: self.fix_groups.iter().map(remap).collect(),

@@ -29,6 +29,7 @@ use crate::units::{fmt_fixed, to_deg, DEG, MM};
 use fit::{
     accumulate, effect_cols, kept_rms, lag1, model_cols, noise_estimate, rms, score, solve, Col,
 };
+use nalgebra::{DMatrix, DVector};
 use rayon::prelude::*;
 use serde::Serialize;
 
@@ -493,15 +494,14 @@ fn candidates(problem: &Problem) -> Vec<Move> {
     c
 }
 
-/// The columns a move adds: a cyclic error's, the harmonic orders its joint's measured range
-/// determines ([`fit::harmonic_cap`]).
-fn move_cols(m: &Move, problem: &Problem) -> Vec<Col> {
+/// The columns a move adds.
+fn move_cols(m: &Move) -> Vec<Col> {
     match m {
         Move::Effect(Effect::ThermalDrift, Basis::Lag, tau) => vec![Col::ThermAt(*tau)],
         Move::Effect(e, b, _) => effect_cols(*e, *b),
         Move::Cyclic(j) => effect_cols(
             Effect::CyclicError(*j),
-            Basis::Harmonics(((1u16 << problem.harmonic_cap(*j)) - 1) as u8),
+            Basis::Harmonics((1u8 << fit::MAX_HARMONIC) - 1),
         ),
         Move::Step(s) if s.fixture => (0..3)
             .map(|axis| Col::StepFix {
@@ -515,6 +515,56 @@ fn move_cols(m: &Move, problem: &Problem) -> Vec<Col> {
             to: s.to,
         }],
     }
+}
+
+/// Whether the data determine a cyclic error of joint j with harmonic orders 1..h over the
+/// joint's whole range, where the robot file applies it. Orders whose whole period the largest
+/// unmeasured stretch of the range cannot hold do ([`fit::harmonic_cap`]: the gap can hide no
+/// oscillation of theirs). A higher order only where the data are precise enough to carry it
+/// across the gap: the form's standard uncertainty over the range (the readings' noise
+/// through N⁻¹ of the geometry and the harmonics fitted together; beyond the measured range
+/// Remez's inequality lets it grow by up to T₂ₕ(1/cos(G/4))) at most half the fitted form (RMS
+/// over a grid of the range: the form known to two standard uncertainties).
+fn form_determined(
+    problem: &Problem,
+    j: usize,
+    h: usize,
+    normal: &(DMatrix<f64>, DVector<f64>, f64, usize),
+    base: &[usize],
+    start: usize,
+    noise: f64,
+) -> bool {
+    const GRID: usize = 72;
+    if h <= problem.harmonic_cap(j) {
+        return true;
+    }
+    let (n, b) = (&normal.0, &normal.1);
+    let sel: Vec<usize> = base.iter().copied().chain(start..start + 2 * h).collect();
+    let ns = DMatrix::from_fn(sel.len(), sel.len(), |a, c| n[(sel[a], sel[c])]);
+    let bs = DVector::from_fn(sel.len(), |a, _| b[sel[a]]);
+    let inv = fit::inverse(&ns);
+    let x = &inv * &bs;
+    let k0 = base.len();
+    let (lo, hi) = problem.joint_range(j);
+    let (mut amp, mut var) = (0.0, 0.0);
+    let mut v = vec![0.0; 2 * h];
+    for g in 0..GRID {
+        let q = lo + (hi - lo) * (g as f64 + 0.5) / GRID as f64;
+        for o in 1..=h {
+            let (sn, cs) = problem.harmonic(j, o, q);
+            v[2 * (o - 1)] = cs;
+            v[2 * (o - 1) + 1] = sn;
+        }
+        let mut d = 0.0;
+        for a in 0..2 * h {
+            d += v[a] * x[k0 + a];
+            for c in 0..2 * h {
+                var += v[a] * inv[(k0 + a, k0 + c)] * v[c] * noise * noise;
+            }
+        }
+        amp += d * d;
+    }
+    var.max(0.0).sqrt() <= 0.5 * amp.sqrt()
 }
 
 /// The name of an effect's form, for the candidates' report.
@@ -722,7 +772,7 @@ pub fn select(
         // for 42 plateau means).
         let spare = base_cols.len();
         let mut add = |m: Move, cols: &mut Vec<Col>| {
-            let c = move_cols(&m, problem);
+            let c = move_cols(&m);
             let least = match m {
                 Move::Cyclic(_) => 2,
                 _ => c.len(),
@@ -761,6 +811,7 @@ pub fn select(
         let (rss0, _, bic0, cv0) = score(&st, &base_sel);
         let excess = (rss0 - n * noise * noise).max(0.0);
         let excess_heldout = (cv0 - n * noise * noise).max(0.0);
+        let normal = st.total();
         // Each move's best form: its score (rss, bic, held-out) on the shared sums.
         let scored: Vec<(Move, Basis, f64, f64, f64)> = moves
             .par_iter()
@@ -771,16 +822,21 @@ pub fn select(
                     (rss, bic, cv)
                 };
                 match m {
-                    Move::Cyclic(_) => {
+                    Move::Cyclic(j) => {
                         // Harmonic orders 1..H, H the smallest whose held-out error is within
                         // HARMONIC_GAIN of the best: a higher order joins only when the data
                         // support it, and the first (which a joint short of a turn confuses
                         // with its zero offset) is never left out for a higher one that
-                        // happens to mimic it. H is at most what the joint's measured range
-                        // determines over the turn (the move's columns stop there): held-out
-                        // blocks lie inside the range too, so they cannot judge the form
-                        // beyond it.
-                        let cap = range.len() / 2;
+                        // happens to mimic it. H is at most an order the joint's measured
+                        // range determines over the joint's whole range (`form_determined`):
+                        // held-out blocks lie inside the range too, so they cannot judge the
+                        // form beyond it.
+                        let cap = (1..=fit::MAX_HARMONIC)
+                            .take_while(|&h| {
+                                form_determined(problem, *j, h, &normal, &base_sel, range.start, noise)
+                            })
+                            .last()
+                            .unwrap_or(1);
                         let upto = |h: usize| -> (f64, f64, f64) {
                             let sel: Vec<usize> = (range.start..range.start + 2 * h).collect();
                             with(&sel)
