@@ -2030,7 +2030,10 @@ mod tests {
         // extrapolated to 684 um RMS over the joint space.
         assert_eq!(harmonic_cap(&swept(0, &[(-110.0, 100.0)]), 0, whole), 2);
         // Measured over the whole turn: every order.
-        assert_eq!(harmonic_cap(&swept(0, &[(-180.0, 180.0)]), 0, whole), MAX_HARMONIC);
+        assert_eq!(
+            harmonic_cap(&swept(0, &[(-180.0, 180.0)]), 0, whole),
+            MAX_HARMONIC
+        );
         // The gap is the largest arc between angles, across ±180° too: two patches leaving
         // 40° out on either side.
         let two = swept(0, &[(-160.0, -20.0), (20.0, 160.0)]);
@@ -2045,7 +2048,10 @@ mod tests {
         // over -60..85° nothing.
         let j2 = Some((-60.0 * DEG, 85.0 * DEG));
         assert_eq!(harmonic_cap(&swept(1, &[(-18.0, 68.0)]), 1, j2), 4);
-        assert_eq!(harmonic_cap(&swept(1, &[(-60.0, 85.0)]), 1, j2), MAX_HARMONIC);
+        assert_eq!(
+            harmonic_cap(&swept(1, &[(-60.0, 85.0)]), 1, j2),
+            MAX_HARMONIC
+        );
         // The first order is always allowed: a joint hardly measured, or not at all.
         assert_eq!(harmonic_cap(&swept(0, &[(0.0, 5.0)]), 0, whole), 1);
         assert_eq!(harmonic_cap(&[], 0, whole), 1);

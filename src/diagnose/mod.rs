@@ -833,7 +833,15 @@ pub fn select(
                         // form beyond it.
                         let cap = (1..=fit::MAX_HARMONIC)
                             .take_while(|&h| {
-                                form_determined(problem, *j, h, &normal, &base_sel, range.start, noise)
+                                form_determined(
+                                    problem,
+                                    *j,
+                                    h,
+                                    &normal,
+                                    &base_sel,
+                                    range.start,
+                                    noise,
+                                )
                             })
                             .last()
                             .unwrap_or(1);
