@@ -25,7 +25,7 @@ fn irb120() -> PathBuf {
 }
 
 /// Random joint poses within the limits, this module's own draw.
-fn poses(arm: &Arm, n: usize, seed: u64) -> Vec<[f64; 6]> {
+pub fn poses(arm: &Arm, n: usize, seed: u64) -> Vec<[f64; 6]> {
     let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x2222);
     (0..n)
         .map(|_| std::array::from_fn(|j| rng.random_range(arm.lo[j]..arm.hi[j])))
@@ -349,7 +349,7 @@ fn every_effect_of_the_library_from_another_simulator_calibrates_within_10_um_as
 }
 
 /// A scratch folder beside which the NJ-130's files resolve.
-fn workdir_nj130() -> tempfile::TempDir {
+pub fn workdir_nj130() -> tempfile::TempDir {
     crate::calibrate::workdir(&nj130_dh())
 }
 

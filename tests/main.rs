@@ -24,6 +24,7 @@ mod drift;
 mod effects;
 mod fuzz;
 mod header_limits;
+mod joint_logs;
 mod ldbb;
 mod linuxcnc;
 mod logs;

@@ -125,6 +125,10 @@ pub(super) struct RunExtra {
     pub length_zero_std_mm: f64,
     /// Bar samples while unmounted or unmatched, never used.
     pub rows_unused: usize,
+    /// A continuous run from a fast bar: consecutive samples averaged into one row (their
+    /// residual averaged, the middle sample's pose kept; [`logs::sync::bin`]).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub samples_per_row: Option<usize>,
 }
 
 /// A bar's zero this far from the ball-centre distance is no robot error (m).
@@ -441,6 +445,7 @@ fn stop_and_measure(
         length_zero_mm: to_mm(sm.zero),
         length_zero_std_mm: to_mm(sm.zero_std),
         rows_unused: bar.len() - used,
+        samples_per_row: None,
     };
     Ok((m, extra, summary))
 }
@@ -464,14 +469,17 @@ fn continuous(
     let s = logs::sync::sync(&bar.t, &bar.length, &spline, length)
         .map_err(|e| file_err(joint_path, e))?;
     let t0 = bar.t.first().copied().unwrap_or(0.0);
+    let interval = median(&bar.t.windows(2).map(|w| w[1] - w[0]).collect::<Vec<_>>());
+    let per_row = logs::sync::samples_per_row(interval);
+    let bins = logs::sync::bin(&s, length, per_row);
     let m = Measured {
-        t: s.rows.iter().map(|&k| bar.t[k] - t0).collect(),
-        q: s.q.clone(),
-        length: s.rows.iter().map(|&k| bar.length[k]).collect(),
+        t: bins.rows.iter().map(|&k| bar.t[k] - t0).collect(),
+        q: bins.q,
+        length: bins.length,
         temp: bar
             .temp
             .as_ref()
-            .map(|temps| s.rows.iter().map(|&k| temps[k]).collect()),
+            .map(|temps| bins.rows.iter().map(|&k| temps[k]).collect()),
         ..Measured::default()
     };
     let clock = ClockReport {
@@ -485,10 +493,26 @@ fn continuous(
         pauses_std_s: None,
         timeline_rms_s: None,
         length_rms_um: Some(s.rms * 1e6),
-        method: format!("the bar's length against the one the joint log predicts ({which} model): coarse offset search, then offset and drift in steps, then least squares on offset, drift and zero over the samples that agree (the bar mounted); uncertainty inflated for the residual's correlation"),
+        smoothing_s2: Some(s.smoothing),
+        smoothing_std_s2: Some(s.smoothing_std),
+        averaging_window_ms: Some((s.smoothing > 0.0).then(|| (24.0 * s.smoothing).sqrt() * 1e3)),
+        method: format!("the bar's length against the one the joint log predicts ({which} model): coarse offset search, then offset and drift in steps, then least squares on offset, drift, zero and the bar's smoothing (reading = L + c·L'') over the samples that agree (the bar mounted); uncertainty inflated for the residual's correlation"),
+    };
+    let smoothing = if s.smoothing > 3.0 * s.smoothing_std && s.smoothing > 0.0 {
+        format!(
+            "; the bar smooths as a {} ms average (taken out)",
+            fmt_fixed((24.0 * s.smoothing).sqrt() * 1e3, 1)
+        )
+    } else {
+        String::new()
+    };
+    let averaged = if per_row > 1 {
+        format!(", averaged {per_row} to a row ({} rows)", m.len())
+    } else {
+        String::new()
     };
     let summary = vec![format!(
-        "{}: {} of {} bar samples synchronised with {} ({} s mounted); clock offset {} +- {} ms, drift {} +- {} ppm; bar reads nominal + {} mm",
+        "{}: {} of {} bar samples synchronised with {}{averaged} ({} s mounted); clock offset {} +- {} ms, drift {} +- {} ppm; bar reads nominal + {} mm",
         name(bar_path),
         s.rows.len(),
         bar.len(),
@@ -499,7 +523,7 @@ fn continuous(
         fmt_fixed(s.drift * 1e6, 1),
         fmt_fixed(s.drift_std * 1e6, 1),
         fmt_fixed(to_mm(s.zero), 3)
-    )];
+    ) + &smoothing];
     let extra = RunExtra {
         bar_log: name(bar_path),
         program: None,
@@ -511,6 +535,7 @@ fn continuous(
         length_zero_mm: to_mm(s.zero),
         length_zero_std_mm: to_mm(s.zero_std),
         rows_unused: bar.len() - s.rows.len(),
+        samples_per_row: (per_row > 1).then_some(per_row),
     };
     Ok((m, extra, summary))
 }

@@ -91,8 +91,30 @@ pub struct ClockReport {
     pub timeline_rms_s: Option<f64>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub length_rms_um: Option<f64>,
+    /// A continuous run: the bar's smoothing c (reading = L + c·L''; see [`sync`]) and its
+    /// standard uncertainty (s²), and the average over a window it equals, √(24c) (ms; null
+    /// when c ≤ 0, e.g. none).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub smoothing_s2: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub smoothing_std_s2: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub averaging_window_ms: Option<Option<f64>>,
     /// How it was obtained, for people.
     pub method: String,
+}
+
+impl ClockReport {
+    /// The largest change, between this clock and `other`, of the reference time a bar time
+    /// in `[from, to]` (s, the bar's clock) is mapped to (s): how far a new synchronisation
+    /// moved the samples of a run.
+    pub fn moved_from(&self, other: &ClockReport, from: f64, to: f64) -> f64 {
+        let at = |c: &ClockReport, u: f64| (u - c.offset_s) / (1.0 + c.drift_ppm * 1e-6);
+        [from, to]
+            .iter()
+            .map(|&u| (at(self, u) - at(other, u)).abs())
+            .fold(0.0, f64::max)
+    }
 }
 
 /// The stop-and-measure clock from the timeline's per-section offsets (program time with
@@ -141,6 +163,9 @@ fn program_clock(tl: &Timeline, interval: f64) -> ClockReport {
         timeline_rms_s: Some(tl.rms),
         length_rms_um: None,
         method: "plateau edges against the program's dwell and move times, one offset per section (the pauses' lengths are unknown), one drift, robust least squares; the controller's stops taken out. The drift includes any difference between the controller's and the program's move times".into(),
+        smoothing_s2: None,
+        smoothing_std_s2: None,
+        averaging_window_ms: None,
     }
 }
 

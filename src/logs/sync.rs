@@ -10,10 +10,16 @@
 //!    (the zero is unknown; readings while the bar is unmounted agree with nothing).
 //! 2. **Finer.** Around the best: offset steps of 2 ms and drifts of ±1000 ppm in 50 ppm
 //!    steps, within 2 mm.
-//! 3. **Least squares.** Gauss–Newton on offset, drift and zero over the samples that agree
-//!    (runs of at least 1 s within 5 robust sigmas: the bar mounted), re-selected each round.
-//!    The covariance is σ²(JᵀJ)⁻¹ inflated by (1 + ρ)/(1 − ρ) for the residual's lag-1
-//!    correlation ρ (a model error is smooth in time, not white).
+//! 3. **Least squares.** Gauss–Newton on offset, drift, zero and the bar's smoothing over the
+//!    samples that agree (runs of at least 1 s within 5 robust sigmas: the bar mounted),
+//!    re-selected each round. The covariance is σ²(JᵀJ)⁻¹ inflated by (1 + ρ)/(1 − ρ) for the
+//!    residual's lag-1 correlation ρ (a model error is smooth in time, not white).
+//!
+//! **The bar's own dynamics.** A bar that filters its signal (averages over its sample period,
+//! or a first-order low-pass) reads, to second order, `L(t − d) + c·L''(t)`: the delay d is
+//! part of the clock offset, and c — w²/24 for an average over w seconds, T²/2 for a lag of
+//! time constant T — is fitted with it (`smoothing`). A 20 ms average left unmodelled costs
+//! 17 µm where the bar accelerates at 1 m/s². The readings handed on have c·L'' taken out.
 //!
 //! The joints are interpolated with a natural cubic spline per joint (error O(h⁴): a 10 ms log
 //! of the twin's moves is interpolated to ~1e-7 rad); a gap in the joint log (more than five
@@ -139,6 +145,10 @@ pub struct Synced {
     /// The bar's zero (m): reading − predicted length, and its standard uncertainty.
     pub zero: f64,
     pub zero_std: f64,
+    /// The bar's smoothing c (s²): reading = L + c·L'' (see the module's notes), and its
+    /// standard uncertainty.
+    pub smoothing: f64,
+    pub smoothing_std: f64,
     /// RMS of reading − zero − prediction over the samples used (m).
     pub rms: f64,
     /// The bar rows the bar was mounted for (0-based, ascending), their joint-clock times and
@@ -146,6 +156,8 @@ pub struct Synced {
     pub rows: Vec<usize>,
     pub t_joint: Vec<f64>,
     pub q: Vec<[f64; 6]>,
+    /// Their readings with the bar's smoothing taken out: lᵢ − c·L''ᵢ (m).
+    pub length: Vec<f64>,
 }
 
 /// Coarse offset step (s), its tolerance (m); the finer search's step, drift grid, tolerance.
@@ -221,7 +233,42 @@ impl Problem<'_> {
     fn predict(&self, tau: f64) -> Option<f64> {
         self.spline.at(tau).map(|q| (self.length)(&q))
     }
+
+    /// The predicted length at joint time tau (in `r`), its time derivatives by central
+    /// differences: slope over ±0.1 ms, curvature over ±2 ms (the bar's dynamics act over
+    /// milliseconds; a wider step keeps rounding out of the second difference).
+    fn local(&self, tau: f64) -> Option<Local> {
+        let p = self.predict(tau)?;
+        let h = 1e-4;
+        let slope = (self.predict(tau + h)? - self.predict(tau - h)?) / (2.0 * h);
+        let g = 2e-3;
+        let curvature = match (self.predict(tau + g), self.predict(tau - g)) {
+            (Some(a), Some(b)) => (a - 2.0 * p + b) / (g * g),
+            _ => 0.0,
+        };
+        Some(Local {
+            r: p,
+            slope,
+            curvature,
+        })
+    }
 }
+
+/// A sample's predicted length (or its residual), and the predicted length's first and
+/// second time derivatives (m/s, m/s²).
+struct Local {
+    r: f64,
+    slope: f64,
+    curvature: f64,
+}
+
+/// The bar's smoothing is kept only where its term's RMS over the samples exceeds this share
+/// of the residual's RMS: below, it would fit what a joint log's interpolation misses (a
+/// 100 Hz log of moves whose acceleration jumps) rather than the bar, for no gain.
+const SMOOTHING_MATTERS: f64 = 0.25;
+
+/// The bar's smoothing is 0 ± this a priori (s²): a 50 ms average.
+const SMOOTHING_PRIOR: f64 = 0.05 * 0.05 / 24.0;
 
 /// Synchronises the bar log (u, l) with a joint log's spline; `length(q)` is the predicted
 /// ball-centre distance (m).
@@ -294,75 +341,109 @@ pub fn sync(
             b
         }
     });
-    // 3. Gauss–Newton on (shift, drift, zero) over the mounted samples.
+    // 3. Gauss–Newton on (shift, drift, zero, smoothing) over the mounted samples; again
+    //    with the smoothing held at 0 where it does not matter (see SMOOTHING_MATTERS).
+    let start = (shift, drift);
     let mut zero = 0.0;
-    let mut tol = FINE_TOL;
+    let mut smooth = 0.0;
     let mut used: Vec<usize> = Vec::new();
-    let mut cov = nalgebra::Matrix3::<f64>::zeros();
+    let mut cov = nalgebra::Matrix4::<f64>::zeros();
     let mut rms = 0.0;
-    for round in 0..12 {
-        let map = |v: f64| t_mid + (v - u_mid - shift) / (1.0 + drift);
-        // Residuals and slopes of every sample the joint log covers.
-        let res: Vec<Option<(f64, f64)>> = (0..u.len())
-            .into_par_iter()
-            .map(|k| {
-                let tau = map(u[k]);
-                let p = pb.predict(tau)?;
-                let h = 1e-4;
-                let slope = (pb.predict(tau + h)? - pb.predict(tau - h)?) / (2.0 * h);
-                Some((l[k] - p, slope))
-            })
-            .collect();
-        if round == 0 {
-            let mut r: Vec<f64> = res.iter().flatten().map(|x| x.0).collect();
-            zero = mode(&mut r, FINE_TOL);
-        }
-        // Agreeing samples, in runs of at least MIN_RUN seconds.
-        let agree: Vec<bool> = res
-            .iter()
-            .map(|x| x.is_some_and(|(r, _)| (r - zero).abs() <= tol))
-            .collect();
-        used = runs(u, &agree, MIN_RUN);
-        if used.len() < 20 {
-            return Err(LogsError::Bad(
+    for free in [true, false] {
+        (shift, drift) = start;
+        zero = 0.0;
+        smooth = 0.0;
+        let mut tol = FINE_TOL;
+        let mut sigma2 = FINE_TOL * FINE_TOL;
+        let mut curvature_ms = 0.0;
+        for round in 0..12 {
+            let map = |v: f64| t_mid + (v - u_mid - shift) / (1.0 + drift);
+            // Residuals, slopes and curvatures of every sample the joint log covers.
+            let res: Vec<Option<Local>> = (0..u.len())
+                .into_par_iter()
+                .map(|k| {
+                    let x = pb.local(map(u[k]))?;
+                    Some(Local {
+                        r: l[k] - x.r - smooth * x.curvature,
+                        ..x
+                    })
+                })
+                .collect();
+            if round == 0 {
+                let mut r: Vec<f64> = res.iter().flatten().map(|x| x.r).collect();
+                zero = mode(&mut r, FINE_TOL);
+            }
+            // Agreeing samples, in runs of at least MIN_RUN seconds.
+            let agree: Vec<bool> = res
+                .iter()
+                .map(|x| x.as_ref().is_some_and(|x| (x.r - zero).abs() <= tol))
+                .collect();
+            used = runs(u, &agree, MIN_RUN);
+            if used.len() < 20 {
+                return Err(LogsError::Bad(
                 "the bar's readings agree with the joint log's lengths for less than a second at the best clock offset: no synchronisation".into(),
             ));
-        }
-        let mut jtj = nalgebra::Matrix3::<f64>::zeros();
-        let mut jtr = nalgebra::Vector3::<f64>::zeros();
-        let mut resid = Vec::with_capacity(used.len());
-        for &k in &used {
-            let Some((r, slope)) = res[k] else { continue };
-            let r = r - zero;
-            // d(prediction)/d(shift) = −slope/(1+d); d/d(drift) = −slope·(u−u_mid−shift)/(1+d)².
-            let a = 1.0 + drift;
-            let j =
-                nalgebra::Vector3::new(-slope / a, -slope * (u[k] - u_mid - shift) / (a * a), 1.0);
-            jtj += j * j.transpose();
-            jtr += j * r;
-            resid.push(r);
-        }
-        let n = resid.len() as f64;
-        let rss: f64 = resid.iter().map(|r| r * r).sum();
-        let sigma2 = rss / (n - 3.0).max(1.0);
-        let rho = lag1(&resid).clamp(0.0, 0.99);
-        let inv = jtj.try_inverse().ok_or_else(|| {
+            }
+            let mut jtj = nalgebra::Matrix4::<f64>::zeros();
+            let mut jtr = nalgebra::Vector4::<f64>::zeros();
+            let mut resid = Vec::with_capacity(used.len());
+            for &k in &used {
+                let Some(x) = &res[k] else { continue };
+                let r = x.r - zero;
+                // d(prediction)/d(shift) = −slope/(1+d); d/d(drift) = −slope·(u−u_mid−shift)/(1+d)².
+                let a = 1.0 + drift;
+                let j = nalgebra::Vector4::new(
+                    -x.slope / a,
+                    -x.slope * (u[k] - u_mid - shift) / (a * a),
+                    1.0,
+                    x.curvature,
+                );
+                jtj += j * j.transpose();
+                jtr += j * r;
+                resid.push(r);
+            }
+            // The smoothing's prior: 0 ± SMOOTHING_PRIOR (a motion that hardly accelerates does
+            // not determine it; then it stays near 0).
+            let ridge = if free {
+                sigma2 / (SMOOTHING_PRIOR * SMOOTHING_PRIOR)
+            } else {
+                jtj[(3, 3)].max(1.0) * 1e12
+            };
+            curvature_ms = jtj[(3, 3)] / resid.len().max(1) as f64;
+            jtj[(3, 3)] += ridge;
+            jtr[3] -= ridge * smooth;
+            let n = resid.len() as f64;
+            let rss: f64 = resid.iter().map(|r| r * r).sum();
+            sigma2 = rss / (n - 4.0).max(1.0);
+            let rho = lag1(&resid).clamp(0.0, 0.99);
+            let inv = jtj.try_inverse().ok_or_else(|| {
             LogsError::Bad("the readings do not determine the clock: the robot hardly moved while the bar was mounted".into())
         })?;
-        cov = inv * sigma2 * (1.0 + rho) / (1.0 - rho);
-        rms = (rss / n).sqrt();
-        let step = inv * jtr;
-        shift += step[0];
-        drift += step[1];
-        zero += step[2];
-        let robust = 1.4826 * {
-            let mut a: Vec<f64> = resid.iter().map(|r| r.abs()).collect();
-            let k = a.len() / 2;
-            a.select_nth_unstable_by(k, f64::total_cmp);
-            a[k]
-        };
-        tol = (5.0 * robust).clamp(20e-6, FINE_TOL);
-        if step[0].abs() < 1e-9 && step[1].abs() < 1e-12 && round >= 3 {
+            cov = inv * sigma2 * (1.0 + rho) / (1.0 - rho);
+            rms = (rss / n).sqrt();
+            let step = inv * jtr;
+            shift += step[0];
+            drift += step[1];
+            zero += step[2];
+            smooth += step[3];
+            let robust = 1.4826 * {
+                let mut a: Vec<f64> = resid.iter().map(|r| r.abs()).collect();
+                let k = a.len() / 2;
+                a.select_nth_unstable_by(k, f64::total_cmp);
+                a[k]
+            };
+            tol = (5.0 * robust).clamp(20e-6, FINE_TOL);
+            if step[0].abs() < 1e-9 && step[1].abs() < 1e-12 && round >= 3 {
+                break;
+            }
+        }
+        // The smoothing kept: significant, and changing the readings by more than a share of
+        // their residual.
+        let effect = smooth.abs() * curvature_ms.sqrt();
+        if !free
+            || (smooth.abs() > 3.0 * cov[(3, 3)].max(0.0).sqrt()
+                && effect > SMOOTHING_MATTERS * rms)
+        {
             break;
         }
     }
@@ -374,12 +455,15 @@ pub fn sync(
     let mut rows = Vec::with_capacity(used.len());
     let mut t_joint = Vec::with_capacity(used.len());
     let mut q = Vec::with_capacity(used.len());
+    let mut length = Vec::with_capacity(used.len());
     for &k in &used {
         let tau = map(u[k]);
         if let Some(x) = spline.at(tau) {
             rows.push(k);
             t_joint.push(tau);
             q.push(x);
+            let curvature = pb.local(tau).map_or(0.0, |x| x.curvature);
+            length.push(l[k] - smooth * curvature);
         }
     }
     Ok(Synced {
@@ -389,11 +473,84 @@ pub fn sync(
         drift_std: cov[(1, 1)].max(0.0).sqrt(),
         zero,
         zero_std: cov[(2, 2)].max(0.0).sqrt(),
+        smoothing: smooth,
+        smoothing_std: cov[(3, 3)].max(0.0).sqrt(),
         rms,
         rows,
         t_joint,
         q,
+        length,
     })
+}
+
+/// The most rows per second a continuous run keeps after synchronisation: consecutive bar
+/// samples beyond it are averaged ([`bin`]). Successive samples of a fast bar repeat nearly
+/// the same pose; their information is the noise they average out, which a bin keeps, at a
+/// twentieth of the rows for a 1 kHz bar.
+pub const MAX_ROW_RATE: f64 = 50.0;
+
+/// Bar samples per row that bring a bar log sampled every `interval` seconds to at most
+/// [`MAX_ROW_RATE`] rows per second.
+pub fn samples_per_row(interval: f64) -> usize {
+    if interval > 0.0 && interval.is_finite() {
+        ((1.0 / interval) / MAX_ROW_RATE + 1e-9).floor().max(1.0) as usize
+    } else {
+        1
+    }
+}
+
+/// Synchronised samples averaged in bins: per bin its middle sample (bar row, joint-clock time,
+/// joints) and the reading `length(q_mid) + mean(lᵢ − length(qᵢ))`.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Bins {
+    pub rows: Vec<usize>,
+    pub t_joint: Vec<f64>,
+    pub q: Vec<[f64; 6]>,
+    pub length: Vec<f64>,
+    /// Samples averaged in each bin.
+    pub count: Vec<usize>,
+}
+
+/// The synchronised samples of `s` (their readings, the smoothing taken out) in bins of up to `k`
+/// consecutive bar rows; a bin never spans a row the synchronisation left out. The residual
+/// against `length` is averaged and the middle sample's pose kept: averaging the readings
+/// themselves would mix poses (a bar length accelerating at 1 m/s² is 17 µm off its mean
+/// over 20 ms), while the residual — the robot's error, the bar's zero, its noise — changes
+/// over a bin by far less than the noise it averages. `k` = 1 keeps every sample.
+pub fn bin(s: &Synced, length: &(dyn Fn(&[f64; 6]) -> f64 + Sync), k: usize) -> Bins {
+    use rayon::prelude::*;
+    let k = k.max(1);
+    // Bins: runs of consecutive rows, cut every k samples.
+    let mut bounds = Vec::new();
+    let mut a = 0;
+    while a < s.rows.len() {
+        let mut b = a + 1;
+        while b < s.rows.len() && b - a < k && s.rows[b] == s.rows[b - 1] + 1 {
+            b += 1;
+        }
+        bounds.push((a, b));
+        a = b;
+    }
+    let bins: Vec<(usize, f64)> = bounds
+        .par_iter()
+        .map(|&(a, b)| {
+            let mid = a + (b - a - 1) / 2;
+            if b - a == 1 {
+                return (mid, s.length[mid]);
+            }
+            let r = (a..b).map(|i| s.length[i] - length(&s.q[i])).sum::<f64>() / (b - a) as f64;
+            (mid, length(&s.q[mid]) + r)
+        })
+        .collect();
+    let mut out = Bins::default();
+    for (&(a, b), &(mid, reading)) in bounds.iter().zip(&bins) {
+        out.rows.push(s.rows[mid]);
+        out.t_joint.push(s.t_joint[mid]);
+        out.q.push(s.q[mid]);
+        out.length.push(reading);
+        out.count.push(b - a);
+    }
+    out
 }
 
 /// The centre of the densest ±tol window of r (sorted in place).
@@ -452,6 +609,74 @@ fn runs(u: &[f64], agree: &[bool], min: f64) -> Vec<usize> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_fast_bar_is_brought_to_at_most_fifty_rows_a_second() {
+        assert_eq!(samples_per_row(0.001), 20);
+        assert_eq!(samples_per_row(0.005), 4);
+        assert_eq!(samples_per_row(0.02), 1);
+        assert_eq!(samples_per_row(1.0 / 60.0), 1);
+        assert_eq!(samples_per_row(1.0 / 120.0), 2);
+        assert_eq!(samples_per_row(0.0), 1);
+    }
+
+    /// Bins keep the middle sample's pose and average the residual: on a bar accelerating at
+    /// 2 m/s², the binned reading is the length at the middle pose plus the zero (to the noise
+    /// averaged), where the mean reading is a curvature off; no bin spans a left-out row.
+    #[test]
+    fn bins_average_the_residual_not_the_poses() {
+        let rate = 1000.0;
+        let n = 400;
+        let length = |q: &[f64; 6]| 0.4 + q[0];
+        // q1 = a t²/2 (m through `length`), readings = length + zero.
+        let acc = 2.0;
+        let zero = 30e-6;
+        let mut s = Synced {
+            offset: 0.0,
+            offset_std: 0.0,
+            drift: 0.0,
+            drift_std: 0.0,
+            zero,
+            zero_std: 0.0,
+            smoothing: 0.0,
+            smoothing_std: 0.0,
+            rms: 0.0,
+            rows: Vec::new(),
+            t_joint: Vec::new(),
+            q: Vec::new(),
+            length: Vec::new(),
+        };
+        let mut l = Vec::new();
+        for k in 0..n {
+            let t = k as f64 / rate;
+            let q = [0.5 * acc * t * t, 0.0, 0.0, 0.0, 0.0, 0.0];
+            l.push(length(&q) + zero);
+            // Row 100 left out (the bar unmounted for a sample).
+            if k != 100 {
+                s.rows.push(k);
+                s.t_joint.push(t);
+                s.q.push(q);
+                s.length.push(l[k]);
+            }
+        }
+        let b = bin(&s, &length, 20);
+        // 0..100 in 5 bins, 101..400 in 15.
+        assert_eq!(b.rows.len(), 20);
+        assert_eq!(b.count.iter().sum::<usize>(), n - 1);
+        assert!(b.rows.iter().all(|&r| r != 100));
+        assert_eq!((b.rows[4], b.rows[5]), (89, 110));
+        for i in 0..b.rows.len() {
+            let want = length(&b.q[i]) + zero;
+            assert!((b.length[i] - want).abs() < 1e-12, "{i}");
+        }
+        // The plain mean of a bin's readings is off by the curvature: a·h²/24 for the span h.
+        let mean = l[0..20].iter().sum::<f64>() / 20.0;
+        assert!((mean - (length(&s.q[9]) + zero)).abs() > 1e-6);
+        // k = 1 keeps every sample as it is.
+        let one = bin(&s, &length, 1);
+        assert_eq!(one.rows, s.rows);
+        assert_eq!(one.length, s.rows.iter().map(|&r| l[r]).collect::<Vec<_>>());
+    }
 
     #[test]
     fn the_spline_interpolates_a_smooth_motion_to_fourth_order() {
