@@ -425,7 +425,9 @@ pub fn sync(
             shift += step[0];
             drift += step[1];
             zero += step[2];
-            smooth += step[3];
+            if free {
+                smooth += step[3];
+            }
             let robust = 1.4826 * {
                 let mut a: Vec<f64> = resid.iter().map(|r| r.abs()).collect();
                 let k = a.len() / 2;
@@ -462,8 +464,13 @@ pub fn sync(
             rows.push(k);
             t_joint.push(tau);
             q.push(x);
-            let curvature = pb.local(tau).map_or(0.0, |x| x.curvature);
-            length.push(l[k] - smooth * curvature);
+            // Held at 0 (the usual case), the smoothing needs no curvature.
+            let taken = if smooth == 0.0 {
+                0.0
+            } else {
+                smooth * pb.local(tau).map_or(0.0, |x| x.curvature)
+            };
+            length.push(l[k] - taken);
         }
     }
     Ok(Synced {
