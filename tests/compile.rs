@@ -175,3 +175,76 @@ fn options_change_the_input_hash() {
     };
     assert_ne!(hash(&a), hash(&b));
 }
+
+/// Compiles `args` (a robot and its set-up) and checks the issue 34 promise: one
+/// select/order/plan round (no selected pose replaced: a round repeats only to replace poses
+/// the planner dropped), no pose dropped, and the program measures exactly the poses selected.
+fn measures_every_selected_pose_in_one_round(name: &str, mut args: Vec<String>) {
+    let dir = tempdir();
+    let (out, report) = (dir.path().join("p.nc"), dir.path().join("r.json"));
+    args.extend([
+        "-o".into(),
+        out.display().to_string(),
+        "--report".into(),
+        report.display().to_string(),
+        "-q".into(),
+    ]);
+    let r = edbbgen(&args);
+    assert_eq!(r.code, 0, "{name}: {}", r.stderr);
+    let rep: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+    assert_eq!(rep["replaced_unreachable"], 0, "{name}: {}", r.stderr);
+    assert_eq!(
+        rep["dropped"].as_array().map(Vec::len),
+        Some(0),
+        "{name}: {}",
+        r.stderr
+    );
+    let text = std::fs::read_to_string(&out).unwrap();
+    let measured = text.lines().filter(|l| l.contains("(pose ")).count();
+    assert_eq!(Some(measured as u64), rep["selected"].as_u64(), "{name}");
+}
+
+fn ur5(fixture: &str, tool: &str) -> Vec<String> {
+    vec![
+        shared_robot("ur5").display().to_string(),
+        "--fixture".into(),
+        fixture.into(),
+        "--tool".into(),
+        tool.into(),
+    ]
+}
+
+/// Issue 34: the UR5 with its real collision meshes at fixture (450, 200, 200) mm, tool
+/// (60, 30, 120) mm used to need four select/order/plan rounds, replace 18 selected poses and
+/// still drop 14 (every move to them left the cup cone, behind a pose the bounded support
+/// search could not leave): 23 poses emitted of the selection. Now one round measures every
+/// pose selected.
+#[test]
+fn issue_34_the_ur5_with_real_meshes_measures_every_selected_pose_in_one_round() {
+    measures_every_selected_pose_in_one_round(
+        "UR5, fixture 450,200,200",
+        ur5("450,200,200", "60,30,120"),
+    );
+}
+
+/// Issue 34, the other cases that used to lose poses: the UR5 at fixture (500, 0, 400) lost
+/// its last section whole (the transit's wrist would turn 310° through the forearm), at
+/// (400, 400, 300) a 3-pose section (its wrist turns 180° either way and the nearer way
+/// grazes the forearm); the KUKA KR 120's test cell dropped two poses.
+#[test]
+#[ignore = "slow tier: `make test` runs it"]
+fn issue_34_real_robots_compile_in_one_round_and_measure_every_selected_pose() {
+    let kr120 = shared_robot("kuka_kr120_r2500pro").display().to_string();
+    let kr120_cell = root().join("tests/cells/kuka_kr120_r2500pro.toml");
+    for (name, args) in [
+        ("UR5, fixture 500,0,400", ur5("500,0,400", "100,0,50")),
+        ("UR5, fixture 400,400,300", ur5("400,400,300", "60,30,120")),
+        (
+            "KR 120 test cell",
+            vec![kr120, "--cell".into(), kr120_cell.display().to_string()],
+        ),
+    ] {
+        measures_every_selected_pose_in_one_round(name, args);
+    }
+}

@@ -74,7 +74,7 @@ fn hand_made_corner_fails(d: &str) {
     // 30 degree steps), whose moves and old-convention blend pass, with a sphere at the far
     // corner of the documented region that still leaves them clear.
     let mut found = None;
-    'search: for k in candidates.iter().take(6) {
+    'search: for k in &candidates {
         // The MAP's and the flange's Jacobian by central differences; the moves hold the tool's
         // orientation.
         let mut jac = Matrix6::zeros();

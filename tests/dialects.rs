@@ -874,10 +874,14 @@ fn the_dialects_subcommand_lists_every_bundled_dialect() {
 ///
 /// The tolerance: the twin runs what the program text commands, which is never faster than the
 /// plan (feeds and percentages are rounded toward slower) and slower by the rounding of the
-/// time words: G93 F to 4 decimals (< 0.01 %), RAPID's `\T` up to 1 ms per move, KRL's and
-/// FANUC's integer speed percentages up to 1/n per move (the header states the plan's time).
-/// Measured: within 0.01 % for ngc, SINUMERIK, KRL and URScript, up to 0.7 % for RAPID and
-/// 1.1 % for FANUC (kuka_kr120_r2500pro); 1.5 % allowed.
+/// time words: G93 F to 4 decimals (< 0.01 %), KRL's and FANUC's integer speed percentages up
+/// to 1/n per move (the header states the plan's time). RAPID's `\T` and URScript's `t` state
+/// the plan's whole-move times exactly (the plan times them in whole milliseconds,
+/// `pipeline::WHOLE_MOVE_TICK`): rounded up as printed, a move near a triangle would read back
+/// with a longer cruise, and the blend before it would overlap more than planned.
+/// Measured before RAPID and URScript were timed in whole milliseconds: within 0.01 % for ngc,
+/// SINUMERIK, KRL and URScript, up to 0.7 % for RAPID and 1.1 % for FANUC
+/// (kuka_kr120_r2500pro); 1.5 % allowed.
 #[test]
 #[ignore = "slow tier: `make test` runs it"]
 fn the_twin_runs_every_program_in_its_stated_time_within_the_joint_speeds() {

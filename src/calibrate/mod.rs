@@ -561,8 +561,10 @@ fn run_once(
         LengthOffset::Known(v) => v,
         LengthOffset::Free => 0.0,
     };
+    let (lower, upper) = robot.limits();
     let mut problem = Problem::new(model, runs)
         .with_masses(&robot.masses)
+        .with_joint_ranges(&std::array::from_fn(|j| (lower[j], upper[j])))
         .with_offset(given_offset);
     check_effects(&problem, opts)?;
     let known = Known {

@@ -82,6 +82,11 @@ pub(super) fn fit(
         masses: robot.masses.clone(),
         max_steps: opts.max_steps * nruns,
         min_explained: 0.3,
+        // A calibration keeps what predicts better (the held-out gain and the BIC judge
+        // that); naming the cause is the diagnosis's business.
+        min_explained_heldout: 0.0,
+        // The problem's harmonic caps already hold the robot's limits (`run`).
+        joint_ranges: None,
     };
     let sel = diagnose::select(problem, &free, est, &sel_opts);
     if max_effects > 0 && sel.diagnosis.report.unexplained {

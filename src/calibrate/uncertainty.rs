@@ -232,7 +232,8 @@ pub(super) fn estimate(
 }
 
 /// What the data cannot say about the effects' form: for every cyclic error fitted with
-/// harmonic orders 1..H, the geometry's covariance with orders up to H + 1 and H + 2 as well,
+/// harmonic orders 1..H, the geometry's covariance with orders up to H + 1 and H + 2 as well
+/// (whatever H: up to [`fit::BOUND_HARMONIC`], past the orders the fit may select),
 /// less the fitted model's. For nested least-squares models the two estimates differ by a
 /// vector whose covariance is that difference (Hausman), so while the data do not reject the
 /// smaller model its error is bounded by the larger model's covariance: this is the extra
@@ -260,10 +261,11 @@ fn effect_model_spread<const N: usize>(
         };
         let h = t.basis.orders().into_iter().max().unwrap_or(0);
         let mut worst: [Vec<f64>; N] = std::array::from_fn(|i| vec![0.0; poses[i].len()]);
+        // Orders past the fit's own limit included (the problem's harmonics are defined up to
+        // BOUND_HARMONIC): a cyclic error fitted with every order the fit allows has its form
+        // bounded like any other, not left out of the prediction.
         for extra in 1..=2 {
-            if h + extra > fit::MAX_HARMONIC {
-                break;
-            }
+            debug_assert!(h + extra <= fit::BOUND_HARMONIC);
             let mut cols = base.clone();
             for o in h + 1..=h + extra {
                 cols.push(fit::Col::Cyc(j, o, false));

@@ -363,8 +363,10 @@ pub fn diagnose(a: &DiagnoseArgs) -> Result<i32, Error> {
         ));
     }
     let model = MeasurementModel::new(&robot, fixture, map);
+    let (lower, upper) = robot.limits();
     let opts = crate::diagnose::DiagnoseOptions {
         masses: robot.masses.clone(),
+        joint_ranges: Some(std::array::from_fn(|j| (lower[j], upper[j]))),
         ..Default::default()
     };
     let d = crate::diagnose::run(&model, &m, &opts).map_err(|e| file_err(&source, e))?;

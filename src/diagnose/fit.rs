@@ -90,8 +90,81 @@ pub enum Basis {
     SecondOrder,
 }
 
-/// Highest harmonic order of a cyclic error the fit considers.
+/// Highest harmonic order of a cyclic error the fit considers (over the joint's whole range
+/// measured; over part of it [`harmonic_cap`] allows fewer).
 pub const MAX_HARMONIC: usize = 6;
+
+/// Highest harmonic order a problem's harmonics are defined for: the fit's orders and the two
+/// richer ones the prediction bounds the form's error with (`calibrate`'s effect-model spread).
+pub const BOUND_HARMONIC: usize = MAX_HARMONIC + 2;
+
+/// The highest harmonic order of a cyclic error that joint j's measured angles determine over
+/// the range it can turn through (`range`, its limits in rad; `None`: the whole turn): the
+/// largest H whose period 2π/H is at least the unmeasured gap G, at most [`MAX_HARMONIC`]. G is
+/// the largest stretch of the range without a measured angle; a stretch at an end of a range
+/// short of a turn counts twice (data on one side only).
+///
+/// Why: a cyclic error of orders 1..H is a trigonometric polynomial of degree H, and the
+/// robot file applies it at every angle the joint takes. Between measured angles its form is
+/// fixed by the data only where no oscillation can hide: a bump that is nil with its slope at
+/// both edges of a gap needs a whole period of its order (1 − cos over 2π/h), one at an open
+/// end half a period, hence the doubled ends. So an order whose whole period fits in the gap
+/// can hold a swing there that no reading sees, and the fit, whose held-out blocks lie inside
+/// the measured range too, cannot reject it. Counted in degrees of freedom (Landau–Slepian):
+/// of the 2H + 1 coefficients about (2H + 1)·G/2π are concentrated in the gap, invisible to the
+/// data; H·G ≤ 2π leaves at most about two there, one order's sine and cosine, the size of the
+/// richer order the prediction bounds the form's error with (`calibrate`'s effect-model spread).
+/// Past the rule the fitted form's growth over the gap is unbounded by the data: by Remez's
+/// inequality for trigonometric polynomials (Erdélyi 1992) it is up to T₂ₕ(1/cos(G/4)),
+/// about exp(H·G/2): 12-17 at H·G = 2π, but for joint 1 of the NJ-130 quick start (measured
+/// over -110..100° of its ±180°, G = 150°) 2.2, 8.3, 34, 140, 560 and 2,300 for H = 1..6.
+/// The stricter Nyquist spacing (G at most half the period, H·G ≤ π, Gröchenig's sufficient
+/// condition for stable sampling) would keep only the first order there; on that recording
+/// it left the true second and third orders to a joint compliance and two invented set-up
+/// steps (held out 8.5 um against 3.1 um with two orders), so the bound on what the data can
+/// hide, not on stable sampling, is the rule. The first order is always allowed: the gap never
+/// holds its whole period, and a joint short of a turn confuses it with its zero, which the
+/// fit's mean removal handles. Orders past the cap are not excluded outright: Remez's growth
+/// multiplies what the data leave uncertain, and very precise data can carry an order across
+/// the gap; the selection admits one only when the fitted form's standard uncertainty over the
+/// whole range is at most half its size (`diagnose::form_determined`).
+pub fn harmonic_cap(q: &[[f64; 6]], j: usize, range: Option<(f64, f64)>) -> usize {
+    let gap = unmeasured_gap(q.iter().map(|x| x[j]), range);
+    if gap <= 0.0 {
+        return MAX_HARMONIC;
+    }
+    ((std::f64::consts::TAU / gap + 1e-9).floor() as usize).clamp(1, MAX_HARMONIC)
+}
+
+/// The largest stretch (rad) of a joint's range without a measured angle: on the turn (a
+/// range of a turn or more, or none given) the largest arc between angles; on a shorter range
+/// [lo, hi] the largest gap between angles or twice the stretch from the nearest angle to an
+/// end. 2π without an angle.
+fn unmeasured_gap(angles: impl Iterator<Item = f64>, range: Option<(f64, f64)>) -> f64 {
+    use std::f64::consts::TAU;
+    let mut a: Vec<f64> = angles.filter(|x| x.is_finite()).collect();
+    if a.is_empty() {
+        return TAU;
+    }
+    match range {
+        Some((lo, hi)) if hi - lo < TAU => {
+            a.sort_by(f64::total_cmp);
+            let ends = (a[0] - lo).max(hi - a[a.len() - 1]).max(0.0);
+            a.windows(2)
+                .map(|w| w[1] - w[0])
+                .fold(2.0 * ends, f64::max)
+                .min(TAU)
+        }
+        _ => {
+            for x in &mut a {
+                *x = x.rem_euclid(TAU);
+            }
+            a.sort_by(f64::total_cmp);
+            let wrap = a[0] + TAU - a[a.len() - 1];
+            a.windows(2).map(|w| w[1] - w[0]).fold(wrap, f64::max)
+        }
+    }
+}
 
 impl Basis {
     /// The harmonic orders of a cyclic error's mask, ascending.
@@ -448,7 +521,12 @@ pub struct Problem {
     /// turns far less than a turn, the data tell a zero offset from a harmonic's constant part
     /// only by the harmonic's form, while the zero plus the error's mean over the measured
     /// range is what they determine (and the best constant a DH table can hold there).
-    harmonic_means: [[(f64, f64); MAX_HARMONIC]; 6],
+    harmonic_means: [[(f64, f64); BOUND_HARMONIC]; 6],
+    /// Per joint, the highest harmonic order its measured range determines ([`harmonic_cap`]).
+    harmonic_caps: [usize; 6],
+    /// Per joint, the range it can turn through (rad; at most one turn): where the robot file
+    /// applies a cyclic error.
+    joint_ranges: [(f64, f64); 6],
     /// √weight of each row from its stated uncertainty (1 without one).
     pub base_weight: Vec<f64>,
     /// √weight in use: the stated one times the robust loss's; 0 drops the row.
@@ -514,9 +592,9 @@ fn derivatives(t: &[f64], q: &[[f64; 6]]) -> (Vec<[f64; 6]>, Vec<[f64; 6]>) {
     (qdot, qdd)
 }
 
-/// The means of sin(h·q) and cos(h·q), h = 1..MAX_HARMONIC, over each joint's measured range
+/// The means of sin(h·q) and cos(h·q), h = 1..BOUND_HARMONIC, over each joint's measured range
 /// [min q, max q], uniformly (closed form).
-fn harmonic_means(q: &[[f64; 6]]) -> [[(f64, f64); MAX_HARMONIC]; 6] {
+fn harmonic_means(q: &[[f64; 6]]) -> [[(f64, f64); BOUND_HARMONIC]; 6] {
     std::array::from_fn(|j| {
         let (lo, hi) = q
             .iter()
@@ -674,6 +752,7 @@ impl Problem {
             })
             .collect();
         let means = harmonic_means(&m.q);
+        let caps = std::array::from_fn(|j| harmonic_cap(&m.q, j, None));
         Problem {
             model: model.clone(),
             fix_of: run.iter().map(|&r| r as u32).collect(),
@@ -693,11 +772,34 @@ impl Problem {
             temp_rise,
             masses: Vec::new(),
             harmonic_means: means,
+            harmonic_caps: caps,
+            joint_ranges: [(-std::f64::consts::PI, std::f64::consts::PI); 6],
             weight: base_weight.clone(),
             base_weight,
             fix_groups: groups.clone(),
             off_groups: groups,
         }
+    }
+
+    /// The ranges the joints can turn through (their limits, rad): a cyclic error's harmonic
+    /// orders are capped by how much of its joint's range was measured ([`harmonic_cap`];
+    /// without them, of the whole turn).
+    pub fn with_joint_ranges(mut self, ranges: &[(f64, f64); 6]) -> Self {
+        self.harmonic_caps = std::array::from_fn(|j| harmonic_cap(&self.m.q, j, Some(ranges[j])));
+        self.joint_ranges = std::array::from_fn(|j| {
+            let (lo, hi) = ranges[j];
+            if hi - lo < std::f64::consts::TAU {
+                (lo, hi)
+            } else {
+                (-std::f64::consts::PI, std::f64::consts::PI)
+            }
+        });
+        self
+    }
+
+    /// The range joint j can turn through (rad, at most one turn; the turn without limits).
+    pub fn joint_range(&self, j: usize) -> (f64, f64) {
+        self.joint_ranges[j]
     }
 
     /// The robot's link masses, for the known-mass form of joint compliance.
@@ -713,6 +815,12 @@ impl Problem {
         (sn - ms, cs - mc)
     }
 
+    /// The highest harmonic order of a cyclic error of joint j that its measured range
+    /// determines over the joint's range ([`harmonic_cap`]).
+    pub fn harmonic_cap(&self, j: usize) -> usize {
+        self.harmonic_caps[j]
+    }
+
     /// The means of (sin(h·q), cos(h·q)) over joint j's measured range: what the fit's
     /// harmonics are taken about (the constant part goes to the joint's zero).
     pub fn harmonic_mean(&self, j: usize, h: usize) -> (f64, f64) {
@@ -723,6 +831,8 @@ impl Problem {
     /// on rows it was not fitted to (its cyclic errors' harmonics are taken about `other`'s).
     pub fn with_harmonic_means_of(mut self, other: &Problem) -> Self {
         self.harmonic_means = other.harmonic_means;
+        self.harmonic_caps = other.harmonic_caps;
+        self.joint_ranges = other.joint_ranges;
         self
     }
 
@@ -864,6 +974,8 @@ impl Problem {
                 .map(|t| keep.iter().map(|&k| t[k]).collect()),
             masses: self.masses.clone(),
             harmonic_means: self.harmonic_means,
+            harmonic_caps: self.harmonic_caps,
+            joint_ranges: self.joint_ranges,
             base_weight: keep.iter().map(|&k| self.base_weight[k]).collect(),
             weight: keep.iter().map(|&k| self.weight[k]).collect(),
             fix_groups: self.fix_groups.iter().map(remap).collect(),
@@ -1887,4 +1999,73 @@ pub fn correlation_time(r: &[f64]) -> f64 {
         m += 1;
     }
     (2.0 * sum - 1.0).clamp(1.0, cap as f64)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::f64::consts::PI;
+
+    const DEG: f64 = PI / 180.0;
+
+    /// Joint j's angles sweeping `from..to` (deg) densely, as a continuous recording does.
+    fn swept(j: usize, spans: &[(f64, f64)]) -> Vec<[f64; 6]> {
+        spans
+            .iter()
+            .flat_map(|&(a, b)| {
+                (0..=400).map(move |k| {
+                    let mut q = [0.0; 6];
+                    q[j] = (a + (b - a) * k as f64 / 400.0) * DEG;
+                    q
+                })
+            })
+            .collect()
+    }
+
+    #[test]
+    fn harmonic_orders_are_capped_by_the_unmeasured_gap_of_the_joint_range() {
+        let whole = Some((-PI, PI));
+        // The NJ-130 quick start's joint 1: -110..100° of ±180°, a 150° gap holds a whole
+        // period of order 3 (120°) but not of order 2 (180°). All six orders were fitted and
+        // extrapolated to 684 um RMS over the joint space.
+        assert_eq!(harmonic_cap(&swept(0, &[(-110.0, 100.0)]), 0, whole), 2);
+        // Measured over the whole turn: every order.
+        assert_eq!(
+            harmonic_cap(&swept(0, &[(-180.0, 180.0)]), 0, whole),
+            MAX_HARMONIC
+        );
+        // The gap is the largest arc between angles, across ±180° too: two patches leaving
+        // 40° out on either side.
+        let two = swept(0, &[(-160.0, -20.0), (20.0, 160.0)]);
+        assert_eq!(harmonic_cap(&two, 0, whole), 6);
+        assert_eq!(harmonic_cap(&two, 0, None), 6);
+        let gap_of_100 = swept(0, &[(-130.0, 130.0)]);
+        assert_eq!(harmonic_cap(&gap_of_100, 0, whole), 3);
+        // A joint of ±360° (a wrist) is a turn too: the angles taken modulo 2π.
+        assert_eq!(harmonic_cap(&gap_of_100, 0, Some((-2.0 * PI, 2.0 * PI))), 3);
+        // Short of a turn, only the range counts, and an end stretch counts twice: joint 2
+        // of the NJ-130 (-60..85°) measured over -18..68° leaves 42° at the lower end (84°),
+        // over -60..85° nothing.
+        let j2 = Some((-60.0 * DEG, 85.0 * DEG));
+        assert_eq!(harmonic_cap(&swept(1, &[(-18.0, 68.0)]), 1, j2), 4);
+        assert_eq!(
+            harmonic_cap(&swept(1, &[(-60.0, 85.0)]), 1, j2),
+            MAX_HARMONIC
+        );
+        // The first order is always allowed: a joint hardly measured, or not at all.
+        assert_eq!(harmonic_cap(&swept(0, &[(0.0, 5.0)]), 0, whole), 1);
+        assert_eq!(harmonic_cap(&[], 0, whole), 1);
+    }
+
+    #[test]
+    fn a_problems_harmonics_reach_past_the_fits_orders_for_the_prediction_bound() {
+        // calibrate's effect-model spread compares a cyclic error of orders 1..H with orders
+        // up to H + 2 for every H the fit can choose, MAX_HARMONIC included (it used to skip
+        // that bound there, so six fitted orders had none).
+        let q = swept(0, &[(-110.0, 100.0)]);
+        let means = harmonic_means(&q);
+        assert_eq!(means[0].len(), MAX_HARMONIC + 2);
+        let (s, c) = means[0][BOUND_HARMONIC - 1];
+        assert!(s.is_finite() && c.is_finite() && s.abs() <= 1.0 && c.abs() <= 1.0);
+    }
 }

@@ -18,7 +18,7 @@ pub use sections::{
 use crate::cell::CellSpec;
 use crate::collision::{self, Scene, SceneReport};
 use crate::controller::ControllerMap;
-use crate::dialect::{Dialect, Template};
+use crate::dialect::{Dialect, MoveTime, Template};
 use crate::emit;
 use crate::ir::{Candidate, Cell, Path, Pool, Program, Reason, Selection};
 use crate::model::{self, Identifiability, IdentifyOptions, MeasurementModel, N_PARAMS};
@@ -311,8 +311,20 @@ pub fn make_cell(
     })
 }
 
-/// The cell for choosing measurement poses: the limits pulled in by the pose inset.
+/// The cell for choosing measurement poses: the limits pulled in by the pose inset, and the
+/// harness ranges by the joint margin, as the joint ranges are (a compensated program moves
+/// its poses by a fraction of a degree: a pose on a harness limit would cross it).
 pub fn inset_cell(cell: &Cell) -> Cell {
+    let m = cell.joint_margin;
+    let cables = cell.cables.map(|r| {
+        r.map(|[lo, hi]| {
+            if hi - lo > 2.0 * m {
+                [lo + m, hi - m]
+            } else {
+                [0.5 * (lo + hi); 2]
+            }
+        })
+    });
     let d = POSE_INSET_BAR_MM * 1e-3;
     let a = POSE_INSET_CONE_DEG.to_radians();
     let shrink = |c: f64| {
@@ -328,6 +340,7 @@ pub fn inset_cell(cell: &Cell) -> Cell {
         bar_max: (cell.bar_max - d).max(mid),
         fixture_cone_cos: shrink(cell.fixture_cone_cos),
         tool_cone_cos: shrink(cell.tool_cone_cos),
+        cables,
         ..cell.clone()
     }
 }
@@ -774,9 +787,12 @@ impl Planned {
     }
 }
 
-/// Selects, orders and makes the path safe; poses no safe move reaches (and the poses of
-/// sections too small to be worth a remount) are taken out of the pool and the selection is
-/// redone, so that reachable poses replace them, for at most [`REPAIR_ROUNDS`] rounds.
+/// Selects, orders and makes the path safe, in one round: the selection measures every
+/// section with at least [`MIN_POSES_PER_SECTION`] poses or not at all (a constraint of the
+/// elimination, [`select::run_grouped`]), and the planner reaches every pose of a section
+/// through the section's roadmap ([`safepath::plan_sections`]). Should a pose still be dropped
+/// (no safe move reached it), it is taken out of the pool and the selection redone, for at
+/// most [`REPAIR_ROUNDS`] rounds.
 fn select_order_plan(
     ck: &Checker,
     sections: &Sections,
@@ -786,7 +802,7 @@ fn select_order_plan(
 ) -> Result<Planned, PipelineError> {
     let pool = &sections.pool.candidates;
     let speeds = ck.robot.max_speeds();
-    // The rounds plan mostly the same moves: the planner checks each once.
+    // Repair rounds plan mostly the same moves: the planner checks each once.
     let memo = LineMemo::default();
     let planner = ck.remembering(&memo);
     let mut usable: Vec<usize> = (0..pool.len()).collect();
@@ -797,20 +813,20 @@ fn select_order_plan(
         let sub = Pool {
             candidates: usable.iter().map(|&i| pool[i]).collect(),
         };
-        let selection = select::run(
+        let label: Vec<usize> = usable.iter().map(|&i| sections.group[i]).collect();
+        let mut selection = select::run_grouped(
             ck.model,
             &sub,
             &id.identifiable,
             &SelectConfig { poses: opts.poses },
+            Some(select::Groups {
+                label: &label,
+                min: MIN_POSES_PER_SECTION,
+            }),
         )?;
+        // Indices into the pool, not into this round's part of it.
         let chosen: Vec<usize> = selection.indices.iter().map(|&k| usable[k]).collect();
-        let lonely = sections.lonely(&chosen);
-        if !lonely.is_empty() && round < REPAIR_ROUNDS && usable.len() > id.count() + lonely.len() {
-            round += 1;
-            replaced += lonely.len();
-            usable.retain(|i| !lonely.contains(i));
-            continue;
-        }
+        selection.indices.clone_from(&chosen);
         progress.stage("order");
         // The tour cost: each move with its acceleration ramps, or Eq. 7 as in the paper.
         let accel = ck.robot.max_accelerations();
@@ -836,9 +852,10 @@ fn select_order_plan(
             });
         }
         round += 1;
+        // The plan holds the poses as the program carries them.
         let unreachable: Vec<[f64; 6]> = plan.dropped.iter().map(|d| d.q).collect();
         replaced += unreachable.len();
-        usable.retain(|&i| !unreachable.contains(&pool[i].q));
+        usable.retain(|&i| !unreachable.contains(&emit::emitted(&pool[i].q)));
     }
 }
 
@@ -895,6 +912,10 @@ fn blend(
     }
 }
 
+/// The resolution whole-move time words are timed in (s): RAPID prints `\T` to 1 ms, URScript
+/// prints `t` to 0.1 ms (a whole millisecond exactly).
+pub const WHOLE_MOVE_TICK: f64 = 1e-3;
+
 /// The path on exactly the joint values the program carries (the 0.001° grid every dialect
 /// prints), each move timed on those values (so the emitted feed never asks an axis for more
 /// than its speed): its cruise at the slowest joint's speed (Eq. 7) and its duration with the
@@ -911,10 +932,34 @@ pub fn timed_path(
         .iter()
         .map(|w| w.q.map(|r| emit::round_deg(to_deg(r)).to_radians()))
         .collect();
-    let cruise_times: Vec<f64> = std::iter::once(0.0)
+    let mut cruise_times: Vec<f64> = std::iter::once(0.0)
         .chain(wq.windows(2).map(|w| timing::eq7(&w[0], &w[1], &lim.speed)))
         .collect();
     let blended: Vec<bool> = plan.waypoints.iter().map(|w| w.blend > 0.0).collect();
+    if dialect.move_time == MoveTime::Total {
+        // A whole-move time word (RAPID `\T`, URScript `t`) is printed rounded up, and read
+        // back (by the controller's model, `verify`, the twin) as the cruise that fills it,
+        // [`timing::cruise_of`]. Near a triangle (T = 2·T_a) that cruise grows like
+        // √(T_a·ε) with the rounding ε: 0.8 ms on \T made one move's cruise 13 ms longer and
+        // let the blend before it overlap 13 ms more, so the text ran faster than the plan
+        // stated. Each move is therefore timed as its printed word reads: its duration rounded
+        // up to `WHOLE_MOVE_TICK`, its cruise the one that fills it.
+        let m = timing::moves(
+            &wq,
+            &cruise_times,
+            &blended,
+            lim,
+            dialect.corner.blend_acceleration,
+        );
+        for k in 1..wq.len() {
+            if m[k].duration > 0.0 {
+                let stated =
+                    (m[k].duration / WHOLE_MOVE_TICK * (1.0 - 1e-12)).ceil() * WHOLE_MOVE_TICK;
+                let ta = timing::accel_time(&wq[k - 1], &wq[k], &lim.accel);
+                cruise_times[k] = timing::cruise_of(stated, ta).max(cruise_times[k]);
+            }
+        }
+    }
     let (move_times, time_sorted) = timing::program(
         &wq,
         &cruise_times,

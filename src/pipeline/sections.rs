@@ -20,10 +20,12 @@ use serde::Serialize;
 /// pool); smaller groups are left out.
 pub const MAX_SECTIONS: usize = 4;
 pub const MIN_SECTION_POSES: usize = 10;
-/// A section must hold at least this many measurement poses.
+/// A section must hold at least this many measurement poses (the selection measures a section
+/// with this many or not at all: a remount is not worth fewer).
 pub const MIN_POSES_PER_SECTION: usize = 3;
-/// Neighbours per pose in the connectivity graph of the pool.
-pub const COMPONENT_NEIGHBOURS: usize = 8;
+/// Neighbours per pose in the connectivity graph of the pool (the graph the planner's complete
+/// search walks, [`roadmap::route`]).
+pub const COMPONENT_NEIGHBOURS: usize = roadmap::LINKS;
 /// Group sizes listed in the report (the largest); the rest are counted.
 const LISTED_GROUPS: usize = 10;
 
@@ -103,20 +105,6 @@ impl Sections {
                 self.pool.candidates.len() + d
             )
         })
-    }
-
-    /// Chosen pool poses whose section would hold fewer than [`MIN_POSES_PER_SECTION`]: a
-    /// remount is not worth so few poses.
-    pub fn lonely(&self, chosen: &[usize]) -> Vec<usize> {
-        let mut count = vec![0usize; self.kept];
-        for &i in chosen {
-            count[self.group[i]] += 1;
-        }
-        chosen
-            .iter()
-            .copied()
-            .filter(|&i| count[self.group[i]] < MIN_POSES_PER_SECTION)
-            .collect()
     }
 
     /// Splits the chosen poses (pool indices) into sections by group and orders them: the

@@ -4,7 +4,7 @@
 //! a blend or an exact stop for every corner, by the controller's corner model.
 
 use super::blend::{self, Blend};
-use super::roadmap::Nearest;
+use super::roadmap::Roadmap;
 use super::{lerp, Checker, Extremes, Violation};
 use crate::controller::ControllerMap;
 use crate::dialect::{Corner, CornerKind};
@@ -73,6 +73,8 @@ pub const PERTURB_TRIES: usize = 32;
 pub const MAX_DEPTH: u32 = 3;
 pub const INSERT_TRIES: usize = 16;
 pub const INSERT_WITH_SUPPORT: usize = 3;
+/// Whole turns of a section tried for a transit besides the nearest (`other_turns`).
+pub const TURN_TRIES: usize = 8;
 
 pub fn plan(
     ck: &Checker,
@@ -81,7 +83,7 @@ pub fn plan(
     speeds: &[f64; 6],
     seed: u64,
 ) -> Plan {
-    let roadmap = Nearest::new(pool, speeds);
+    let roadmap = Roadmap::new(pool, speeds);
     let mut ext = Extremes::default();
     let mut wps: Vec<Waypoint> = Vec::new();
     let mut deferred: Vec<(usize, Violation)> = Vec::new();
@@ -202,7 +204,7 @@ pub fn plan(
             let into = if ck.line(&a, &q, &mut e).is_ok() {
                 Some(Vec::new())
             } else if rank < INSERT_WITH_SUPPORT {
-                super::roadmap::connect(ck, &a, &q, &roadmap, speeds, &mut e)
+                super::roadmap::connect(ck, &a, &q, &roadmap.index, speeds, &mut e)
             } else {
                 None
             }?;
@@ -210,7 +212,7 @@ pub fn plan(
                 None => Some(Vec::new()),
                 Some(b) if ck.line(&q, &b, &mut e).is_ok() => Some(Vec::new()),
                 Some(b) if rank < INSERT_WITH_SUPPORT => {
-                    super::roadmap::connect(ck, &q, &b, &roadmap, speeds, &mut e)
+                    super::roadmap::connect(ck, &q, &b, &roadmap.index, speeds, &mut e)
                 }
                 Some(_) => None,
             }?;
@@ -272,7 +274,7 @@ fn leg(
     ck: &Checker,
     a: &[f64; 6],
     b: &[f64; 6],
-    roadmap: &Nearest,
+    roadmap: &Roadmap,
     speeds: &[f64; 6],
     seed: u64,
     idx: usize,
@@ -300,8 +302,8 @@ pub struct Section {
     pub pool: Vec<[f64; 6]>,
 }
 
-/// Plans every section (bar mounted) and the transits between them (bar removed). A section
-/// whose transit cannot be made safe is dropped whole.
+/// Plans every section (bar mounted) and the transits between them (bar removed, `transit`).
+/// A section whose transit cannot be made safe is dropped whole.
 pub fn plan_sections(ck: &Checker, sections: &[Section], speeds: &[f64; 6], seed: u64) -> Plan {
     let free = ck.unmounted();
     let mut out = Plan {
@@ -318,37 +320,37 @@ pub fn plan_sections(ck: &Checker, sections: &[Section], speeds: &[f64; 6], seed
             d.index += offset;
         }
         offset += sec.tour.len();
-        let Some(first) = p.waypoints.first().map(|w| w.q) else {
+        if p.waypoints.is_empty() {
             out.dropped.append(&mut p.dropped);
             continue;
-        };
+        }
         // The transit from the previous section, without the bar.
         let mut vias: Vec<[f64; 6]> = Vec::new();
         if let Some(last) = out.waypoints.last().map(|w| w.q) {
-            let mut e = Extremes::default();
-            if let Err((_, v)) = free.line(&last, &first, &mut e) {
-                let mut rng =
-                    rand_chacha::ChaCha8Rng::seed_from_u64(seed ^ 0x0074_7261_6e73_6974 ^ k as u64);
-                match find_support(
-                    &free,
-                    &last,
-                    &first,
-                    &Nearest::new(&[], speeds),
-                    speeds,
-                    &mut rng,
-                    MAX_DEPTH,
-                    &mut e,
-                ) {
-                    Some(v) => vias = v,
-                    None => {
-                        let q = sec.tour[0];
-                        out.dropped.push(Dropped {
-                            index: offset - sec.tour.len(),
-                            q,
-                            violation: v,
-                        });
-                        continue;
-                    }
+            let mut rng =
+                rand_chacha::ChaCha8Rng::seed_from_u64(seed ^ 0x0074_7261_6e73_6974 ^ k as u64);
+            let planned = |tour: &[[f64; 6]], pool: &[[f64; 6]]| {
+                let mut p = plan(ck, tour, pool, speeds, seed ^ k as u64);
+                for d in &mut p.dropped {
+                    d.index += offset - sec.tour.len();
+                }
+                p
+            };
+            match transit(&free, &last, sec, p, speeds, &mut rng, planned) {
+                Ok((v, section)) => {
+                    vias = v;
+                    p = section;
+                }
+                Err(v) => {
+                    // Every pose of the section goes with it (not only its first).
+                    let first = offset - sec.tour.len();
+                    out.dropped
+                        .extend(sec.tour.iter().enumerate().map(|(k, q)| Dropped {
+                            index: first + k,
+                            q: *q,
+                            violation: v.clone(),
+                        }));
+                    continue;
                 }
             }
         }
@@ -367,6 +369,185 @@ pub fn plan_sections(ck: &Checker, sections: &[Section], speeds: &[f64; 6], seed
         out.extremes.merge(&p.extremes);
     }
     out
+}
+
+/// The move without the bar from `last` into a section planned as `p` (its first waypoint):
+/// direct; else, for joints that turn a whole turn or more, the section's poses turned by
+/// whole turns where that shortens the move (the same poses of the arm: a wrist that would
+/// turn 310° one way through its own forearm turns 50° the other way), the section planned
+/// again (`planned`); else the first of the other whole turns ([`other_turns`], nearest first)
+/// whose direct move passes; else through a roadmap of poses the arm reaches without the bar
+/// ([`super::roadmap::free_route`]); else through perturbed midpoints. Returns the support
+/// poses and the section's plan, or the direct move's violation. Dropped poses keep the
+/// values of `sec`.
+fn transit(
+    free: &Checker,
+    last: &[f64; 6],
+    sec: &Section,
+    p: Plan,
+    speeds: &[f64; 6],
+    rng: &mut rand_chacha::ChaCha8Rng,
+    planned: impl Fn(&[[f64; 6]], &[[f64; 6]]) -> Plan,
+) -> Result<(Vec<[f64; 6]>, Plan), Violation> {
+    let first = p.waypoints[0].q;
+    let mut e = Extremes::default();
+    let Err((_, violation)) = free.line(last, &first, &mut e) else {
+        return Ok((Vec::new(), p));
+    };
+    let mut candidates = vec![p];
+    let (lo, hi) = free.limits();
+    if let Some(turn) = whole_turns((&lo, &hi), last, &first, &sec.tour) {
+        let turned = |qs: &[[f64; 6]]| -> Vec<[f64; 6]> {
+            qs.iter()
+                .map(|q| crate::emit::emitted(&std::array::from_fn(|i| q[i] + turn[i])))
+                .collect()
+        };
+        let mut t = planned(&turned(&sec.tour), &turned(&sec.pool));
+        // Only if it measures as much (a harness limit may hold a turned joint).
+        if !t.waypoints.is_empty() && t.dropped.len() <= candidates[0].dropped.len() {
+            // Dropped poses are named as the section holds them.
+            for d in &mut t.dropped {
+                d.q = crate::emit::emitted(&std::array::from_fn(|i| d.q[i] - turn[i]));
+            }
+            candidates.insert(0, t);
+        }
+    }
+    // The turned section's direct move (the section's as planned failed above).
+    if candidates.len() > 1
+        && free
+            .line(last, &candidates[0].waypoints[0].q, &mut e)
+            .is_ok()
+    {
+        return Ok((Vec::new(), candidates.swap_remove(0)));
+    }
+    // Other whole turns, nearest first: where a wrist turns about 180°, the nearest way round
+    // may sweep the tool through the forearm and the other way be free.
+    let nearest = whole_turns((&lo, &hi), last, &first, &sec.tour);
+    for turn in other_turns((&lo, &hi), last, &first, &sec.tour, speeds, nearest) {
+        let turned = |qs: &[[f64; 6]]| -> Vec<[f64; 6]> {
+            qs.iter()
+                .map(|q| crate::emit::emitted(&std::array::from_fn(|i| q[i] + turn[i])))
+                .collect()
+        };
+        let to = turned(std::slice::from_ref(&first))[0];
+        if free.line(last, &to, &mut Extremes::default()).is_err() {
+            continue;
+        }
+        let mut t = planned(&turned(&sec.tour), &turned(&sec.pool));
+        let measures = !t.waypoints.is_empty()
+            && t.dropped.len() <= candidates.last().map_or(0, |c| c.dropped.len());
+        if measures
+            && (t.waypoints[0].q == to
+                || free
+                    .line(last, &t.waypoints[0].q, &mut Extremes::default())
+                    .is_ok())
+        {
+            for d in &mut t.dropped {
+                d.q = crate::emit::emitted(&std::array::from_fn(|i| d.q[i] - turn[i]));
+            }
+            return Ok((Vec::new(), t));
+        }
+    }
+    for k in 0..candidates.len() {
+        let to = candidates[k].waypoints[0].q;
+        let mut e = Extremes::default();
+        if let Some(vias) = super::roadmap::free_route(free, last, &to, speeds, rng, &mut e) {
+            return Ok((vias, candidates.swap_remove(k)));
+        }
+    }
+    let p = candidates.pop().expect("the section as planned");
+    let mut e = Extremes::default();
+    find_support(
+        free,
+        last,
+        &first,
+        &Roadmap::new(&[], speeds),
+        speeds,
+        rng,
+        MAX_DEPTH,
+        &mut e,
+    )
+    .map(|vias| (vias, p))
+    .ok_or(violation)
+}
+
+/// Whole turns (±2π per joint, 0 where none) that bring a section's poses `tour` (its first:
+/// `first`) nearest to `last`, joint by joint, keeping every pose within the joint range
+/// [lo, hi]; None when no joint turns.
+fn whole_turns(
+    (lo, hi): (&[f64; 6], &[f64; 6]),
+    last: &[f64; 6],
+    first: &[f64; 6],
+    tour: &[[f64; 6]],
+) -> Option<[f64; 6]> {
+    let tau = std::f64::consts::TAU;
+    let turn: [f64; 6] = std::array::from_fn(|i| {
+        [-tau, tau]
+            .into_iter()
+            .filter(|t| tour.iter().all(|q| q[i] + t >= lo[i] && q[i] + t <= hi[i]))
+            .map(|t| ((first[i] + t - last[i]).abs(), t))
+            .fold(((first[i] - last[i]).abs(), 0.0), |b, c| {
+                if c.0 < b.0 {
+                    c
+                } else {
+                    b
+                }
+            })
+            .1
+    });
+    turn.iter().any(|&t| t != 0.0).then_some(turn)
+}
+
+/// Whole turns other than `nearest` (and none) that keep a section's poses `tour` within the
+/// joint range [lo, hi], by the time of the move from `last` to its turned first pose (Eq. 7;
+/// ties by the sum of the joints' times, then in a fixed order): at most [`TURN_TRIES`].
+fn other_turns(
+    (lo, hi): (&[f64; 6], &[f64; 6]),
+    last: &[f64; 6],
+    first: &[f64; 6],
+    tour: &[[f64; 6]],
+    speeds: &[f64; 6],
+    nearest: Option<[f64; 6]>,
+) -> Vec<[f64; 6]> {
+    let tau = std::f64::consts::TAU;
+    let allowed: Vec<Vec<f64>> = (0..6)
+        .map(|i| {
+            [0.0, -tau, tau]
+                .into_iter()
+                .filter(|t| tour.iter().all(|q| q[i] + t >= lo[i] && q[i] + t <= hi[i]))
+                .collect()
+        })
+        .collect();
+    let mut combos: Vec<[f64; 6]> = vec![[0.0; 6]];
+    for (i, ts) in allowed.iter().enumerate() {
+        combos = combos
+            .iter()
+            .flat_map(|c| {
+                ts.iter().map(move |&t| {
+                    let mut c = *c;
+                    c[i] = t;
+                    c
+                })
+            })
+            .collect();
+    }
+    let cost = |turn: &[f64; 6]| -> (f64, f64) {
+        let t: [f64; 6] = std::array::from_fn(|i| (first[i] + turn[i] - last[i]).abs() / speeds[i]);
+        (t.iter().fold(0.0, |m: f64, &x| m.max(x)), t.iter().sum())
+    };
+    let mut keyed: Vec<((f64, f64), usize, [f64; 6])> = combos
+        .into_iter()
+        .enumerate()
+        .filter(|(_, c)| c.iter().any(|&t| t != 0.0) && Some(*c) != nearest)
+        .map(|(k, c)| (cost(&c), k, c))
+        .collect();
+    keyed.sort_by(|a, b| {
+        a.0 .0
+            .total_cmp(&b.0 .0)
+            .then(a.0 .1.total_cmp(&b.0 .1))
+            .then(a.1.cmp(&b.1))
+    });
+    keyed.into_iter().take(TURN_TRIES).map(|k| k.2).collect()
 }
 
 /// What [`blend_corners`] blends by: the controller's corner model, the blend distance at the
@@ -502,13 +683,15 @@ pub fn check_blend(ck: &Checker, b: &Blend, ext: &mut Extremes) -> Result<(), (f
 }
 
 /// Via points that make a → b safe: first a chain through the roadmap of admitted pool poses
-/// ([`super::roadmap`]), then perturbed midpoints, recursively on the half that still fails.
+/// ([`super::roadmap::connect`], a bounded search), then the complete search of the roadmap's
+/// graph ([`super::roadmap::route`]: a and b of one section are joined as a rule), then
+/// perturbed midpoints, recursively on the half that still fails.
 #[allow(clippy::too_many_arguments)]
 fn find_support(
     ck: &Checker,
     a: &[f64; 6],
     b: &[f64; 6],
-    roadmap: &Nearest,
+    roadmap: &Roadmap,
     speeds: &[f64; 6],
     rng: &mut impl Rng,
     depth: u32,
@@ -518,7 +701,10 @@ fn find_support(
         return None;
     }
     if depth == MAX_DEPTH {
-        if let Some(vias) = super::roadmap::connect(ck, a, b, roadmap, speeds, ext) {
+        if let Some(vias) = super::roadmap::connect(ck, a, b, &roadmap.index, speeds, ext) {
+            return Some(vias);
+        }
+        if let Some(vias) = super::roadmap::route(ck, a, b, roadmap, speeds, ext) {
             return Some(vias);
         }
     }
@@ -551,4 +737,96 @@ fn find_support(
         }
     }
     None
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_section_turns_by_whole_turns_only_where_that_is_nearer_and_stays_in_range() {
+        let d = |v: f64| v.to_radians();
+        let lo = [
+            d(-359.0),
+            d(-359.0),
+            d(-179.0),
+            d(-359.0),
+            d(-359.0),
+            d(-359.0),
+        ];
+        let hi = lo.map(|v| -v);
+        // Wrist 1 from -140 to 170 deg: -190 is 50 deg away, 170 is 310; the elbow cannot turn.
+        let last = [d(-180.0), d(-160.0), d(100.0), d(-140.0), d(90.0), 0.0];
+        let first = [d(-110.0), d(-120.0), d(-10.0), d(170.0), d(70.0), d(40.0)];
+        let tour = vec![
+            first,
+            [d(-100.0), d(-110.0), d(-20.0), d(150.0), d(60.0), d(30.0)],
+        ];
+        let turn = whole_turns((&lo, &hi), &last, &first, &tour).expect("wrist 1 turns");
+        assert_eq!(
+            turn.map(|t| t.to_degrees().round()),
+            [0.0, 0.0, 0.0, -360.0, 0.0, 0.0]
+        );
+        // Not where a pose of the section would leave the range: one at -170 deg cannot go to
+        // -530.
+        let mut wide = tour.clone();
+        wide.push([d(-100.0), d(-110.0), d(-20.0), d(-170.0), d(60.0), d(30.0)]);
+        assert_eq!(whole_turns((&lo, &hi), &last, &first, &wide), None);
+        // Nothing to turn when every joint is nearest already.
+        assert_eq!(whole_turns((&lo, &hi), &first, &tour[1], &tour), None);
+    }
+
+    #[test]
+    fn other_turns_come_nearest_first_without_the_nearest_and_stay_in_range() {
+        let d = |v: f64| v.to_radians();
+        let lo = [
+            d(-359.0),
+            d(-359.0),
+            d(-179.0),
+            d(-359.0),
+            d(-359.0),
+            d(-359.0),
+        ];
+        let hi = lo.map(|v| -v);
+        let speeds = [1.0; 6];
+        // Wrist 1 from -10 to 170 deg: 180 deg either way round; wrist 2 200 deg the short way.
+        let last = [d(80.0), d(-20.0), d(-90.0), d(-10.0), d(-150.0), d(160.0)];
+        let first = [d(-90.0), d(-140.0), d(60.0), d(170.0), d(50.0), d(30.0)];
+        let tour = vec![first];
+        let nearest = whole_turns((&lo, &hi), &last, &first, &tour);
+        let turns = other_turns((&lo, &hi), &last, &first, &tour, &speeds, nearest);
+        assert_eq!(turns.len(), TURN_TRIES);
+        let deg = |t: &[f64; 6]| t.map(|x| x.to_degrees().round());
+        assert!(turns
+            .iter()
+            .all(|t| Some(*t) != nearest && t.iter().any(|&x| x != 0.0)));
+        // The elbow never turns (its range is one turn), every turned pose stays in range.
+        for t in &turns {
+            assert_eq!(t[2], 0.0);
+            assert!((0..6).all(|i| first[i] + t[i] >= lo[i] && first[i] + t[i] <= hi[i]));
+        }
+        // Nearest first: the move's slowest joint, then the sum, never decreasing.
+        let cost = |t: &[f64; 6]| -> (f64, f64) {
+            let x: Vec<f64> = (0..6).map(|i| (first[i] + t[i] - last[i]).abs()).collect();
+            (x.iter().fold(0.0, |m: f64, &v| m.max(v)), x.iter().sum())
+        };
+        for w in turns.windows(2) {
+            let (a, b) = (cost(&w[0]), cost(&w[1]));
+            assert!(
+                a.0 < b.0 || (a.0 == b.0 && a.1 <= b.1),
+                "{:?} before {:?}",
+                deg(&w[0]),
+                deg(&w[1])
+            );
+        }
+        // Wrist 1's other way round is among them, at the same cost as the nearest.
+        let nearest = nearest.expect("wrist 2 turns");
+        let mut other = nearest;
+        other[3] = if nearest[3] == 0.0 {
+            -std::f64::consts::TAU
+        } else {
+            0.0
+        };
+        assert_eq!(turns[0], other, "{:?}", deg(&turns[0]));
+    }
 }

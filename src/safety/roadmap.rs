@@ -10,11 +10,24 @@
 
 use super::{Checker, Extremes};
 use crate::order::move_time;
+use rayon::prelude::*;
 use std::cmp::Ordering;
-use std::collections::{BinaryHeap, HashMap};
+use std::collections::{BinaryHeap, HashMap, HashSet};
 
 pub const NEIGHBOURS: usize = 10;
 pub const EXPANSIONS: usize = 120;
+/// Links per pose of the graph the sections are found in ([`components`]) and the complete
+/// search walks ([`route`]): the same graph, so that a section the grouping found connected
+/// is connected for the search too.
+pub const LINKS: usize = 8;
+/// Failed moves after which [`route`] gives up (each costs one search of the graph).
+pub const ROUTE_REPAIRS: usize = 400;
+/// [`free_route`]: random poses drawn in its first round (the count doubles each round), the
+/// rounds, and how far (rad) beyond the box of the move's ends it draws them in the first
+/// round (doubling too).
+pub const FREE_SAMPLES: usize = 256;
+pub const FREE_ROUNDS: usize = 4;
+pub const FREE_REACH: f64 = 0.5;
 
 const START: usize = usize::MAX;
 
@@ -130,6 +143,259 @@ pub fn connect(
     None
 }
 
+/// A section's pool as a graph: every pose linked to its [`LINKS`] nearest (Eq. 7), both ways
+/// (the links [`components`] groups the pool by), each list nearest first (ties by index).
+pub struct Graph {
+    adj: Vec<Vec<(f64, usize)>>,
+}
+
+impl Graph {
+    pub fn new(index: &Nearest) -> Self {
+        let pool = index.pool;
+        let near: Vec<Vec<(f64, usize)>> = (0..pool.len())
+            .into_par_iter()
+            .map_init(
+                || Vec::with_capacity(LINKS),
+                |buf, i| {
+                    index.query(&pool[i], LINKS, |j| pool[j] != pool[i], buf);
+                    buf.clone()
+                },
+            )
+            .collect();
+        let mut adj = near.clone();
+        for (i, list) in near.iter().enumerate() {
+            for &(c, j) in list {
+                adj[j].push((c, i));
+            }
+        }
+        for list in &mut adj {
+            list.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+            list.dedup_by_key(|e| e.1);
+        }
+        Graph { adj }
+    }
+}
+
+/// A section's roadmap: the nearest-neighbour index of its pool, and the graph [`route`] walks,
+/// built the first time a search needs it (most plans never do).
+pub struct Roadmap<'a> {
+    pub index: Nearest<'a>,
+    graph: std::sync::OnceLock<Graph>,
+}
+
+impl<'a> Roadmap<'a> {
+    pub fn new(pool: &'a [[f64; 6]], speeds: &[f64; 6]) -> Self {
+        Roadmap {
+            index: Nearest::new(pool, speeds),
+            graph: std::sync::OnceLock::new(),
+        }
+    }
+
+    pub fn graph(&self) -> &Graph {
+        self.graph.get_or_init(|| Graph::new(&self.index))
+    }
+
+    /// The pool index of the pose `x`, if it is one of the pool's.
+    fn node(&self, x: &[f64; 6]) -> Option<usize> {
+        let mut out = Vec::with_capacity(1);
+        self.index.query(x, 1, |_| true, &mut out);
+        out.first()
+            .map(|&(_, i)| i)
+            .filter(|&i| self.index.pool[i] == *x)
+    }
+}
+
+/// Support poses for a → b (both poses of the roadmap's pool) by a complete search of the
+/// roadmap's graph, where [`connect`]'s bounded one gives up: the cheapest path of the graph
+/// (Eq. 7) is checked move by move from a, a move that fails is taken out and the search
+/// repeated (a lazy roadmap), until a path passes; it is then shortened where a direct move
+/// skips some of its poses. The sections are the graph's groups of passing links (found with
+/// a proxy of the move check, [`components`]), so a and b of one section are joined as a rule;
+/// None when no path of passing moves joins them (or after [`ROUTE_REPAIRS`] failed moves).
+/// Every verdict is the checker's, so the result is the same on any thread count.
+pub fn route(
+    ck: &Checker,
+    a: &[f64; 6],
+    b: &[f64; 6],
+    roadmap: &Roadmap,
+    speeds: &[f64; 6],
+    ext: &mut Extremes,
+) -> Option<Vec<[f64; 6]>> {
+    let (from, to) = (roadmap.node(a)?, roadmap.node(b)?);
+    let graph = roadmap.graph();
+    let pool = roadmap.index.pool;
+    let mut bad: HashSet<(usize, usize)> = HashSet::new();
+    let mut checked: HashMap<(usize, usize), Option<Extremes>> = HashMap::new();
+    let mut passes = |u: usize, v: usize| -> bool {
+        checked
+            .entry((u, v))
+            .or_insert_with(|| {
+                let mut e = Extremes::default();
+                ck.line_passes(&pool[u], &pool[v], &mut e).then_some(e)
+            })
+            .is_some()
+    };
+    let mut found = None;
+    for _ in 0..ROUTE_REPAIRS {
+        let path = cheapest(graph, pool, from, to, speeds, &bad)?;
+        match path.windows(2).find(|w| !passes(w[0], w[1])) {
+            Some(w) => {
+                bad.insert((w[0], w[1]));
+            }
+            None => {
+                found = Some(path);
+                break;
+            }
+        }
+    }
+    Some(shorten(ck, &found?, pool, &checked, ext))
+}
+
+/// Support poses for a move without the bar (a transit between sections) where the direct
+/// move fails: a lazy roadmap ([`route`]) of a, b and seeded random poses that pass `ck`'s pose
+/// check, drawn where the arm can go without the bar: in the box of a and b widened by
+/// [`FREE_REACH`], within the joint limits, on the program's 0.001° grid; each round draws
+/// twice as many as the last in a box twice as wide. (The admitted poses are no help here:
+/// the sections are the groups they do not join, and mixed with sparse random poses they
+/// leave the graph's nearest-neighbour links inside their dense groups.) Deterministic for a
+/// given `rng` state on any thread count.
+pub fn free_route(
+    ck: &Checker,
+    a: &[f64; 6],
+    b: &[f64; 6],
+    speeds: &[f64; 6],
+    rng: &mut impl rand::Rng,
+    ext: &mut Extremes,
+) -> Option<Vec<[f64; 6]>> {
+    let (lo, hi) = ck.limits();
+    let mut nodes: Vec<[f64; 6]> = vec![*a, *b];
+    let (mut count, mut reach) = (FREE_SAMPLES, FREE_REACH);
+    for _ in 0..FREE_ROUNDS {
+        let draws: Vec<[f64; 6]> = (0..count)
+            .map(|_| {
+                crate::emit::emitted(&std::array::from_fn(|i| {
+                    let (x, y) = (a[i].min(b[i]) - reach, a[i].max(b[i]) + reach);
+                    let (x, y) = (x.max(lo[i]), y.min(hi[i]));
+                    if x < y {
+                        rng.random_range(x..=y)
+                    } else {
+                        a[i]
+                    }
+                }))
+            })
+            .collect();
+        let pass: Vec<bool> = draws.par_iter().map(|q| ck.pose(q).is_ok()).collect();
+        nodes.extend(
+            draws
+                .iter()
+                .zip(pass)
+                .filter(|(q, ok)| *ok && *q != a && *q != b)
+                .map(|(q, _)| *q),
+        );
+        let roadmap = Roadmap::new(&nodes, speeds);
+        if let Some(vias) = route(ck, a, b, &roadmap, speeds, ext) {
+            return Some(vias);
+        }
+        count *= 2;
+        reach *= 2.0;
+    }
+    None
+}
+
+/// The cheapest path from → to in the graph without the `bad` links (A* with Eq. 7 as cost and
+/// admissible heuristic; ties by node index), as node indices from → to.
+fn cheapest(
+    graph: &Graph,
+    pool: &[[f64; 6]],
+    from: usize,
+    to: usize,
+    speeds: &[f64; 6],
+    bad: &HashSet<(usize, usize)>,
+) -> Option<Vec<usize>> {
+    let n = pool.len();
+    let mut best = vec![f64::INFINITY; n];
+    let mut parent = vec![usize::MAX; n];
+    let mut done = vec![false; n];
+    let mut open = BinaryHeap::new();
+    best[from] = 0.0;
+    open.push(Open {
+        f: move_time(&pool[from], &pool[to], speeds),
+        g: 0.0,
+        node: from,
+        parent: from,
+    });
+    while let Some(Open { g, node, .. }) = open.pop() {
+        if done[node] {
+            continue;
+        }
+        done[node] = true;
+        if node == to {
+            let mut path = vec![to];
+            let mut k = to;
+            while k != from {
+                k = parent[k];
+                path.push(k);
+            }
+            path.reverse();
+            return Some(path);
+        }
+        for &(c, v) in &graph.adj[node] {
+            let g2 = g + c;
+            if done[v] || g2 >= best[v] || bad.contains(&(node, v)) {
+                continue;
+            }
+            best[v] = g2;
+            parent[v] = node;
+            open.push(Open {
+                f: g2 + move_time(&pool[v], &pool[to], speeds),
+                g: g2,
+                node: v,
+                parent: node,
+            });
+        }
+    }
+    None
+}
+
+/// A checked path made shorter: from each pose, the farthest later pose of the path a direct
+/// move reaches (the last, then halfway there, ... : a few tries per pose), else the next.
+/// Returns the support poses (the path less its ends) and merges the moves' extremes.
+fn shorten(
+    ck: &Checker,
+    path: &[usize],
+    pool: &[[f64; 6]],
+    checked: &HashMap<(usize, usize), Option<Extremes>>,
+    ext: &mut Extremes,
+) -> Vec<[f64; 6]> {
+    let last = path.len() - 1;
+    let mut vias = Vec::new();
+    let mut i = 0;
+    while i < last {
+        let mut next = i + 1;
+        let mut met = checked
+            .get(&(path[i], path[i + 1]))
+            .cloned()
+            .flatten()
+            .unwrap_or_default();
+        let mut j = last;
+        while j > i + 1 {
+            let mut e = Extremes::default();
+            if ck.line_passes(&pool[path[i]], &pool[path[j]], &mut e) {
+                next = j;
+                met = e;
+                break;
+            }
+            j = i + 1 + (j - i - 1) / 2;
+        }
+        ext.merge(&met);
+        if next < last {
+            vias.push(pool[path[next]]);
+        }
+        i = next;
+    }
+    vias
+}
+
 /// The groups of pool poses that safe motions connect (with the bar mounted): a component
 /// label per pose, labels numbered by size (0 = largest; ties by smallest member index).
 /// Poses are linked to their `k` nearest neighbours (Eq. 7) when the move's quarter, middle and
@@ -158,7 +424,6 @@ pub fn components_by(
     k: usize,
     passes: impl Fn(usize, usize) -> bool + Sync,
 ) -> Vec<usize> {
-    use rayon::prelude::*;
     let n = pool.len();
     let index = Nearest::new(pool, speeds);
     let mut edges: Vec<(f64, usize, usize)> = (0..n)
@@ -310,6 +575,103 @@ impl<'a> Nearest<'a> {
 mod tests {
     use super::*;
     use rand::{Rng, SeedableRng};
+
+    /// Pairs of poses tried by the route test below.
+    const PAIRS: usize = 16;
+
+    /// The UR5 with its real meshes (issue 34): pairs of poses of its largest section whose
+    /// direct move fails are joined by `route` (all but at most 2 of [`PAIRS`]), through pool
+    /// poses, by moves that a checker without the planner's memory passes one by one.
+    #[test]
+    fn route_joins_poses_of_one_section_by_moves_that_pass() {
+        use crate::pipeline;
+        let path = concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../shared/robots/ur5/robot.urdf"
+        );
+        let robot = crate::robot::load(std::path::Path::new(path), &Default::default())
+            .expect("the UR5 in ../shared/robots");
+        let fixture = nalgebra::Vector3::new(0.45, 0.2, 0.2);
+        let mut opts = pipeline::CompileOptions::new(fixture);
+        opts.cell.map = Some(nalgebra::Vector3::new(0.06, 0.03, 0.12));
+        let (map, _) = pipeline::resolve_map(&robot, opts.cell.map);
+        let cell = pipeline::make_cell(&robot, fixture, map, &opts.cell).unwrap();
+        let model = crate::model::MeasurementModel::new(&robot, fixture, map);
+        let (scene, _) = pipeline::build_scene(&robot, &opts.cell, &fixture, &map).unwrap();
+        let ck = Checker::new(&robot, &model, &cell, &scene, opts.cell.margin);
+        let cfg = crate::sample::SampleConfig {
+            step: [20f64.to_radians(); 6],
+            max_candidates: 2400,
+            seed: 1,
+            movable: crate::model::movable_joints(&model, &robot),
+        };
+        let (sampled, _) = crate::sample::run(
+            &robot,
+            &model,
+            &pipeline::inset_cell(&cell),
+            &cfg,
+            &crate::sample::NoProgress,
+        );
+        let (kept, _, _) = pipeline::collision_filter(&ck, sampled.candidates, 600);
+        let speeds = robot.max_speeds();
+        let all: Vec<[f64; 6]> = kept.iter().map(|c| crate::emit::emitted(&c.q)).collect();
+        let label = components(&ck, &all, &speeds, LINKS);
+        let section: Vec<[f64; 6]> = (0..all.len())
+            .filter(|&i| label[i] == 0)
+            .map(|i| all[i])
+            .collect();
+        let memo = crate::safety::LineMemo::default();
+        let planner = ck.remembering(&memo);
+        let roadmap = Roadmap::new(&section, &speeds);
+        let (mut tried, mut joined, mut via_count) = (0, 0, 0);
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(34);
+        while tried < PAIRS {
+            let (a, b) = (
+                section[rng.random_range(0..section.len())],
+                section[rng.random_range(0..section.len())],
+            );
+            if a == b || ck.line(&a, &b, &mut Extremes::default()).is_ok() {
+                continue;
+            }
+            tried += 1;
+            let Some(vias) = route(
+                &planner,
+                &a,
+                &b,
+                &roadmap,
+                &speeds,
+                &mut Extremes::default(),
+            ) else {
+                continue;
+            };
+            let chain: Vec<[f64; 6]> = std::iter::once(a)
+                .chain(vias.iter().copied())
+                .chain(std::iter::once(b))
+                .collect();
+            for w in chain.windows(2) {
+                assert!(
+                    ck.line(&w[0], &w[1], &mut Extremes::default()).is_ok(),
+                    "{:?} -> {:?}",
+                    w[0],
+                    w[1]
+                );
+            }
+            assert!(vias.iter().all(|v| section.contains(v)));
+            joined += 1;
+            via_count += vias.len();
+        }
+        // The sections are grouped by a proxy of the move check (three poses a move), which
+        // can pass a link the continuous check fails: then a pair of one section may have no
+        // route, rarely.
+        assert!(
+            joined >= PAIRS - 2,
+            "{joined} of {PAIRS} pairs of one section joined"
+        );
+        assert!(
+            via_count >= joined,
+            "{via_count} support poses for {joined} failed moves"
+        );
+    }
 
     fn pool(n: usize, seed: u64) -> Vec<[f64; 6]> {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);

@@ -278,6 +278,18 @@ struct Ctx<'a> {
     map5: Vec<Vector3<f64>>,
     /// Tool-cup axis in DH frame 5 for every q6 grid value.
     cup5: Vec<Vector3<f64>>,
+    /// Joint 6 turns the MAP and the cup axis about z5 together: the cup axis's component
+    /// along z5 and its length across, and the MAP's component along the axis (all the same
+    /// for every q6), for the branch test [`Ctx::cup_can_pass`].
+    cup_along: f64,
+    cup_across: f64,
+    map_dot_cup: f64,
+    /// The MAP's q6 circle about z5: its centre's offset along z5 from frame 5's origin and its
+    /// radius (a wrist branch's MAP positions lie on it).
+    map_along: f64,
+    map_across: f64,
+    /// Grid poses per q1 grid value: a pose's grid index is j1 · stride + the rest.
+    stride: u64,
     /// Reach radius after joints 2..5 (index k−2 for frame k).
     reach: [f64; 4],
     /// Fixture in DH frame 0, cylindrical.
@@ -326,7 +338,10 @@ impl<'a> Ctx<'a> {
         let tool = model.flange.apply(&model.nominal.map);
         let map5 = t[4].iter().map(|t6| t6.apply(&tool)).collect();
         let cup = model.flange.r * cell.tool_axis;
-        let cup5 = t[4].iter().map(|t6| t6.r * cup).collect();
+        let cup5: Vec<Vector3<f64>> = t[4].iter().map(|t6| t6.r * cup).collect();
+        // T6 = RotZ(θ6 + q6)·(a fixed transform): these do not depend on q6.
+        let c6 = dh_transform(&dh[5], 0.0);
+        let (m6, u6) = (c6.apply(&tool), c6.r * cup);
         let link = |i: usize| dh[i].a.hypot(dh[i].d);
         let tail = tool.norm();
         let reach = std::array::from_fn(|k| ((k + 2)..6).map(link).sum::<f64>() + tail);
@@ -351,6 +366,12 @@ impl<'a> Ctx<'a> {
             t,
             map5,
             cup5,
+            cup_along: u6.z,
+            cup_across: norm2(u6.x, u6.y),
+            map_dot_cup: m6.dot(&u6),
+            map_along: m6.z,
+            map_across: norm2(m6.x, m6.y),
+            stride: grids[1..].iter().map(|g| g.len()).product(),
             reach,
             rf: f0.x.hypot(f0.y),
             phif: f0.y.atan2(f0.x),
@@ -404,6 +425,41 @@ impl<'a> Ctx<'a> {
         along + PRUNE_SLACK >= need
     }
 
+    /// Can the bar meet the tool-cup cone anywhere on a wrist branch (frame 5 at `f5`, every
+    /// q6 and every q1)? The cup test of [`Ctx::solve_q1`] bounded over the q6 circle: joint 6
+    /// turns the MAP and the cup axis about z5 together, so x·cup stays the same, and the
+    /// fixture's part and the cup axis's height vary within bounds the branch's frame gives.
+    /// (A necessary condition with slack; with the cup axis along joint 6 it is the circles'
+    /// test itself.)
+    #[inline]
+    fn cup_can_pass(&self, f5: &Frame) -> bool {
+        let cs = self.cell.tool_cone_cos;
+        if cs <= -1.0 {
+            return true;
+        }
+        // x = o + R·Rz(q6)·m, cup = R·Rz(q6)·u: −x·cup = −m·u − (Rᵀo)·(Rz(q6)·u).
+        let p = f5.r.transpose() * f5.t;
+        let (along, across) = (self.cup_along, self.cup_across);
+        let x_part = -self.map_dot_cup - p.z * along + norm2(p.x, p.y) * across;
+        // cup_z = (Rᵀ·e_z)·(Rz(q6)·u) lies in [zc − w, zc + w]; rf·|cup_h| + f0z·cup_z =
+        // rf·√(1 − c²) + f0z·c peaks at c* = f0z / |f0|.
+        let r3 = f5.r.row(2);
+        let zc = r3[2] * along;
+        let w = norm2(r3[0], r3[1]) * across;
+        let (lo, hi) = ((zc - w).max(-1.0), (zc + w).min(1.0));
+        let fz = self.f0.z;
+        let fnorm = norm2(self.rf, fz);
+        let star = if fnorm > 0.0 { fz / fnorm } else { 0.0 };
+        let g = |c: f64| self.rf * (1.0 - c * c).max(0.0).sqrt() + fz * c;
+        let f_part = if star >= lo && star <= hi {
+            fnorm
+        } else {
+            g(lo).max(g(hi))
+        };
+        let need = Self::cone_floor(cs, self.cell.bar_min, self.cell.bar_max);
+        x_part + f_part + PRUNE_SLACK >= need
+    }
+
     fn unit(&self, i2: u64, i3: u64, cfg: &SampleConfig, acc: &mut Acc) {
         let f2 = self.a1.mul(&self.t[0][i2 as usize]);
         if !self.ball_meets_shell(&f2.t, self.reach[0]) {
@@ -420,7 +476,13 @@ impl<'a> Ctx<'a> {
             }
             for (i5, t5) in self.t[3].iter().enumerate() {
                 let f5 = f4.mul(t5);
-                if !self.ball_meets_shell(&f5.t, self.reach[3]) {
+                // The MAP's q6 circle lies in the ball of its radius about its centre (often
+                // much smaller than the reach ball about frame 5's origin).
+                let centre = f5.t + f5.r.column(2) * self.map_along;
+                if !self.ball_meets_shell(&f5.t, self.reach[3])
+                    || !self.ball_meets_shell(&centre, self.map_across)
+                    || !self.cup_can_pass(&f5)
+                {
                     continue;
                 }
                 for (i6, m5) in self.map5.iter().enumerate() {
@@ -445,7 +507,7 @@ impl<'a> Ctx<'a> {
     ) {
         let g = &self.grids[0];
         if let Some(v) = g.held {
-            self.check(x, cup, v, self.sc1[0], 0, idx, cfg, acc);
+            self.check(x, cup, v, self.sc1[0], 0, &self.circle(idx), cfg, acc);
             return;
         }
         let (rmin, mut rmax) = (self.cell.bar_min, self.cell.bar_max);
@@ -545,6 +607,10 @@ impl<'a> Ctx<'a> {
             }
         }
         let mut last_k = i64::MIN;
+        if ranges.is_empty() {
+            return;
+        }
+        let circle = self.circle(idx);
         for &(lo, hi) in ranges {
             for k in lo.max(last_k.saturating_add(1))..=hi {
                 self.check(
@@ -553,13 +619,24 @@ impl<'a> Ctx<'a> {
                     k as f64 * g.step,
                     self.sc1[(k - g.k_lo) as usize],
                     (k - g.k_lo) as u64,
-                    idx,
+                    &circle,
                     cfg,
                     acc,
                 );
                 last_k = k;
             }
         }
+    }
+
+    /// What the poses of one q1 circle share (grid indices `idx` of joints 2-6).
+    fn circle(&self, idx: &[u64; 6]) -> Circle {
+        let mut rest = 0u64;
+        let mut q = [0.0; 6];
+        for i in 1..6 {
+            rest = rest * self.radix[i] + idx[i];
+            q[i] = self.grids[i].value(idx[i]);
+        }
+        Circle { q, rest }
     }
 
     /// The exact test of one pose; `(s, c)` = sin and cos of θ1 + q1.
@@ -572,7 +649,7 @@ impl<'a> Ctx<'a> {
         q1: f64,
         (s, c): (f64, f64),
         j1: u64,
-        idx: &[u64; 6],
+        circle: &Circle,
         cfg: &SampleConfig,
         acc: &mut Acc,
     ) {
@@ -581,13 +658,9 @@ impl<'a> Ctx<'a> {
         let p = self.base.apply(&p0);
         let cup0 = Vector3::new(c * cup.x - s * cup.y, s * cup.x + c * cup.y, cup.z);
         let cup_world = self.base.r * cup0;
-        let mut grid = 0u64;
-        let mut q = [0.0; 6];
-        for i in 0..6 {
-            let j = if i == 0 { j1 } else { idx[i] };
-            grid = grid * self.radix[i] + j;
-            q[i] = if i == 0 { q1 } else { self.grids[i].value(j) };
-        }
+        let grid = j1 * self.stride + circle.rest;
+        let mut q = circle.q;
+        q[0] = q1;
         if let Err(reason) = self.cell.verdict(&q, &p, &cup_world) {
             acc.rejected[reason as usize] += 1;
             return;
@@ -613,6 +686,12 @@ impl<'a> Ctx<'a> {
             },
         });
     }
+}
+
+/// The joints 2-6 of a q1 circle's poses and their part of the grid index.
+struct Circle {
+    q: [f64; 6],
+    rest: u64,
 }
 
 /// The grid indices `k` (`k·step` in `k_lo..=k_hi`) inside any of `intervals` (q1 values, each
@@ -861,6 +940,14 @@ mod tests {
                 (0.30, 0.60),
                 [20.0, 20.0, 20.0, 40.0, 30.0, 45.0],
             ),
+            // A cup axis off the flange axis and a narrow cup cone: the wrist-branch cup test
+            // bounds a cup axis that joint 6 turns.
+            (
+                Vector3::new(0.06, 0.03, 0.12),
+                Vector3::new(0.258, 1.468, 0.708),
+                (0.30, 0.52),
+                [20.0, 20.0, 20.0, 30.0, 30.0, 20.0],
+            ),
         ];
         for (k, (map, fixture, bar, step_deg)) in cases.into_iter().enumerate() {
             let (robot, model, mut cell) = setup(map, fixture, bar);
@@ -872,6 +959,10 @@ mod tests {
                 cell.fixture_axis = Vector3::new(-0.5, -0.3, 0.8).normalize();
                 cell.fixture_cone_cos = (50.0 * DEG).cos();
                 cell.floor_z = 0.35;
+            }
+            if k == 4 {
+                cell.tool_axis = Vector3::new(0.4, -0.3, 0.85).normalize();
+                cell.tool_cone_cos = (45.0 * DEG).cos();
             }
             let cfg = SampleConfig {
                 step: step_deg.map(|s| s * DEG),

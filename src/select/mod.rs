@@ -66,11 +66,35 @@ pub fn scaled_jacobian(
     (out, scale)
 }
 
+/// Sections of the pool (the groups of poses that safe motions join with the bar mounted):
+/// each remount of the bar is worth at least `min` poses, so a selection measures a group with
+/// `min` poses or more, or not at all.
+#[derive(Clone, Copy, Debug)]
+pub struct Groups<'g> {
+    /// The group of every pool pose.
+    pub label: &'g [usize],
+    pub min: usize,
+}
+
 pub fn run(
     model: &MeasurementModel,
     pool: &Pool,
     columns: &[usize],
     cfg: &SelectConfig,
+) -> Result<Selection, SelectError> {
+    run_grouped(model, pool, columns, cfg, None)
+}
+
+/// [`run`] with the pool in [`Groups`]: the elimination removes a group's last poses with the
+/// one that takes it below the minimum ([`eliminate_grouped`]), so the curve holds only sets
+/// that measure every group with enough poses or not at all, and the knee is chosen among
+/// them. `--poses N` takes the smallest of those sets with at least N poses.
+pub fn run_grouped(
+    model: &MeasurementModel,
+    pool: &Pool,
+    columns: &[usize],
+    cfg: &SelectConfig,
+    groups: Option<Groups>,
 ) -> Result<Selection, SelectError> {
     let m = columns.len();
     let n0 = pool.candidates.len();
@@ -87,9 +111,24 @@ pub fn run(
         }
     }
     let (j, _) = scaled_jacobian(model, pool, columns);
-    let (removed, curve) = eliminate(&j, m);
+    let (removed, curve) = eliminate_grouped(&j, m, groups);
     let (n_sel, rule) = match cfg.poses {
-        Some(k) => (k, format!("--poses {k}")),
+        Some(k) => {
+            // The curve is descending in n: the last entry at or above k (k itself unless a
+            // group's last poses went with the step that reached it).
+            let n = curve
+                .iter()
+                .rev()
+                .map(|c| c.0)
+                .find(|&n| n >= k)
+                .unwrap_or(k);
+            let rule = if n == k {
+                format!("--poses {k}")
+            } else {
+                format!("--poses {k}: {n}, the smallest set that measures every section with at least {} poses or none", groups.map_or(1, |g| g.min))
+            };
+            (n, rule)
+        }
         None => knee(&curve, m),
     };
     // The set of size n is the pool minus the first n0 − n removals.
@@ -167,14 +206,74 @@ pub fn knee(curve: &[(usize, f64)], m: usize) -> (usize, String) {
 /// skipped. The result does not depend on the thread count: parallel parts only compute keys
 /// and projections, in fixed chunks, and every choice is made serially in a fixed order.
 pub fn eliminate(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
-    // On a pool thread, the step's parallel parts are cheap forks; from outside the pool every
-    // one would be a round trip through the pool's queue and a sleeping thread.
-    rayon::scope(|_| eliminate_in_pool(j, m))
+    eliminate_grouped(j, m, None)
 }
 
-fn eliminate_in_pool(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
+/// [`eliminate`] under [`Groups`]: when the greedy removal takes a group below `groups.min`
+/// rows, the group's other rows (ascending) are removed in the same step, unless fewer than m
+/// rows would be left. The curve then skips the sets in between (a group with too few rows is
+/// no valid selection). A step's greedy choice is unchanged: as long as no group falls below
+/// its minimum, the removals and the curve are [`eliminate`]'s bit for bit. The same rule in
+/// [`eliminate_reference_grouped`].
+pub fn eliminate_grouped(
+    j: &[f64],
+    m: usize,
+    groups: Option<Groups>,
+) -> (Vec<usize>, Vec<(usize, f64)>) {
+    // On a pool thread, the step's parallel parts are cheap forks; from outside the pool every
+    // one would be a round trip through the pool's queue and a sleeping thread.
+    rayon::scope(|_| eliminate_in_pool(j, m, groups))
+}
+
+/// The rows each group still holds during an elimination, and the rule of [`Groups`].
+struct Quota<'g> {
+    groups: Groups<'g>,
+    count: Vec<usize>,
+}
+
+impl<'g> Quota<'g> {
+    fn new(groups: Option<Groups<'g>>, n0: usize) -> Option<Self> {
+        let groups = groups.filter(|g| g.min > 1 && g.label.len() == n0)?;
+        let mut count = vec![0; groups.label.iter().copied().max().map_or(0, |l| l + 1)];
+        for &l in groups.label {
+            count[l] += 1;
+        }
+        Some(Quota { groups, count })
+    }
+
+    /// Row `i` was removed (`alive` already says so) and `left` rows remain: the rows of its
+    /// group that go with it, ascending (none while the group keeps its minimum, or when m
+    /// rows would not remain).
+    fn forced(&mut self, i: usize, alive: &[bool], left: usize, m: usize) -> Vec<usize> {
+        let g = self.groups.label[i];
+        self.count[g] -= 1;
+        let c = self.count[g];
+        if c == 0 || c >= self.groups.min || left < m + c {
+            return Vec::new();
+        }
+        self.count[g] = 0;
+        (0..alive.len())
+            .filter(|&k| alive[k] && self.groups.label[k] == g)
+            .collect()
+    }
+}
+
+/// Whether the Gram matrix is rebuilt from scratch after a removal (`left` rows remain,
+/// `removed` so far) rather than downdated: now and then, and always when few rows remain
+/// (where it is least well conditioned), so rounding cannot accumulate. The one schedule of the
+/// bounded search and the reference.
+fn rebuilds(left: usize, m: usize, removed: usize) -> bool {
+    left < 3 * m || removed % 64 == 0
+}
+
+fn eliminate_in_pool(
+    j: &[f64],
+    m: usize,
+    groups: Option<Groups>,
+) -> (Vec<usize>, Vec<(usize, f64)>) {
     let n0 = j.len() / m;
     let row = |i: usize| &j[i * m..(i + 1) * m];
+    let mut quota = Quota::new(groups, n0);
     let mut alive = vec![true; n0];
     // Active rows by position; removal is swap_remove, positions carry no meaning.
     let mut ids: Vec<usize> = (0..n0).collect();
@@ -280,33 +379,61 @@ fn eliminate_in_pool(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
         // largest root of this step's secular equation for the row removed.
         eigen_coordinates(&vt, row(i), &mut z);
         let floor = second_downdated(&lam, &z);
-        ids.swap_remove(p);
-        for col in &mut proj {
-            col.swap_remove(p);
+        // The row, then (when its group fell below its minimum) the group's other rows.
+        let mut queue = vec![i];
+        let mut k = 0;
+        while k < queue.len() {
+            let r = queue[k];
+            let p = if k == 0 {
+                p
+            } else {
+                ids.iter()
+                    .position(|&x| x == r)
+                    .expect("a forced row is active")
+            };
+            ids.swap_remove(p);
+            for col in &mut proj {
+                col.swap_remove(p);
+            }
+            alive[r] = false;
+            removed.push(r);
+            // Same schedule of rebuilds and downdates as the reference.
+            if rebuilds(ids.len(), m, removed.len()) {
+                active.clear();
+                active.extend((0..n0).filter(|&x| alive[x]));
+                g = gram(j, m, &active);
+            } else {
+                downdate(&mut g, row(r));
+            }
+            if k == 0 {
+                if let Some(q) = quota.as_mut() {
+                    queue.extend(q.forced(r, &alive, ids.len(), m));
+                }
+            }
+            k += 1;
         }
-        alive[i] = false;
-        removed.push(i);
-        // Same schedule of rebuilds and downdates as the reference.
-        if ids.len() < 3 * m || removed.len() % 64 == 0 {
-            active.clear();
-            active.extend((0..n0).filter(|&k| alive[k]));
-            g = gram(j, m, &active);
-        } else {
-            downdate(&mut g, row(i));
-        }
+        let forced = queue.len() > 1;
         if ids.len() == m {
             (lam, vt) = spectrum(&g);
+            continue;
+        }
+        if age >= period {
+            age = 0;
+            bounds.refresh(&vt, j, &ids, &mut proj);
+        }
+        let n = ids.len();
+        if forced {
+            // The floor above was for one removal: this step's λₘ₋₁ itself bounds every
+            // candidate's λ'max from below (interlacing).
+            (lam, vt) = spectrum(&g);
+            bounds.update(&g, lam[m.saturating_sub(2)] * (1.0 - 1e-12));
+            lows = first_pass(&bounds, &proj, &mut keys[..n]);
             continue;
         }
         // The next step's keys need no eigendecomposition of its Gram matrix: the basis may
         // come from this step's (any orthonormal one will do), and its floor is above. So its
         // spectrum is computed alongside them.
-        if age >= period {
-            age = 0;
-            bounds.refresh(&vt, j, &ids, &mut proj);
-        }
         bounds.update(&g, floor);
-        let n = ids.len();
         ((lam, vt), lows) = rayon::join(
             || spectrum(&g),
             || first_pass(&bounds, &proj, &mut keys[..n]),
@@ -766,8 +893,20 @@ const GRAM_BANDS: usize = 4;
 /// step (one secular solve pair per candidate). Kept for tests and the benchmark.
 #[doc(hidden)]
 pub fn eliminate_reference(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)>) {
+    eliminate_reference_grouped(j, m, None)
+}
+
+/// [`eliminate_reference`] under [`Groups`] (the rule of [`eliminate_grouped`]).
+#[doc(hidden)]
+pub fn eliminate_reference_grouped(
+    j: &[f64],
+    m: usize,
+    groups: Option<Groups>,
+) -> (Vec<usize>, Vec<(usize, f64)>) {
     let n0 = j.len() / m;
     let row = |i: usize| &j[i * m..(i + 1) * m];
+    let mut quota = Quota::new(groups, n0);
+    let mut alive = vec![true; n0];
     let mut active: Vec<usize> = (0..n0).collect();
     let mut removed = Vec::with_capacity(n0.saturating_sub(m));
     let mut curve = Vec::with_capacity(n0 - m + 1);
@@ -798,13 +937,22 @@ pub fn eliminate_reference(j: &[f64], m: usize) -> (Vec<usize>, Vec<(usize, f64)
             best
         };
         active.remove(pos);
-        removed.push(i);
-        // Downdate; rebuild from scratch now and then (and always when few rows remain, where
-        // the Gram matrix is least well conditioned) so rounding cannot accumulate.
-        if active.len() < 3 * m || removed.len() % 64 == 0 {
-            g = gram(j, m, &active);
-        } else {
-            downdate(&mut g, row(i));
+        alive[i] = false;
+        let mut queue = vec![i];
+        if let Some(q) = quota.as_mut() {
+            queue.extend(q.forced(i, &alive, active.len(), m));
+        }
+        for (k, &r) in queue.iter().enumerate() {
+            if k > 0 {
+                active.retain(|&x| x != r);
+                alive[r] = false;
+            }
+            removed.push(r);
+            if rebuilds(active.len(), m, removed.len()) {
+                g = gram(j, m, &active);
+            } else {
+                downdate(&mut g, row(r));
+            }
         }
     }
     (removed, curve)
@@ -1058,6 +1206,91 @@ mod tests {
         let mut dup = random_matrix(40, 5, 9);
         dup.extend_from_within(0..20 * 5);
         check_against_reference(&dup, 5, "duplicated rows");
+    }
+
+    /// Under groups: the bounded search makes the reference's removals and curve, bit for bit,
+    /// on one thread and two; every set on the curve measures each group with at least the
+    /// minimum or not at all; the removals are the unconstrained greedy's until the first
+    /// group falls below its minimum; and a group is in fact dropped whole along the way.
+    #[test]
+    fn grouped_elimination_keeps_every_group_at_its_minimum_or_drops_it() {
+        let bits = |c: &[(usize, f64)]| -> Vec<(usize, u64)> {
+            c.iter().map(|&(n, v)| (n, v.to_bits())).collect()
+        };
+        let mut dropped_whole = 0;
+        for (seed, n, m, sizes) in [
+            (21u64, 160usize, 8usize, vec![120usize, 25, 12, 3]),
+            (22, 90, 6, vec![60, 20, 10]),
+            (23, PARALLEL_BOUND + 300, 10, vec![PARALLEL_BOUND, 200, 100]),
+            (24, 40, 12, vec![28, 6, 6]),
+        ] {
+            let j = random_matrix(n, m, seed);
+            // Groups interleaved over the rows, as a grid's groups are.
+            let mut label = Vec::with_capacity(n);
+            let mut left = sizes.clone();
+            let mut g = 0;
+            while label.len() < n {
+                if left[g] > 0 {
+                    label.push(g);
+                    left[g] -= 1;
+                }
+                g = (g + 1) % sizes.len();
+            }
+            let groups = Groups {
+                label: &label,
+                min: 3,
+            };
+            let (want_removed, want_curve) = eliminate_reference_grouped(&j, m, Some(groups));
+            for threads in [1, 2] {
+                let pool = rayon::ThreadPoolBuilder::new()
+                    .num_threads(threads)
+                    .build()
+                    .expect("thread pool");
+                let (removed, curve) = pool.install(|| eliminate_grouped(&j, m, Some(groups)));
+                assert_eq!(removed, want_removed, "seed {seed}, {threads} threads");
+                assert_eq!(
+                    bits(&curve),
+                    bits(&want_curve),
+                    "seed {seed}, {threads} threads"
+                );
+            }
+            // Every set on the curve: the pool less the first n0 - n removals.
+            for &(count, _) in &want_curve {
+                let gone = &want_removed[..n - count];
+                let mut per = vec![0; sizes.len()];
+                for (i, &l) in label.iter().enumerate() {
+                    if !gone.contains(&i) {
+                        per[l] += 1;
+                    }
+                }
+                // Near n = m a group may keep fewer rows (m rows must remain).
+                if count > m + 2 {
+                    assert!(
+                        per.iter().all(|&c| c == 0 || c >= 3),
+                        "seed {seed}: n = {count} measures groups {per:?}"
+                    );
+                }
+            }
+            // Until the first forced removal, the unconstrained greedy's choices.
+            let (free_removed, _) = eliminate_reference(&j, m);
+            let first_skip = want_curve
+                .windows(2)
+                .position(|w| w[0].0 - w[1].0 > 1)
+                .map_or(want_removed.len(), |k| k);
+            assert_eq!(
+                want_removed[..first_skip],
+                free_removed[..first_skip],
+                "seed {seed}"
+            );
+            dropped_whole += want_curve
+                .windows(2)
+                .filter(|w| w[0].0 - w[1].0 > 1)
+                .count();
+        }
+        assert!(
+            dropped_whole >= 3,
+            "only {dropped_whole} groups dropped whole"
+        );
     }
 
     /// Pools above `PARALLEL_BOUND` take the chunked, parallel passes; on one thread and on
