@@ -1,5 +1,5 @@
 //! FANUC TP programs as LS text: in = a [`crate::ir::Program`] (through `fanuc.j2`), an LS text
-//! (through [`reader`]) or new joint values for a program read here; out = its text, its
+//! (through `reader`) or new joint values for a program read here; out = its text, its
 //! [`crate::dialect::Parsed`] motions, or the [`Edit`]s that write the values. Joints are the
 //! J1..J6 of a move's position in `/POS`; the controller keeps each axis's zero as a master
 //! count.

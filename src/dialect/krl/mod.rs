@@ -1,5 +1,5 @@
 //! KUKA KRL (KSS 8.x): in = a [`crate::ir::Program`] (through `krl.j2`), a `.src` text (through
-//! [`reader`]) or new joint values for a program read here; out = its text, its
+//! `reader`) or new joint values for a program read here; out = its text, its
 //! [`crate::dialect::Parsed`] motions, or the [`Edit`]s that write the values. Joints are a
 //! PTP's axis aggregate `{A1 …, A6 …}`; the controller keeps each axis's zero in `$MAMES`.
 

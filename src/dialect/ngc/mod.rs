@@ -1,5 +1,5 @@
 //! RS274/NGC (LinuxCNC, ISO CNC cores): in = a [`crate::ir::Program`] (through `ngc.j2`), a
-//! program text (through [`reader`]) or new joint values for a program read here; out = its
+//! program text (through `reader`) or new joint values for a program read here; out = its
 //! text, its [`crate::dialect::Parsed`] motions, or the [`Edit`]s that write the values.
 //! Joints are the axis words X Y Z A B C; LinuxCNC keeps a joint's zero in the INI file.
 

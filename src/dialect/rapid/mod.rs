@@ -1,5 +1,5 @@
 //! ABB RAPID: in = a [`crate::ir::Program`] (through `rapid.j2`), a program module (through
-//! [`reader`]) or new joint values for a program read here; out = its text, its
+//! `reader`) or new joint values for a program read here; out = its text, its
 //! [`crate::dialect::Parsed`] motions, or the [`Edit`]s that write the values. Joints are a
 //! `MoveAbsJ`'s jointtarget (on the line or declared); the arm side's zero is the motor
 //! calibration offset.

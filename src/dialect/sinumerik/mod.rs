@@ -1,5 +1,5 @@
 //! SINUMERIK 840D part programs: in = a [`crate::ir::Program`] (through `sinumerik.j2`), a
-//! program text (through [`reader`]) or new joint values for a program read here; out = its
+//! program text (through `reader`) or new joint values for a program read here; out = its
 //! text, its [`crate::dialect::Parsed`] motions, or the [`Edit`]s that write the values.
 //! Joints are the machine axes `NAME=value`; an absolute encoder's zero is a machine datum.
 

@@ -1,5 +1,5 @@
 //! Universal Robots URScript: in = a [`crate::ir::Program`] (through `urscript.j2`), a
-//! `.script` text (through [`reader`]) or new joint values for a program read here; out = its
+//! `.script` text (through `reader`) or new joint values for a program read here; out = its
 //! text, its [`crate::dialect::Parsed`] motions, or the [`Edit`]s that write the values.
 //! Joints are a movej's list (radians); the controller's own kinematic calibration holds the
 //! zeros.
