@@ -136,8 +136,8 @@ def fit(rows, effect=None, ne=0):
             w = v.copy()
             w[i] += h[i]
             J[:, i] = (res(w) - r0) / h[i]
-        reg = np.where(np.arange(v.size) >= 6, v, 0.0)
-        reg[:6] = 0
+        reg = v.copy()
+        reg[:6] = 0  # the tracker frame is free
         A = J.T @ J + np.diag(ridge ** 2)
         dv = -np.linalg.solve(A + 1e-9 * np.diag(np.diag(A)), J.T @ r0 + ridge ** 2 * reg)
         v = v + dv

@@ -313,27 +313,18 @@ fn end_to_end_a_full_baseline_then_a_short_check_program_finds_a_moved_zero() {
         check_text.contains("(check program: poses chosen for theta1"),
         "{check_poses}"
     );
-    let poses_of = |text: &str| -> usize {
-        let l = text.lines().find(|l| l.starts_with("(poses:")).unwrap();
-        l["(poses: ".len()..]
+    // The first number of the header line that starts with `key`.
+    let header_number = |text: &str, key: &str| -> f64 {
+        let l = text.lines().find(|l| l.starts_with(key)).unwrap();
+        l[key.len()..]
             .split_whitespace()
             .next()
             .unwrap()
             .parse()
             .unwrap()
     };
-    let time_of = |text: &str| -> f64 {
-        let l = text
-            .lines()
-            .find(|l| l.starts_with("(estimated time:"))
-            .unwrap();
-        l["(estimated time: ".len()..]
-            .split_whitespace()
-            .next()
-            .unwrap()
-            .parse()
-            .unwrap()
-    };
+    let poses_of = |text: &str| header_number(text, "(poses: ") as usize;
+    let time_of = |text: &str| header_number(text, "(estimated time: ");
     let (n_check, n_full) = (poses_of(&check_text), poses_of(&full_text));
     let (t_check, t_full) = (time_of(&check_text), time_of(&full_text));
     eprintln!(
