@@ -12,6 +12,14 @@ LinuxCNC as its DISPLAY with --drive) starts it and resumes every M0; HAL's `sam
 `joint.N.pos-cmd` every servo period and `halsampler` writes it out. The trace is written as
 `t_s,q1_deg,...,q6_deg` (DESIGN.md "Trace"), t = sample number x servo period.
 
+    sim.py ... --wall WALL.csv
+
+also writes `t_s,wall_s`: for each sample of the trace, the wall-clock time since the first, from
+HAL's `timedelta` (the time between two runs of the servo thread, on the host's monotonic
+clock). On a stock kernel the servo thread is an ordinary thread: a loaded host makes it miss
+periods, so the trace's servo time runs slow against the wall clock on which the task times
+each dwell (and on which an instrument beside the machine records).
+
 As root, LinuxCNC's uspace rtapi_app refuses to start unless RTAPI_UID names another user and
 RTAPI_FIFO_PATH is writable by that user: the run uses `nobody` and a private directory.
 Several runs may go at once: each runs in its own IPC namespace (`unshare --ipc`), so their HAL
@@ -106,10 +114,13 @@ HOME_SEQUENCE = 0
 # starved on a loaded machine (the servo threads run at realtime priority) loses nothing.
 HAL = """loadrt [KINS]KINEMATICS
 loadrt [EMCMOT]EMCMOT servo_period_nsec=[EMCMOT]SERVO_PERIOD num_joints=[KINS]JOINTS
-loadrt sampler cfg=ffffff depth=200000
+loadrt sampler cfg=ffffffs depth=200000
+loadrt timedelta count=1
 addf motion-command-handler servo-thread
 addf motion-controller servo-thread
+addf timedelta.0 servo-thread
 addf sampler.0 servo-thread
+net wall timedelta.0.out => sampler.0.pin.6
 net estop iocontrol.0.user-enable-out => iocontrol.0.emc-enable-in
 """
 
@@ -292,11 +303,11 @@ def main():
         sys.exit("sim.py: the program did not run to its end in three attempts")
     try:
         period = period_us * 1e-6
-        rows = []
+        rows, wall, ns = [], [], 0
         with open(f"{dir}/samples.txt") as f:
             for line in f:
                 v = line.split()
-                if len(v) != 7:
+                if len(v) != 8:
                     continue
                 # halsampler numbers the samples: a gap is a FIFO overrun (samples lost).
                 # The FIFO overwrites its oldest samples when halsampler falls behind (a loaded
@@ -307,10 +318,19 @@ def main():
                 if rows and int(v[0]) != last + 1:
                     sys.exit(f"sim.py: the sampler lost samples after {last}")
                 last = int(v[0])
-                rows.append(f"{last * period:.6f}," + ",".join(v[1:]))
+                t = f"{last * period:.6f}"
+                rows.append(t + "," + ",".join(v[1:7]))
+                # timedelta's first run has no period before it: it reports 0.
+                if rows[1:]:
+                    ns += int(v[7])
+                wall.append(f"{t},{ns * 1e-9:.6f}")
         with open(out, "w") as f:
             f.write("t_s,q1_deg,q2_deg,q3_deg,q4_deg,q5_deg,q6_deg\n")
             f.write("\n".join(rows) + "\n")
+        if "--wall" in opts:
+            with open(opts["--wall"], "w") as f:
+                f.write("t_s,wall_s\n")
+                f.write("\n".join(wall) + "\n")
     finally:
         if "--keep" not in opts:
             shutil.rmtree(dir, ignore_errors=True)
