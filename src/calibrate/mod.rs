@@ -122,6 +122,9 @@ pub struct CalibrateOptions {
     /// Random joint poses of the workspace prediction, and their seed.
     pub workspace_poses: usize,
     pub seed: u64,
+    /// One reading's noise as the instrument states it (m); `None`: estimated from the data
+    /// ([`crate::diagnose::noise::reading_noise`]).
+    pub noise: Option<f64>,
 }
 
 pub const DEFAULT_PRIOR_MM: f64 = 1.0;
@@ -166,6 +169,7 @@ impl Default for CalibrateOptions {
             joint_resolution: None,
             workspace_poses: WORKSPACE_POSES,
             seed: 1,
+            noise: None,
         }
     }
 }
@@ -409,6 +413,10 @@ pub struct Report {
     /// Readings weighted by their own uncertainty (joints logged coarsely).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub reading_weights: Option<ReadingWeights>,
+    /// Where `noise_um` comes from (0 there when unknown).
+    pub noise_source: crate::diagnose::noise::NoiseSource,
+    /// For a noise from neighbouring or repeated poses: how close they were (deg).
+    pub noise_within_deg: f64,
 }
 
 /// How the readings were weighted: the joints' logged resolution and the reading
@@ -573,7 +581,7 @@ fn run_once(
         offset: matches!(opts.length_offset, LengthOffset::Known(_)),
     };
     let fitted = steps::fit(&mut problem, robot, &known, opts);
-    let held_out = steps::held_out(&problem, &fitted);
+    let held_out = steps::held_out(&problem, &fitted, opts.noise);
     let u = uncertainty::estimate(model, robot, &problem, &known, &fitted, &held_out, opts);
     Ok(assemble(
         model, robot, &problem, &known, fitted, &held_out, u, labels, opts,
@@ -745,6 +753,8 @@ fn assemble(
         params,
         effects: effect_reports,
         noise_um: round(diag.noise_hf * 1e6, 3),
+        noise_source: diag.noise.source,
+        noise_within_deg: diag.noise.within_deg,
         rms_before_um: round(fit::kept_rms(&residual_nominal, &problem.weight) * 1e6, 3),
         rms_after_um: round(diag.rms_after * 1e6, 3),
         predicted_position_std_um: predicted,
@@ -822,8 +832,18 @@ fn xyz_with_std(v: &[f64; 3], sd: &[Option<f64>; 3]) -> String {
 pub fn summary(r: &Report) -> String {
     let forms: Vec<&str> = r.runs.iter().map(|x| x.form).collect();
     let static_only = forms.iter().all(|f| *f != "continuous");
+    use crate::diagnose::noise::NoiseSource as N;
+    let noise = match r.noise_source {
+        N::Unknown => "unknown".to_string(),
+        N::Neighbours => format!("<= {} um", fmt_fixed(r.noise_um, 3)),
+        _ => format!("{} um", fmt_fixed(r.noise_um, 3)),
+    };
+    let how = match r.noise_source {
+        N::Sequence | N::Unknown => String::new(),
+        s => format!(", {}", s.describe(r.noise_within_deg)),
+    };
     let mut s = format!(
-        "{} run{}, {} rows{}; {} noise {} um (lag-1 autocorrelation {})\n",
+        "{} run{}, {} rows{}; {} noise {noise} (lag-1 autocorrelation {}{how})\n",
         r.runs.len(),
         if r.runs.len() == 1 { "" } else { "s" },
         r.rows,
@@ -833,7 +853,6 @@ pub fn summary(r: &Report) -> String {
             ""
         },
         if static_only { "reading" } else { "bar" },
-        fmt_fixed(r.noise_um, 3),
         fmt_fixed(r.residual_lag1, 2)
     );
     s += &format!(

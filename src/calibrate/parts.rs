@@ -22,8 +22,10 @@ use nalgebra::Vector3;
 /// What the residual says, and every warning of the report in order.
 pub(super) struct Diagnostics {
     pub warnings: Vec<String>,
-    /// The high-frequency part of the final residual (m).
+    /// One reading's noise (m; 0 when the data cannot tell it), [`Diagnostics::noise`] says
+    /// how it was found.
     pub noise_hf: f64,
+    pub noise: crate::diagnose::noise::Noise,
     pub rms_after: f64,
     /// Structure clearly above the noise is left in the residual.
     pub structure: bool,
@@ -52,22 +54,38 @@ pub(super) fn diagnostics(
         warnings.push(w);
     }
     let live = fit::kept_values(&f.fitted.residual, &problem.weight);
-    let noise_hf = fit::noise_estimate(&live);
+    let neighbours = crate::diagnose::noise::Neighbours::new(problem);
+    let noise = crate::diagnose::noise::reading_noise(
+        problem,
+        &neighbours,
+        &f.fitted.residual,
+        opts.noise,
+        false,
+    );
+    let noise_hf = noise.or(0.0);
     let rms_after = fit::rms(&live);
-    // Structure above the noise: the residual clearly larger than its high-frequency part, or
-    // a lag-1 correlation white noise of this length would not show (5 standard errors).
+    // Structure above the noise: the residual clearly larger than the noise, or a lag-1
+    // correlation white noise of this length would not show (5 standard errors).
     let kept_rows = problem.kept().max(1);
     let rho_limit = (5.0 / (kept_rows as f64).sqrt()).max(0.1);
-    let structure = rms_after > 1.25 * noise_hf || f.rho > rho_limit;
+    let structure = (noise.known() && rms_after > 1.25 * noise_hf) || f.rho > rho_limit;
+    if !noise.known() {
+        warnings.push(format!(
+            "the reading noise is {}: whether the residual (RMS {} um) holds more than noise is not decided",
+            noise.source.describe(noise.within_deg),
+            fmt_fixed(rms_after * 1e6, 3)
+        ));
+    }
     if structure {
         let hint = match opts.effects {
             Effects::None => "; fit the effects with --effects auto",
             _ => "",
         };
         warnings.push(format!(
-            "structure above the noise is left in the residual (RMS {} um against {} um of bar noise, lag-1 autocorrelation {}): the model misses an effect, and the geometry absorbs part of it{hint}",
+            "structure above the noise is left in the residual (RMS {} um against {} um of reading noise ({}), lag-1 autocorrelation {}): the model misses an effect, and the geometry absorbs part of it{hint}",
             fmt_fixed(rms_after * 1e6, 3),
             fmt_fixed(noise_hf * 1e6, 3),
+            noise.source.describe(noise.within_deg),
             fmt_fixed(f.rho, 2)
         ));
     }
@@ -107,6 +125,7 @@ pub(super) fn diagnostics(
     Diagnostics {
         warnings,
         noise_hf,
+        noise,
         rms_after,
         structure,
     }

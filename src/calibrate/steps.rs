@@ -87,6 +87,7 @@ pub(super) fn fit(
         min_explained_heldout: 0.0,
         // The problem's harmonic caps already hold the robot's limits (`run`).
         joint_ranges: None,
+        noise: opts.noise,
     };
     let sel = diagnose::select(problem, &free, est, &sel_opts);
     if max_effects > 0 && sel.diagnosis.report.unexplained {
@@ -161,7 +162,7 @@ pub(super) struct HeldOutScore {
     pub setup: (Estimate, Fitted),
 }
 
-pub(super) fn held_out(problem: &Problem, f: &Fit) -> HeldOutScore {
+pub(super) fn held_out(problem: &Problem, f: &Fit, given_noise: Option<f64>) -> HeldOutScore {
     let (est, free, sigma) = (&f.est, &f.free, f.sigma);
     let kept_rows = problem.kept().max(1);
     let folds = FOLDS.min(kept_rows / 8).max(2);
@@ -209,15 +210,15 @@ pub(super) fn held_out(problem: &Problem, f: &Fit) -> HeldOutScore {
     // n rows) cannot explain counts.
     let model_error = {
         // Weighted as the held-out sums are.
-        let live: Vec<f64> = f
-            .fitted
-            .residual
-            .iter()
-            .zip(&problem.weight)
-            .filter(|(_, w)| **w > 0.0)
-            .map(|(r, w)| r * w)
-            .collect();
-        let noise = fit::noise_estimate(&live);
+        let neighbours = diagnose::noise::Neighbours::new(problem);
+        let noise = diagnose::noise::reading_noise(
+            problem,
+            &neighbours,
+            &f.fitted.residual,
+            given_noise,
+            true,
+        )
+        .or(0.0);
         match fit::heldout_determined(&st, &all) {
             Some((cv, units, rows)) if rows > 0 => {
                 let slack = 1.0 + 3.0 * (2.0 / rows as f64).sqrt();

@@ -397,6 +397,11 @@ pub struct DiagnoseArgs {
     /// Write a self-contained HTML report here (Figs. 11-12, steps, parameters, verdict).
     #[arg(long, value_name = "REPORT.html")]
     pub html: Option<PathBuf>,
+    /// One reading's noise, um (the instrument's specification, or its spread at standstill):
+    /// what the residual is judged against [default: from the data: repeated or neighbouring
+    /// poses of static readings, the high-frequency part of a continuous recording].
+    #[arg(long, value_name = "UM", value_parser = positive_um)]
+    pub noise: Option<f64>,
     /// No progress output (diagnose draws none; accepted like on every subcommand).
     #[arg(short, long)]
     pub quiet: bool,
@@ -619,6 +624,11 @@ pub struct CalibrateArgs {
     /// parameter's calibrated uncertainty is judged against [default: 1,0.05,10].
     #[arg(long, value_name = "MM,DEG[,SETUP_MM]", allow_hyphen_values = true)]
     pub prior: Option<String>,
+    /// One reading's noise, um (the instrument's specification, or its spread at standstill):
+    /// what the residual is judged against [default: from the data: repeated or neighbouring
+    /// poses of static readings, the high-frequency part of a continuous recording].
+    #[arg(long, value_name = "UM", value_parser = positive_um)]
+    pub noise: Option<f64>,
     /// A previous calibration report (calibrate --json) of the same nominal robot: the fit
     /// starts from it (what these data do not determine keeps its values), and the report
     /// says what moved since, beyond the combined uncertainty, with a verdict.
@@ -775,4 +785,12 @@ pub struct PlaceArgs {
     /// PREFIX-K.cell.toml.
     #[arg(long, value_name = "DIR_or_PREFIX")]
     pub write_cell: Option<PathBuf>,
+}
+
+/// A noise figure in µm: positive and finite (clap's error otherwise, exit 2).
+fn positive_um(v: &str) -> Result<f64, String> {
+    match v.parse::<f64>() {
+        Ok(x) if x.is_finite() && x > 0.0 => Ok(x),
+        _ => Err(format!("'{v}' is not a positive number of micrometres")),
+    }
 }

@@ -206,6 +206,7 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
             }
             g => g.map(|g| g * DEG),
         },
+        noise: a.noise.map(|u| u * 1e-6),
         ..CalibrateOptions::default()
     };
     if let Some(p) = &a.prior {

@@ -367,6 +367,7 @@ pub fn diagnose(a: &DiagnoseArgs) -> Result<i32, Error> {
     let opts = crate::diagnose::DiagnoseOptions {
         masses: robot.masses.clone(),
         joint_ranges: Some(std::array::from_fn(|j| (lower[j], upper[j]))),
+        noise: a.noise.map(|u| u * 1e-6),
         ..Default::default()
     };
     let d = crate::diagnose::run(&model, &m, &opts).map_err(|e| file_err(&source, e))?;

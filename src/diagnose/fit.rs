@@ -529,6 +529,8 @@ pub struct Problem {
     joint_ranges: [(f64, f64); 6],
     /// √weight of each row from its stated uncertainty (1 without one).
     pub base_weight: Vec<f64>,
+    /// Each row's stated standard uncertainty (m; 0: none stated).
+    pub stated_std: Vec<f64>,
     /// √weight in use: the stated one times the robust loss's; 0 drops the row.
     pub weight: Vec<f64>,
     /// Fixture groups and the group of each row.
@@ -689,6 +691,7 @@ impl Problem {
         let mut temp_rise = with_temp.then(|| Vec::with_capacity(n));
         let (mut gap, mut next_dir) = (Vec::with_capacity(n), Vec::with_capacity(n));
         let mut base_weight = Vec::with_capacity(n);
+        let mut stated_std = Vec::with_capacity(n);
         // One yardstick for the stated uncertainties of the whole campaign: their RMS.
         let stated: Vec<f64> = runs
             .iter()
@@ -741,6 +744,10 @@ impl Problem {
                 }
                 _ => base_weight.extend(std::iter::repeat_n(1.0, rm.len())),
             }
+            match &rm.std {
+                Some(s) => stated_std.extend_from_slice(s),
+                None => stated_std.extend(std::iter::repeat_n(0.0, rm.len())),
+            }
         }
         let groups: Vec<Group> = ranges
             .iter()
@@ -776,6 +783,7 @@ impl Problem {
             joint_ranges: [(-std::f64::consts::PI, std::f64::consts::PI); 6],
             weight: base_weight.clone(),
             base_weight,
+            stated_std,
             fix_groups: groups.clone(),
             off_groups: groups,
         }
@@ -977,6 +985,7 @@ impl Problem {
             harmonic_caps: self.harmonic_caps,
             joint_ranges: self.joint_ranges,
             base_weight: keep.iter().map(|&k| self.base_weight[k]).collect(),
+            stated_std: keep.iter().map(|&k| self.stated_std[k]).collect(),
             weight: keep.iter().map(|&k| self.weight[k]).collect(),
             fix_groups: self.fix_groups.iter().map(remap).collect(),
             fix_of: keep.iter().map(|&k| self.fix_of[k]).collect(),

@@ -15,6 +15,7 @@
 //! [`steps`]) as candidates too; [`start`] gives the set-up a start that needs none.
 
 pub mod fit;
+pub mod noise;
 pub mod plot;
 pub mod start;
 pub mod steps;
@@ -26,9 +27,7 @@ use crate::twin::effects::Effect;
 use crate::twin::measured::Form;
 use crate::twin::Measured;
 use crate::units::{fmt_fixed, to_deg, DEG, MM};
-use fit::{
-    accumulate, effect_cols, kept_rms, lag1, model_cols, noise_estimate, rms, score, solve, Col,
-};
+use fit::{accumulate, effect_cols, kept_rms, lag1, model_cols, rms, score, solve, Col};
 use nalgebra::{DMatrix, DVector};
 use rayon::prelude::*;
 use serde::Serialize;
@@ -61,6 +60,9 @@ pub struct DiagnoseOptions {
     /// turn), which cap a cyclic error's harmonic orders by how much of them was measured
     /// (`fit::harmonic_cap`).
     pub joint_ranges: Option<[(f64, f64); 6]>,
+    /// One reading's noise as the instrument states it (m); `None`: estimated from the data
+    /// ([`noise::reading_noise`]).
+    pub noise: Option<f64>,
 }
 
 impl Default for DiagnoseOptions {
@@ -73,6 +75,7 @@ impl Default for DiagnoseOptions {
             min_explained: 0.6,
             min_explained_heldout: 0.6,
             joint_ranges: None,
+            noise: None,
         }
     }
 }
@@ -141,8 +144,13 @@ pub struct Report {
     pub steps: Vec<StepReport>,
     pub rows: usize,
     pub duration_s: f64,
-    /// Noise of the bar estimated from the high-frequency part of the residual.
+    /// One reading's noise (0 when unknown): the instrument's as given, or estimated
+    /// ([`noise::reading_noise`]).
     pub noise_um: f64,
+    /// Where `noise_um` comes from.
+    pub noise_source: noise::NoiseSource,
+    /// For a noise from neighbouring or repeated poses: how close they were (deg).
+    pub noise_within_deg: f64,
     /// Lag-1 autocorrelation of the final residual (white ≈ 0).
     pub lag1_final: f64,
     /// Where the nominal model and the measurement disagree most.
@@ -744,7 +752,11 @@ pub fn select(
     }];
     let mut found: Vec<Step> = Vec::new();
 
-    let mut noise = noise_estimate(&fit::kept_values(&residual, &problem.weight));
+    // The reading noise: the instrument's as given, or from the data (its form decides how);
+    // 0 when the data cannot tell it (every excess then counts).
+    let neighbours = noise::Neighbours::new(problem);
+    let mut found_noise = noise::reading_noise(problem, &neighbours, &residual, opts.noise, false);
+    let mut noise = found_noise.or(0.0);
     let (mut effects_added, mut steps_added) = (0, 0);
     // Steps split off but not yet proven: the state before the first of them. Several faults
     // in one run (a zero that jumps twice) leave the residual of the first split as
@@ -753,8 +765,14 @@ pub fn select(
     let mut pending: Option<Pending> = None;
     while effects_added < opts.max_effects || steps_added < opts.max_steps {
         let live = fit::kept_values(&residual, &problem.weight);
-        noise = noise.min(noise_estimate(&live));
+        let now = noise::reading_noise(problem, &neighbours, &residual, opts.noise, false);
+        if now.known() && now.sigma < noise {
+            (noise, found_noise) = (now.sigma, now);
+        }
         let r_now = rms(&live);
+        // The noise a fitted form's uncertainty is judged with: when unknown, the residual's
+        // (the larger: fewer forms count as determined).
+        let noise_form = if found_noise.known() { noise } else { r_now };
         // At the noise level and white: nothing left to explain. The candidates are still
         // scored once, so that the report lists each with its held-out error.
         let settled = r_now <= 1.5 * noise && lag1(&live) < 0.2;
@@ -840,7 +858,7 @@ pub fn select(
                                     &normal,
                                     &base_sel,
                                     range.start,
-                                    noise,
+                                    noise_form,
                                 )
                             })
                             .last()
@@ -1079,10 +1097,13 @@ pub fn select(
         rows,
     };
     let live = fit::kept_values(&residual, &problem.weight);
-    noise = noise.min(noise_estimate(&live));
+    let now = noise::reading_noise(problem, &neighbours, &residual, opts.noise, false);
+    if now.known() && now.sigma < noise {
+        (noise, found_noise) = (now.sigma, now);
+    }
     let rms_final = rms(&live);
     let l1 = lag1(&live);
-    let unexplained = rms_final > 2.0 * noise || l1 > 0.5;
+    let unexplained = (found_noise.known() && rms_final > 2.0 * noise) || l1 > 0.5;
     let m = &problem.m;
     let where_ = if unexplained {
         locate(m, &residual)
@@ -1116,6 +1137,8 @@ pub fn select(
         rows: m.len(),
         duration_s: round(m.t[m.len() - 1] - m.t[0], 3),
         noise_um: round(noise * 1e6, 3),
+        noise_source: found_noise.source,
+        noise_within_deg: found_noise.within_deg,
         lag1_final: round(l1, 4),
         nominal_where: locate(m, &nominal_res),
         model: model_report(problem, &s, &fitted),
@@ -1138,27 +1161,58 @@ pub fn select(
     }
 }
 
+/// The noise as a summary states it: its figure and source.
+fn noise_phrase(r: &Report) -> String {
+    use noise::NoiseSource as N;
+    let how = r.noise_source_text();
+    match r.noise_source {
+        N::Unknown => format!("reading noise {how}"),
+        N::Neighbours => format!("reading noise <= {} um ({how})", fmt_fixed(r.noise_um, 2)),
+        N::Sequence => format!("bar noise ~{} um", fmt_fixed(r.noise_um, 2)),
+        _ => format!("reading noise ~{} um ({how})", fmt_fixed(r.noise_um, 2)),
+    }
+}
+
+impl Report {
+    fn noise_source_text(&self) -> String {
+        self.noise_source.describe(self.noise_within_deg)
+    }
+}
+
+/// Where the residual is largest, as a summary states it: seconds, or reading numbers for
+/// untimed static readings (whose `t` is the order taken).
+fn span(w: &Where, timed: bool) -> String {
+    if timed {
+        format!("t {}..{} s", fmt_fixed(w.t_s[0], 1), fmt_fixed(w.t_s[1], 1))
+    } else {
+        format!(
+            "readings {}..{}",
+            w.t_s[0] as usize + 1,
+            w.t_s[1] as usize + 1
+        )
+    }
+}
+
 fn summary(r: &Report, timed: bool) -> String {
     let mut s = if timed {
         format!(
-            "{} rows over {} s; bar noise ~{} um\n",
+            "{} rows over {} s; {}\n",
             r.rows,
             fmt_fixed(r.duration_s, 1),
-            fmt_fixed(r.noise_um, 2)
+            noise_phrase(r)
         )
     } else {
         format!(
-            "{} readings (static, in the order taken); reading noise ~{} um\n",
+            "{} readings (static, in the order taken); {}\n",
             r.rows,
-            fmt_fixed(r.noise_um, 2)
+            noise_phrase(r)
         )
     };
     s += &format!("nominal model: RMS {} um", fmt_fixed(r.rms_nominal_um, 2));
     if let Some(w) = &r.nominal_where {
         s += &format!(
-            ", largest at t {}..{} s (peak {} um)",
-            fmt_fixed(w.t_s[0], 1),
-            fmt_fixed(w.t_s[1], 1),
+            ", largest at {} (peak {} um)",
+            span(w, timed),
             fmt_fixed(w.peak_um, 1)
         );
     }
@@ -1168,15 +1222,18 @@ fn summary(r: &Report, timed: bool) -> String {
             Some(j) => format!("{} (joint {j})", st.effect),
             None => st.effect.to_string(),
         };
-        s += &format!("  + {name:<24} RMS {} um\n", fmt_fixed(st.rms_after_um, 3));
+        s += &format!(
+            "  + {name:<24} RMS {} um, held out {} um\n",
+            fmt_fixed(st.rms_after_um, 3),
+            fmt_fixed(st.cv_rms_um, 3)
+        );
     }
     if r.unexplained {
         s += "UNEXPLAINED structure remains";
         if let Some(w) = &r.where_ {
             s += &format!(
-                " at t {}..{} s, joints {}",
-                fmt_fixed(w.t_s[0], 1),
-                fmt_fixed(w.t_s[1], 1),
+                " at {}, joints {}",
+                span(w, timed),
                 w.joints_deg
                     .iter()
                     .enumerate()
@@ -1191,6 +1248,12 @@ fn summary(r: &Report, timed: bool) -> String {
             );
         }
         s.push('\n');
+    } else if r.noise_source == noise::NoiseSource::Unknown {
+        s += &format!(
+            "residual RMS {} um, lag-1 autocorrelation {}: whether it is at the noise level needs the noise\n",
+            fmt_fixed(r.rms_final_um, 3),
+            fmt_fixed(r.lag1_final, 3)
+        );
     } else {
         s += &format!(
             "residual at the noise level: RMS {} um, lag-1 autocorrelation {}\n",
