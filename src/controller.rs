@@ -177,6 +177,28 @@ impl ControllerMap {
         })
     }
 
+    /// Model joints (rad) as the controller's axis values in the form a joint log holds them:
+    /// degree axes (a radian axis converted to degrees first) written in radians.
+    pub fn log_axes(&self, q: &[f64; 6]) -> [f64; 6] {
+        let c = self.apply(&q.map(f64::to_degrees));
+        let deg = match self.units {
+            Units::Deg => c,
+            Units::Rad => c.map(f64::to_degrees),
+        };
+        deg.map(f64::to_radians)
+    }
+
+    /// The controller's axis values as a joint log holds them (rad) as model joints (rad): the
+    /// inverse of [`Self::log_axes`].
+    pub fn log_joints(&self, c: &[f64; 6]) -> [f64; 6] {
+        let deg = c.map(f64::to_degrees);
+        let prog = match self.units {
+            Units::Deg => deg,
+            Units::Rad => deg.map(f64::to_radians),
+        };
+        self.undo(&prog).map(f64::to_radians)
+    }
+
     /// The maximum speed of each controller axis (program units per second), taking the robot
     /// file's joint speeds (rad/s) as each axis's 100 %. A coupled J3 is driven by its own
     /// motor, whose limit the robot file's joint-3 speed stands for.

@@ -50,6 +50,7 @@ pub mod robot;
 pub mod safety;
 pub mod sample;
 pub mod select;
+pub mod stats;
 pub mod timing;
 pub mod twin;
 pub mod units;

@@ -175,3 +175,51 @@ fn a_dialect_is_known_in_its_folder_only() {
         );
     }
 }
+
+#[test]
+fn a_subcommand_imports_no_other_subcommand() {
+    // The command line is two layers: the subcommands' files (`*_cli.rs`) over the helpers they
+    // share (`mod.rs`, `common.rs`, `progress.rs`, `logruns.rs`, `args.rs`). A subcommand takes
+    // nothing from another; a helper takes nothing from a subcommand.
+    let dir = root().join("src/cli");
+    let mut files: Vec<(String, String)> = Vec::new();
+    for e in std::fs::read_dir(&dir).unwrap() {
+        let path = e.unwrap().path();
+        if path.extension().is_some_and(|x| x == "rs") {
+            let name = path.file_stem().unwrap().to_string_lossy().into_owned();
+            let text = std::fs::read_to_string(&path).unwrap();
+            let code = text.split("#[cfg(test)]").next().unwrap_or("").to_string();
+            files.push((name, code));
+        }
+    }
+    let subcommands: Vec<&str> = files
+        .iter()
+        .map(|(n, _)| n.as_str())
+        .filter(|n| n.ends_with("_cli"))
+        .collect();
+    assert!(subcommands.len() >= 8, "{subcommands:?}");
+    for (name, code) in &files {
+        let code: String = code
+            .lines()
+            .filter(|l| !l.trim_start().starts_with("//"))
+            .map(|l| l.split("//").next().unwrap_or("").to_string() + "\n")
+            .collect();
+        for other in &subcommands {
+            if other == name || name == "mod" {
+                continue;
+            }
+            for form in [
+                format!("super::{other}"),
+                format!("cli::{other}"),
+                format!("{{{other}"),
+                format!(" {other},"),
+                format!(" {other}}}"),
+            ] {
+                assert!(
+                    !code.contains(&form),
+                    "src/cli/{name}.rs imports the subcommand {other} ({form}): move what they share to the library or cli/common.rs"
+                );
+            }
+        }
+    }
+}

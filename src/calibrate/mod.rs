@@ -41,10 +41,12 @@
 //! never explains the recorded data worse than the nominal one.
 
 pub mod delivered;
+pub mod header;
 mod parts;
 pub mod plot;
 pub mod predict;
 pub mod resolution;
+pub mod resync;
 mod steps;
 mod uncertainty;
 
@@ -71,6 +73,57 @@ pub enum Effects {
     List(Vec<Effect>),
 }
 
+impl Effects {
+    /// `auto`, `none`, or a comma-separated list of library effects, `NAME[:JOINT]` (joints
+    /// 1-6); the message names the item at fault.
+    pub fn parse(s: &str) -> Result<Effects, String> {
+        match s.trim() {
+            "auto" => return Ok(Effects::Auto),
+            "none" => return Ok(Effects::None),
+            _ => {}
+        }
+        let mut list = Vec::new();
+        for item in s.split(',') {
+            let item = item.trim();
+            let (name, joint) = match item.split_once(':') {
+                Some((n, j)) => (n, Some(j)),
+                None => (item, None),
+            };
+            let joint = |what: &str| -> Result<usize, String> {
+                let j = joint
+                    .ok_or_else(|| format!("{what} needs its joint, e.g. {what}:2 (joints 1-6)"))?;
+                match j.trim().parse::<usize>() {
+                    Ok(n @ 1..=6) => Ok(n - 1),
+                    _ => Err(format!("'{item}': the joint must be a number 1-6")),
+                }
+            };
+            let no_joint = |e: Effect| -> Result<Effect, String> {
+                match item.contains(':') {
+                    true => Err(format!("'{item}': {} belongs to no single joint", e.name())),
+                    false => Ok(e),
+                }
+            };
+            let e = match name {
+                "cyclic_error" => Effect::CyclicError(joint("cyclic_error")?),
+                "backlash" => Effect::Backlash(joint("backlash")?),
+                "joint_compliance" => no_joint(Effect::JointCompliance)?,
+                "thermal_drift" => no_joint(Effect::ThermalDrift)?,
+                "servo_lag" => no_joint(Effect::ServoLag)?,
+                _ => {
+                    return Err(format!(
+                        "'{item}' is not auto, none, or a list of joint_compliance, thermal_drift, cyclic_error:J, backlash:J, servo_lag"
+                    ))
+                }
+            };
+            if list.contains(&e) {
+                return Err(format!("'{item}' is given twice"));
+            }
+            list.push(e);
+        }
+        Ok(Effects::List(list))
+    }
+}
+
 /// A robot is written only when its predicted uncertainty over the joint space is under this
 /// share of what the priors say of the nominal robot. Near the prior the data have told little,
 /// and the fitted robot is as likely as not to be further from the truth than the nominal one
@@ -89,6 +142,20 @@ pub enum LengthOffset {
     Known(f64),
     /// Unknown: estimated per run (a draw-wire, a bar zeroed anywhere).
     Free,
+}
+
+impl LengthOffset {
+    /// A length in mm (the reading minus the ball-centre distance), `free`, or nothing (0).
+    pub fn parse(s: Option<&str>) -> Result<LengthOffset, String> {
+        match s.map(str::trim) {
+            None => Ok(LengthOffset::Known(0.0)),
+            Some("free") => Ok(LengthOffset::Free),
+            Some(v) => match v.parse::<f64>() {
+                Ok(x) if x.is_finite() => Ok(LengthOffset::Known(x * MM)),
+                _ => Err(format!("'{v}' is neither a length in mm nor 'free'")),
+            },
+        }
+    }
 }
 
 #[derive(Clone, Debug)]
@@ -1012,4 +1079,28 @@ pub fn summary(r: &Report) -> String {
     s += &r.verdict;
     s.push('\n');
     s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn effect_lists_parse_and_bad_ones_are_refused() {
+        assert_eq!(Effects::parse("auto").unwrap(), Effects::Auto);
+        assert_eq!(Effects::parse("none").unwrap(), Effects::None);
+        assert_eq!(
+            Effects::parse("cyclic_error:2, servo_lag").unwrap(),
+            Effects::List(vec![Effect::CyclicError(1), Effect::ServoLag])
+        );
+        for bad in [
+            "cyclic_error",
+            "backlash:7",
+            "servo_lag:2",
+            "gravity",
+            "servo_lag,servo_lag",
+        ] {
+            assert!(Effects::parse(bad).is_err(), "{bad}");
+        }
+    }
 }

@@ -2,103 +2,30 @@
 //! the calibrated robot file and the reports, all written together or not at all.
 
 use super::args::CalibrateArgs;
-use super::{usage, write_all_atomic, xyz_mm, Error};
-use crate::calibrate::{self, CalibrateOptions, Calibration, Effects, LengthOffset};
+use super::common::{
+    check_outputs, file_err, header_xyz, name, numbers, read_input, write_all_atomic, xyz_mm,
+};
+use super::{logruns, usage, Error};
+use crate::calibrate::resync::{self, ResyncError};
+use crate::calibrate::{self, CalibrateOptions, Effects, LengthOffset};
 use crate::compensate::drift;
 use crate::diagnose::Run;
 use crate::model::MeasurementModel;
-use crate::robot::{self, LoadOptions, Robot};
-use crate::twin::{self, Effect, Measured};
-use crate::units::{fmt_fixed, DEG, MM};
+use crate::robot::{self, LoadOptions};
+use crate::twin::recorded::{self, FromLogs};
+use crate::twin::{self, Measured};
+use crate::units::{DEG, MM};
 use nalgebra::Vector3;
 use std::path::Path;
 
 /// `--effects`: auto, none, or a comma-separated list of library effects, `NAME[:JOINT]`.
 pub(super) fn parse_effects(s: &str) -> Result<Effects, Error> {
-    match s.trim() {
-        "auto" => return Ok(Effects::Auto),
-        "none" => return Ok(Effects::None),
-        _ => {}
-    }
-    let mut list = Vec::new();
-    for item in s.split(',') {
-        let item = item.trim();
-        let (name, joint) = match item.split_once(':') {
-            Some((n, j)) => (n, Some(j)),
-            None => (item, None),
-        };
-        let joint = |what: &str| -> Result<usize, Error> {
-            let j = joint.ok_or_else(|| {
-                usage(format!(
-                    "--effects: {what} needs its joint, e.g. {what}:2 (joints 1-6)"
-                ))
-            })?;
-            match j.trim().parse::<usize>() {
-                Ok(n @ 1..=6) => Ok(n - 1),
-                _ => Err(usage(format!(
-                    "--effects: '{item}': the joint must be a number 1-6"
-                ))),
-            }
-        };
-        let no_joint = |e: Effect| -> Result<Effect, Error> {
-            match joint_given(item) {
-                true => Err(usage(format!(
-                    "--effects: '{item}': {} belongs to no single joint",
-                    e.name()
-                ))),
-                false => Ok(e),
-            }
-        };
-        let e = match name {
-            "cyclic_error" => Effect::CyclicError(joint("cyclic_error")?),
-            "backlash" => Effect::Backlash(joint("backlash")?),
-            "joint_compliance" => no_joint(Effect::JointCompliance)?,
-            "thermal_drift" => no_joint(Effect::ThermalDrift)?,
-            "servo_lag" => no_joint(Effect::ServoLag)?,
-            _ => {
-                return Err(usage(format!(
-                    "--effects: '{item}' is not auto, none, or a list of joint_compliance, thermal_drift, cyclic_error:J, backlash:J, servo_lag"
-                )))
-            }
-        };
-        if list.contains(&e) {
-            return Err(usage(format!("--effects: '{item}' is given twice")));
-        }
-        list.push(e);
-    }
-    Ok(Effects::List(list))
+    Effects::parse(s).map_err(|e| usage(format!("--effects: {e}")))
 }
 
 /// `--length-offset`: a length in mm (the reading minus the ball-centre distance), or `free`.
 pub(super) fn parse_length_offset(s: Option<&str>) -> Result<LengthOffset, Error> {
-    match s.map(str::trim) {
-        None => Ok(LengthOffset::Known(0.0)),
-        Some("free") => Ok(LengthOffset::Free),
-        Some(v) => match v.parse::<f64>() {
-            Ok(x) if x.is_finite() => Ok(LengthOffset::Known(x * MM)),
-            _ => Err(usage(format!(
-                "--length-offset: '{v}' is neither a length in mm nor 'free'"
-            ))),
-        },
-    }
-}
-
-fn joint_given(item: &str) -> bool {
-    item.contains(':')
-}
-
-fn file_err(path: &Path, msg: impl std::fmt::Display) -> Error {
-    Error::File {
-        path: path.display().to_string(),
-        msg: msg.to_string(),
-    }
-}
-
-/// The file name (no directory: outputs must not depend on where the inputs live).
-fn name(path: &Path) -> String {
-    path.file_name()
-        .map(|f| f.to_string_lossy().into_owned())
-        .unwrap_or_else(|| path.display().to_string())
+    LengthOffset::parse(s).map_err(|e| usage(format!("--length-offset: {e}")))
 }
 
 fn is_urdf(path: &Path) -> bool {
@@ -112,12 +39,6 @@ fn is_toml(path: &Path) -> bool {
         .and_then(|e| e.to_str())
         .is_some_and(|e| e.eq_ignore_ascii_case("toml"))
 }
-
-/// Synchronisations of continuous runs against the calibrated robot, at most; and the clock
-/// change (s, anywhere in a run) below which another round would not move a reading by a
-/// micrometre at the bar's speeds (up to 1 m/s).
-const RESYNC_ROUNDS: usize = 5;
-const RESYNC_TOL: f64 = 1e-6;
 
 pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
     // Everything about the command line first: nothing is read before it is sound.
@@ -169,7 +90,7 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
             _ => Some(fixtures[k]),
         }
     };
-    super::check_outputs(&[
+    check_outputs(&[
         Some(a.output.as_path()),
         a.json.as_deref(),
         a.plot.as_deref(),
@@ -210,7 +131,7 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
         ..CalibrateOptions::default()
     };
     if let Some(p) = &a.prior {
-        let v = super::numbers("--prior", p, None)?;
+        let v = numbers("--prior", p, None)?;
         if !(v.len() == 2 || v.len() == 3) || v.iter().any(|x| *x <= 0.0) {
             return Err(usage(format!(
                 "--prior: '{p}' needs a positive length (mm) and angle (deg) of the robot, and optionally of the set-up (mm)"
@@ -226,7 +147,7 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
     // --baseline: the previous report is read before any work.
     let baseline = match &a.baseline {
         Some(path) => {
-            let text = super::read_input(path, "calibration report", crate::files::Kind::Config)?;
+            let text = read_input(path, "calibration report", crate::files::Kind::Config)?;
             let value: serde_json::Value = serde_json::from_str(&text)
                 .map_err(|e| file_err(path, format!("not JSON: {e}")))?;
             Some((
@@ -243,12 +164,12 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
         package_paths: a.package_path.clone(),
         ..LoadOptions::default()
     };
-    let robot_text = super::read_input(&a.robot, "robot", crate::files::Kind::Robot)?;
+    let robot_text = read_input(&a.robot, "robot", crate::files::Kind::Robot)?;
     let robot = robot::load(&a.robot, &load_opts)?;
-    let programs: Vec<super::logs_cli::Program> = a
+    let programs: Vec<logruns::Program> = a
         .program
         .iter()
-        .map(|p| super::logs_cli::read_program(&robot, p))
+        .map(|p| logruns::read_program(&robot, p))
         .collect::<Result<_, _>>()?;
     let program_of = |k: usize| match programs.len() {
         0 => None,
@@ -261,42 +182,37 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
         programs.first().and_then(|p| p.parsed.header_value("MAP")),
     ) {
         (Some(s), _) => xyz_mm("--tool", s)?,
-        (None, Some(h)) => super::logs_cli::header_xyz(h)
+        (None, Some(h)) => header_xyz(h)
             .ok_or_else(|| usage("the program header's MAP is not X, Y, Z mm: give --tool"))?,
         (None, None) => robot.tool.unwrap_or_else(Vector3::zeros),
     };
-    let mut data: Vec<(Measured, String)> = Vec::with_capacity(runs_n);
+    // As for a measured file: one run alone must carry the robot, a campaign's run may be
+    // short.
+    let min = if runs_n == 1 { calibrate::MIN_ROWS } else { 1 };
+    let mut data: Vec<Measured> = Vec::with_capacity(runs_n);
+    let mut hashes: Vec<String> = Vec::with_capacity(runs_n);
     let mut run_fixtures: Vec<Vector3<f64>> = Vec::with_capacity(runs_n);
     let mut labels: Vec<String> = Vec::with_capacity(runs_n);
-    let mut sources: Vec<&Path> = Vec::with_capacity(runs_n);
+    let mut sources: Vec<logruns::RunFiles> = Vec::with_capacity(runs_n);
+    let mut from_logs: Vec<Option<FromLogs>> = Vec::with_capacity(runs_n);
     for (k, path) in a.measured.iter().enumerate() {
-        let text = super::read_input(path, "measured data", crate::files::Kind::Measured)?;
-        // A run of a campaign may be short when the others carry the robot; one run alone
-        // must carry it.
-        let min = if runs_n == 1 { calibrate::MIN_ROWS } else { 1 };
+        let text = read_input(path, "measured data", crate::files::Kind::Measured)?;
         let m = twin::parse_csv(&text, min).map_err(|e| file_err(path, e))?;
-        data.push((m, robot::sha256_hex(text.as_bytes())));
+        data.push(m);
+        hashes.push(robot::sha256_hex(text.as_bytes()));
         run_fixtures.push(fixture_flag(k).unwrap_or_else(Vector3::zeros));
         labels.push(name(path));
-        sources.push(path);
+        sources.push(logruns::RunFiles {
+            bar: path,
+            program: None,
+            joint_log: None,
+        });
+        from_logs.push(None);
     }
-    let mut extras: Vec<Option<super::logs_cli::RunExtra>> = vec![None; a.measured.len()];
-    let mut kept: Vec<Option<super::logs_cli::Logs>> =
-        (0..a.measured.len()).map(|_| None).collect();
-    let mut log_lines: Vec<Vec<String>> = vec![Vec::new(); a.measured.len()];
     for (i, bar) in a.bar_log.iter().enumerate() {
         let k = a.measured.len() + i;
-        let run = super::logs_cli::read_run(
-            &robot,
-            bar,
-            program_of(i),
-            a.joint_log.get(i).map(|p| p.as_path()),
-            fixture_flag(k),
-            map,
-        )?;
-        // As for a measured file: one run alone must carry the robot, a campaign's run may
-        // be short.
-        let min = if runs_n == 1 { calibrate::MIN_ROWS } else { 1 };
+        let joint_log = a.joint_log.get(i).map(|p| p.as_path());
+        let run = logruns::read_run(&robot, bar, program_of(i), joint_log, fixture_flag(k), map)?;
         if run.measured.len() < min {
             return Err(file_err(
                 bar,
@@ -311,96 +227,37 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
                 ),
             ));
         }
-        log_lines.push(run.summary);
-        data.push((run.measured, run.sha256));
+        data.push(run.measured);
+        hashes.push(run.sha256);
         run_fixtures.push(run.fixture);
         labels.push(run.label);
-        sources.push(bar);
-        extras.push(Some(run.extra));
-        kept.push(run.logs);
+        sources.push(logruns::RunFiles {
+            bar,
+            program: program_of(i).map(|p| p.path.as_path()),
+            joint_log,
+        });
+        from_logs.push(Some(run.from_logs));
     }
-    let fixture_of = |k: usize| run_fixtures[k];
-    let model = MeasurementModel::new(&robot, fixture_of(0), map);
-    let runs: Vec<Run> = data
-        .iter()
-        .enumerate()
-        .map(|(k, (m, _))| Run {
-            measured: m,
-            fixture: fixture_of(k),
-        })
-        .collect();
+    let model = MeasurementModel::new(&robot, run_fixtures[0], map);
+    let first = sources[0].bar;
     // --baseline: the fit starts from the previous calibration and states what moved since.
     let fit = |runs: &[Run]| match &baseline {
         Some((baseline, label, _)) => {
             drift::calibrate_against(&model, &robot, runs, &labels, &opts, baseline, label)
                 .map(|(cal, d)| (cal, Some(d)))
-                .map_err(|e| file_err(sources[0], e))
+                .map_err(|e| file_err(first, e))
         }
         None => calibrate::run(&model, &robot, runs, &labels, &opts)
             .map(|cal| (cal, None))
-            .map_err(|e| file_err(sources[0], e)),
+            .map_err(|e| file_err(first, e)),
     };
-    let (mut cal, mut drift) = fit(&runs)?;
-    drop(runs);
-    // Continuous runs from logs were synchronised against the nominal model, whose errors
-    // bias the clock (a 20 µs offset costs micrometres where the bar moves fast, a drift off
-    // by 1 ppm 100 µs at the ends of a 4-minute run), and the first calibration absorbs part
-    // of the clock's error: synchronised again against the calibrated robot and calibrated
-    // again, until the clock moves by less than RESYNC_TOL anywhere in a run.
-    for round in 0..RESYNC_ROUNDS {
-        if kept.iter().all(Option::is_none) {
-            break;
-        }
-        let before: Vec<Option<crate::logs::ClockReport>> = extras
-            .iter()
-            .map(|e| Some(e.as_ref()?.clock.clone()))
-            .collect();
-        for (k, logs) in kept.iter().enumerate() {
-            let Some(logs) = logs else { continue };
-            // The calibrated robot whole (its effects too: a compliance moves the bar's
-            // length by hundreds of micrometres), run k's fixture.
-            let mut p = cal.file.params;
-            p.fix = cal.estimate.params(k).fix;
-            let fx = &cal.file.effects;
-            let length = |q: &[f64; 6]| model.reached_length(&p, fx, q, &[0.0; 6]);
-            let i = k - a.measured.len();
-            let (m, extra, summary) = super::logs_cli::resync(logs, &length, program_of(i))?;
-            data[k].0 = m;
-            extras[k] = Some(extra);
-            log_lines[k] = summary;
-        }
-        let runs: Vec<Run> = data
-            .iter()
-            .enumerate()
-            .map(|(k, (m, _))| Run {
-                measured: m,
-                fixture: fixture_of(k),
-            })
-            .collect();
-        (cal, drift) = fit(&runs)?;
-        let moved = extras
-            .iter()
-            .zip(&kept)
-            .zip(&before)
-            .filter_map(|((e, l), b)| {
-                let t = &l.as_ref()?.bar.t;
-                Some(
-                    e.as_ref()?
-                        .clock
-                        .moved_from(b.as_ref()?, *t.first()?, *t.last()?),
-                )
-            })
-            .fold(0.0, f64::max);
-        if moved < RESYNC_TOL {
-            break;
-        }
-        if round + 1 == RESYNC_ROUNDS {
-            cal.report.warnings.push(format!(
-                "the clock of a run from logs still moved by {} us in the last of {RESYNC_ROUNDS} synchronisations against the calibrated robot: the clock and the calibration have not settled, and readings where the bar moves fast carry that much timing error",
-                fmt_fixed(moved * 1e6, 1)
-            ));
-        }
-    }
+    let (cal, drift) =
+        resync::fit_resynchronised(&model, &mut data, &run_fixtures, &mut from_logs, fit).map_err(
+            |e| match e {
+                ResyncError::Fit(e) => e,
+                ResyncError::Logs { run, refusal } => sources[run].error(refusal),
+            },
+        )?;
     let fixtures = run_fixtures;
 
     // The report's keys, then `drift` (also when nothing is written as calibrated).
@@ -415,25 +272,9 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
         report: &cal.report,
         drift: drift.as_ref(),
     };
-    let json = if extras.iter().any(Option::is_some) {
-        // Runs read from logs keep how they were read: their plateaus, missing poses and
-        // clock, added to their run's keys.
-        let mut report = serde_json::to_value(&with_drift).unwrap_or_default();
-        if let Some(runs) = report.get_mut("runs").and_then(|r| r.as_array_mut()) {
-            for (run, extra) in runs.iter_mut().zip(&extras) {
-                if let (Some(obj), Some(extra)) = (run.as_object_mut(), extra) {
-                    if let Ok(serde_json::Value::Object(add)) = serde_json::to_value(extra) {
-                        obj.extend(add);
-                    }
-                }
-            }
-        }
-        serde_json::to_string_pretty(&report)
-    } else {
-        serde_json::to_string_pretty(&with_drift)
-    }
-    .unwrap_or_default()
-        + "\n";
+    // Runs read from logs keep how they were read: their plateaus, missing poses and clock,
+    // added to their run's keys.
+    let json = recorded::report_with_reads(&with_drift, &from_logs) + "\n";
     // Not calibrated (nothing of the robot determined, or no better than nominal held out)
     // and no set-up found either: no robot file is written; the report says why, and so does
     // one line on stderr.
@@ -447,7 +288,7 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
     }
 
     // Everything is rendered before the first file is written: a failure leaves no file.
-    let mut header = header_lines(&robot, &cal, &data, &labels);
+    let mut header = calibrate::header::lines(&robot, &cal, &hashes, &labels);
     if let (Some(d), Some(p)) = (&drift, &a.baseline) {
         header.push(format!("since {}: {}", name(p), d.verdict));
     }
@@ -506,7 +347,7 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
                 Some((_, _, sha)) => format!("{}\nbaseline {sha}", a.effects),
                 None => a.effects.clone(),
             };
-            let hash = inputs_hash(&robot, &data, &fixtures, &map, &effects);
+            let hash = calibrate::header::inputs_hash(&robot, &hashes, &fixtures, &map, &effects);
             let name = format!("{} [{}]", robot.name, robot.source);
             let mut page = crate::report::calibrate::page(&cal, &name, &hash)?;
             if let Some(d) = &drift {
@@ -531,8 +372,8 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
         files.push((p.as_path(), html.as_str()));
     }
     write_all_atomic(&files)?;
-    for (k, lines) in log_lines.iter().enumerate() {
-        for l in lines {
+    for (k, read) in from_logs.iter().enumerate() {
+        for l in read.iter().flat_map(|r| &r.summary) {
             println!("run {}: {l}", k + 1);
         }
     }
@@ -552,152 +393,4 @@ pub(super) fn sidecar_path(urdf: &Path) -> std::path::PathBuf {
         .map(|s| s.to_string_lossy().into_owned())
         .unwrap_or_else(|| "robot".into());
     urdf.with_file_name(format!("{stem}.effects.toml"))
-}
-
-/// The input hash of a calibration: robot, data, fixtures, tool and the effects option.
-fn inputs_hash(
-    robot: &Robot,
-    data: &[(Measured, String)],
-    fixtures: &[Vector3<f64>],
-    map: &Vector3<f64>,
-    effects: &str,
-) -> String {
-    let mut s = robot.digest.clone();
-    for (_, h) in data {
-        s += "\n";
-        s += h;
-    }
-    for f in fixtures {
-        s += &format!("\n{:?}", f.as_slice());
-    }
-    s += &format!("\n{:?}\n{effects}\n", map.as_slice());
-    robot::sha256_hex(s.as_bytes())
-}
-
-/// The comment block on top of the calibrated file: where it came from and how good it is.
-fn header_lines(
-    robot: &Robot,
-    cal: &Calibration,
-    data: &[(Measured, String)],
-    labels: &[String],
-) -> Vec<String> {
-    let r = &cal.report;
-    let mut h = vec![format!(
-        "{} by edbbgen {} from {} (sha256 {})",
-        if cal.setup_only() {
-            "set-up fitted (the geometry nominal)"
-        } else {
-            "calibrated"
-        },
-        env!("CARGO_PKG_VERSION"),
-        robot.source,
-        &robot.digest[..16.min(robot.digest.len())]
-    )];
-    for (k, run) in r.runs.iter().enumerate() {
-        let f = match &r.setup {
-            Some(s) if cal.setup_only() => s.fixtures_mm[k],
-            _ => run.fixture_fitted_mm.unwrap_or(run.fixture_mm),
-        };
-        h.push(format!(
-            "run {}: {} (sha256 {}, {} rows), fixture {}, {}, {} mm{}",
-            k + 1,
-            labels[k],
-            &data[k].1[..16],
-            run.rows,
-            fmt_fixed(f[0], 3),
-            fmt_fixed(f[1], 3),
-            fmt_fixed(f[2], 3),
-            if run.fixture_fitted_mm.is_some() {
-                " (estimated)"
-            } else {
-                ""
-            }
-        ));
-    }
-    h.push(format!(
-        "residual RMS {} um nominal -> {} um calibrated; bar noise {} um (lag-1 autocorrelation {})",
-        fmt_fixed(r.rms_before_um, 3),
-        fmt_fixed(r.rms_after_um, 3),
-        fmt_fixed(r.noise_um, 3),
-        fmt_fixed(r.residual_lag1, 2)
-    ));
-    h.push(format!(
-        "determined ({}): {}",
-        r.determined.len(),
-        r.determined.join(", ")
-    ));
-    h.push(format!(
-        "validation, held out: {} um RMS nominal -> {} um calibrated ({} rows)",
-        fmt_fixed(r.validation.heldout_rms_um.nominal, 3),
-        fmt_fixed(r.validation.heldout_rms_um.calibrated, 3),
-        r.validation.rows
-    ));
-    for g in r.segments.iter().filter(|g| g.cause != "run start") {
-        h.push(format!(
-            "step in run {} at data row {}: {}",
-            g.run, g.from_row, g.cause
-        ));
-    }
-    if !r.outliers.is_empty() {
-        h.push(format!("outliers dropped: {}", r.outliers.len()));
-    }
-    for u in &r.undetermined {
-        h.push(format!("held at nominal: {}: {}", u.param, u.why));
-    }
-    let p = &r.predicted_position_std_um;
-    if !cal.setup_only() {
-        h.push(format!(
-        "predicted MAP position uncertainty (1 sigma, after rigid registration): {} um RMS where measured, {} um RMS and {} um p95 over the joint space",
-        fmt_fixed(p.measured_region_rms, 2),
-        fmt_fixed(p.workspace_rms, 2),
-        fmt_fixed(p.workspace_p95, 2)
-        ));
-    }
-    for e in &r.effect_sizes {
-        let name = match e.joint {
-            Some(j) => format!("{} (joint {j})", e.effect),
-            None => e.effect.to_string(),
-        };
-        h.push(format!(
-            "effect {name}: {} um RMS over the joint space ({}); {}",
-            fmt_fixed(e.workspace_rms_um, 2),
-            e.at,
-            if e.delivered {
-                "in the [effects] of this robot"
-            } else {
-                "NOT in this file (--geometry-only)"
-            }
-        ));
-    }
-    for w in &r.warnings {
-        h.push(format!("warning: {w}"));
-    }
-    if cal.setup_only() {
-        h.push(r.verdict.clone());
-    }
-    h
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn effect_lists_parse_and_bad_ones_are_refused() {
-        assert_eq!(parse_effects("auto").unwrap(), Effects::Auto);
-        assert_eq!(parse_effects("none").unwrap(), Effects::None);
-        assert_eq!(
-            parse_effects("cyclic_error:2, servo_lag").unwrap(),
-            Effects::List(vec![Effect::CyclicError(1), Effect::ServoLag])
-        );
-        for bad in [
-            "cyclic_error",
-            "backlash:7",
-            "servo_lag:2",
-            "gravity",
-            "servo_lag,servo_lag",
-        ] {
-            assert!(parse_effects(bad).is_err(), "{bad}");
-        }
-    }
 }

@@ -3,7 +3,11 @@
 //! merge cleanly with others.
 
 use super::args::{LdbbArgs, LdbbCircleArgs, SimulateLdbbArgs};
-use super::{read_input, resolve_template, scalar, usage, write_atomic, Error};
+use super::common::{
+    check_outputs, controller_map, program_name, read_input, resolve_template, scalar, set_margins,
+    write_atomic,
+};
+use super::{usage, Error};
 use crate::files::Kind;
 use crate::ldbb::setup::Setup;
 use crate::ldbb::{self, data, program, sim};
@@ -191,8 +195,8 @@ pub fn circle(a: &LdbbCircleArgs) -> Result<i32, Error> {
     let dialect = crate::dialect::Template::from_source(&template)
         .map_err(|e| usage(e.to_string()))?
         .dialect;
-    opts.program_name = super::program_name(&a.output, dialect)?;
-    super::check_outputs(&[Some(a.output.as_path())])?;
+    opts.program_name = program_name(&a.output, dialect)?;
+    check_outputs(&[Some(a.output.as_path())])?;
     let (setup, setup_text) = load_setup(&a.setup)?;
     setup.tool().map_err(|e| file_err(&a.setup, e))?;
     // The cell is read once: its text enters the inputs hash, its parse the program's cell.
@@ -205,11 +209,11 @@ pub fn circle(a: &LdbbCircleArgs) -> Result<i32, Error> {
         None => None,
     };
     let mut spec = program::cell(&setup, base, &opts).map_err(|e| file_err(&a.setup, e))?;
-    super::set_margins(&mut spec, a.margin.as_deref(), a.joint_margin.as_deref())?;
+    set_margins(&mut spec, a.margin.as_deref(), a.joint_margin.as_deref())?;
     let robot = load_robot(Some(&a.robot), &setup, &a.setup, &a.package_path)?
         .ok_or_else(|| usage("ROBOT: required"))?;
     // A mapping the cell's [controller] cannot give is the cell's error, named as such.
-    super::controller_map(&spec, a.cell.as_deref(), dialect, &robot)?;
+    controller_map(&spec, a.cell.as_deref(), dialect, &robot)?;
     let h = hash(&[
         robot.digest.as_bytes(),
         setup_identity(&setup_text).as_bytes(),

@@ -3,8 +3,11 @@
 //! all.
 
 use super::args::PlaceArgs;
-use super::{load_robot, numbers, resolve_cell, scalar, steps, usage, write_all_atomic, xyz_mm};
-use super::{Bar, Error};
+use super::common::{
+    load_robot, numbers, read_input, resolve_cell, scalar, steps, write_all_atomic, xyz_mm,
+};
+use super::progress::Bar;
+use super::{usage, Error};
 use crate::cell::CellSpec;
 use crate::pipeline;
 use crate::place::{self, cellfile, PlaceOptions, Region};
@@ -168,11 +171,7 @@ pub fn place(a: &PlaceArgs) -> Result<i32, Error> {
         None => None,
     };
     let cell_text = match &a.cell.cell {
-        Some(p) => Some(super::read_input(
-            p,
-            "the cell",
-            crate::files::Kind::Config,
-        )?),
+        Some(p) => Some(read_input(p, "the cell", crate::files::Kind::Config)?),
         None => None,
     };
 

@@ -1,7 +1,11 @@
 //! `simulate`, `diagnose` and `circle`: flags → checked options → twin/diagnose stages → files.
 
 use super::args::{CircleArgs, DiagnoseArgs, SimulateArgs};
-use super::{scalar, usage, write_atomic, xyz_mm, Error};
+use super::common::{
+    check_outputs, controller_map, file_err, header_xyz, program_dialect, read_input, scalar,
+    write_all_atomic, write_atomic, xyz_mm,
+};
+use super::{logruns, usage, Error};
 use crate::model::{MeasurementModel, N_PARAMS};
 use crate::robot::{self, Robot};
 use crate::twin::{self, SimOptions, Truth};
@@ -10,28 +14,11 @@ use nalgebra::Vector3;
 use std::path::Path;
 
 fn read(path: &Path, what: &str, kind: crate::files::Kind) -> Result<String, Error> {
-    super::read_input(path, what, kind)
-}
-
-fn file_err(path: &Path, msg: impl std::fmt::Display) -> Error {
-    Error::File {
-        path: path.display().to_string(),
-        msg: msg.to_string(),
-    }
+    read_input(path, what, kind)
 }
 
 fn load(path: &Path) -> Result<Robot, Error> {
     Ok(robot::load(path, &Default::default())?)
-}
-
-/// The first three numbers of a header value such as "258.000, 1468.000, 708.000 mm ...".
-fn header_xyz(v: &str) -> Option<Vector3<f64>> {
-    let nums: Vec<f64> = v
-        .split([',', ' '])
-        .filter_map(|w| w.trim().parse::<f64>().ok())
-        .take(3)
-        .collect();
-    (nums.len() == 3).then(|| Vector3::new(nums[0], nums[1], nums[2]) * MM)
 }
 
 fn tool_or_robot(flag: Option<&str>, robot: &Robot) -> Result<Vector3<f64>, Error> {
@@ -61,8 +48,8 @@ pub fn simulate(a: &SimulateArgs) -> Result<i32, Error> {
             ..Default::default()
         },
     )?;
-    let dialect = super::program_dialect(a.dialect.as_deref(), &a.program, &text)?;
-    let axes = super::controller_map(&spec, a.cell.as_deref(), dialect, &robot)?;
+    let dialect = program_dialect(a.dialect.as_deref(), &a.program, &text)?;
+    let axes = controller_map(&spec, a.cell.as_deref(), dialect, &robot)?;
     let parsed = dialect
         .read(&text, &axes)
         .map_err(|e| file_err(&a.program, format!("{} program: {e}", dialect.name)))?;
@@ -98,7 +85,7 @@ pub fn simulate(a: &SimulateArgs) -> Result<i32, Error> {
     let model = MeasurementModel::new(&robot, fixture, map);
     if let Some(bar_path) = &a.bar_log {
         let lopts = log_options(a, rate, &parsed)?;
-        super::check_outputs(&[
+        check_outputs(&[
             Some(a.output.as_path()),
             Some(bar_path.as_path()),
             a.joint_log.as_deref(),
@@ -113,7 +100,7 @@ pub fn simulate(a: &SimulateArgs) -> Result<i32, Error> {
             // The controller logs its own axis values (the mapping applied), in degrees.
             let mut j = logs.joints.clone();
             for q in j.q.iter_mut() {
-                *q = controller_axes(&axes, q);
+                *q = axes.log_axes(q);
             }
             j.to_csv()
         });
@@ -124,7 +111,7 @@ pub fn simulate(a: &SimulateArgs) -> Result<i32, Error> {
         if let (Some(p), Some(j)) = (&a.joint_log, &joints) {
             files.push((p.as_path(), j.as_str()));
         }
-        super::write_all_atomic(&files)?;
+        write_all_atomic(&files)?;
         println!(
             "{}: {} rows on the bar's clock ({} Hz, offset {} s, drift {} ppm), {} plateaus lost or cut, {} controller stops; {}: the {} mounted samples with the true joints{}",
             bar_path.display(),
@@ -159,26 +146,6 @@ pub fn simulate(a: &SimulateArgs) -> Result<i32, Error> {
         m.t.last().copied().unwrap_or(0.0)
     );
     Ok(0)
-}
-
-/// Model joints (rad) as the controller's axis values in degrees (the joint log's columns).
-pub(super) fn controller_axes(map: &crate::controller::ControllerMap, q: &[f64; 6]) -> [f64; 6] {
-    let c = map.apply(&q.map(f64::to_degrees));
-    let deg = match map.units {
-        crate::controller::Units::Deg => c,
-        crate::controller::Units::Rad => c.map(f64::to_degrees),
-    };
-    deg.map(f64::to_radians)
-}
-
-/// The controller's axis values (rad, as a joint log holds them) as model joints (rad).
-pub(super) fn model_joints(map: &crate::controller::ControllerMap, c: &[f64; 6]) -> [f64; 6] {
-    let deg = c.map(f64::to_degrees);
-    let prog = match map.units {
-        crate::controller::Units::Deg => deg,
-        crate::controller::Units::Rad => deg.map(f64::to_radians),
-    };
-    map.undo(&prog).map(f64::to_radians)
 }
 
 /// `simulate`'s log flags, checked.
@@ -276,10 +243,10 @@ pub fn diagnose(a: &DiagnoseArgs) -> Result<i32, Error> {
             "--bar-log: needs --program (the stop-and-measure program it recorded) or --joint-log",
         ));
     }
-    super::check_outputs(&[a.json.as_deref(), a.plot.as_deref(), a.html.as_deref()])?;
+    check_outputs(&[a.json.as_deref(), a.plot.as_deref(), a.html.as_deref()])?;
     let robot = load(&a.robot)?;
     let program = match &a.program {
-        Some(p) => Some(super::logs_cli::read_program(&robot, p)?),
+        Some(p) => Some(logruns::read_program(&robot, p)?),
         None => None,
     };
     // The MAP: the flag, else the program header's, else the robot file's.
@@ -288,7 +255,7 @@ pub fn diagnose(a: &DiagnoseArgs) -> Result<i32, Error> {
         program.as_ref().and_then(|p| p.parsed.header_value("MAP")),
     ) {
         (Some(s), _) => xyz_mm("--tool", s)?,
-        (None, Some(h)) => super::logs_cli::header_xyz(h)
+        (None, Some(h)) => header_xyz(h)
             .ok_or_else(|| usage("the program header's MAP is not X, Y, Z mm: give --tool"))?,
         (None, None) => tool_or_robot(None, &robot)?,
     };
@@ -308,7 +275,7 @@ pub fn diagnose(a: &DiagnoseArgs) -> Result<i32, Error> {
             )
         }
         (None, Some(bar)) => {
-            let run = super::logs_cli::read_run(
+            let run = logruns::read_run(
                 &robot,
                 bar,
                 program.as_ref(),
@@ -316,39 +283,14 @@ pub fn diagnose(a: &DiagnoseArgs) -> Result<i32, Error> {
                 flag_fixture,
                 map,
             )?;
-            let mut read = (run.measured, run.extra, run.summary);
-            if let Some(logs) = &run.logs {
-                // Synchronised against the nominal model: once more against the geometry the
-                // data give (its errors no longer bias the clock).
-                let model = MeasurementModel::new(&robot, run.fixture, map);
-                let geometry = crate::calibrate::CalibrateOptions {
-                    effects: crate::calibrate::Effects::None,
-                    ..Default::default()
-                };
-                let one = [crate::diagnose::Run {
-                    measured: &read.0,
-                    fixture: run.fixture,
-                }];
-                let cal = crate::calibrate::run(
-                    &model,
-                    &robot,
-                    &one,
-                    std::slice::from_ref(&run.label),
-                    &geometry,
-                )
-                .map_err(|e| file_err(bar, e))?;
-                let p = cal.estimate.params(0);
-                let length = |q: &[f64; 6]| model.length(&p, q);
-                read = super::logs_cli::resync(logs, &length, program.as_ref())?;
-            }
-            (
-                read.0,
-                run.fixture,
-                run.sha256,
-                bar.clone(),
-                Some(read.1),
-                read.2,
-            )
+            let (fixture, sha256) = (run.fixture, run.sha256.clone());
+            let files = logruns::RunFiles {
+                bar,
+                program: a.program.as_deref(),
+                joint_log: a.joint_log.as_deref(),
+            };
+            let (measured, extra, summary) = logruns::on_own_geometry(&robot, run, map, &files)?;
+            (measured, fixture, sha256, bar.clone(), Some(extra), summary)
         }
         (None, None) => return Err(usage("--measured or --bar-log: one is required")),
     };

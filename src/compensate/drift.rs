@@ -25,6 +25,7 @@ use nalgebra::Vector3;
 use serde::Serialize;
 
 use super::offsets::{registered_errors, Um};
+use super::round6;
 
 /// A change is flagged when it exceeds this many combined standard uncertainties.
 pub const THRESHOLD: f64 = 3.5;
@@ -154,15 +155,6 @@ fn unit_of(i: usize) -> (f64, &'static str) {
         (DEG, "deg")
     } else {
         (MM, "mm")
-    }
-}
-
-fn round6(v: f64) -> f64 {
-    let r = (v * 1e6).round() / 1e6;
-    if r == 0.0 {
-        0.0
-    } else {
-        r
     }
 }
 

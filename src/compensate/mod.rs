@@ -36,6 +36,8 @@ pub mod drift;
 pub mod ik;
 pub mod offsets;
 pub mod program;
+pub mod setup;
+pub mod summary;
 pub mod targets;
 
 use crate::robot::effects::{Effects, ThermalState};
@@ -177,6 +179,16 @@ pub struct Compensated {
     /// The direction each joint came from into the pose (+1, −1, 0: not known), which a
     /// backlash of the calibrated robot depends on.
     pub approach: [f64; 6],
+}
+
+/// A value rounded to 6 decimals, with no negative zero (the reports' numbers).
+pub fn round6(v: f64) -> f64 {
+    let r = (v * 1e6).round() / 1e6;
+    if r == 0.0 {
+        0.0
+    } else {
+        r
+    }
 }
 
 /// The two robots with their tool points, and the joint limits the compensation keeps. The

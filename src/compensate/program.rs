@@ -16,7 +16,7 @@
 //! Finally the new text is read back: it must command the same steps with exactly the
 //! compensated values, no move faster than the axes allow.
 
-use super::{Compensated, Compensator, Status, Target};
+use super::{round6, Compensated, Compensator, Status, Target};
 use crate::controller::{ControllerMap, Units};
 use crate::dialect::{apply, Dialect, MoveTime, NewValues, Parsed, Step, Timing, WriteError};
 use crate::order::move_time;
@@ -427,4 +427,58 @@ fn check(
         }
     }
     Ok(())
+}
+
+/// What a rewritten program's report says of it (`file`: its name; `dialect`'s name), and a
+/// note when moves leave the cell's joint margin (`margin`: the cell's, None without a cell).
+pub fn report(
+    w: &Rewritten,
+    margin: Option<f64>,
+    nominal: &crate::robot::Robot,
+    file: String,
+    dialect: &str,
+) -> (super::ProgramReport, Option<String>) {
+    // The cell's joint margin: a pose planned at its edge may cross it by the compensation
+    // (hundredths of a degree); say where, and by how much.
+    let cell = margin.is_some();
+    let margin = margin.unwrap_or(0.0);
+    let (lo, hi) = nominal.limits();
+    let mut beyond = Vec::new();
+    if cell {
+        for (line, q) in &w.joints {
+            for i in 0..6 {
+                let over = (lo[i] + margin - q[i]).max(q[i] - (hi[i] - margin));
+                if over > 0.0 {
+                    beyond.push((*line, i + 1, round6(over / DEG)));
+                }
+            }
+        }
+    }
+    let note = (!beyond.is_empty()).then(|| {
+        format!(
+            "{} moves leave the cell's joint margin of {} deg by up to {} deg (the compensation moves joints by up to {} deg): verify the compensated program with --joint-margin {} or plan with a larger margin",
+            beyond.len(),
+            fmt_fixed(margin / DEG, 3),
+            fmt_fixed(beyond.iter().map(|b| b.2).fold(0.0, f64::max), 4),
+            fmt_fixed(w.largest_change / DEG, 4),
+            fmt_fixed(((margin / DEG) - (w.largest_change / DEG)).max(0.0) * 0.999, 3)
+        )
+    });
+    let report = super::ProgramReport {
+        largest_change_deg: round6(w.largest_change / DEG),
+        beyond_joint_margin: beyond,
+        file,
+        dialect: dialect.to_string(),
+        moves: w.moves,
+        decimals: w.decimals,
+        printed_residual_um: crate::calibrate::predict::spread(
+            &w.printed_residual
+                .iter()
+                .map(|r| r * 1e6)
+                .collect::<Vec<_>>(),
+        )
+        .into(),
+        retimed_lines: w.retimed.clone(),
+    };
+    (report, note)
 }

@@ -8,7 +8,8 @@
 //! defaults; the identity without either), always in degrees. Orientations are fixed-axis
 //! X-Y-Z in the base frame: R = Rz(rz)·Ry(ry)·Rx(rx) (KUKA's A, B, C are rz, ry, rx).
 
-use super::{Compensated, Compensator, Target};
+use super::{Compensated, Compensator, NotCompensated, Target, TargetsReport};
+use crate::compensate::offsets::Um;
 use crate::controller::{ControllerMap, Units};
 use crate::robot::Frame;
 use crate::units::{fmt_fixed, DEG, MM};
@@ -449,6 +450,93 @@ pub fn write(
         s += "\n";
     }
     s
+}
+
+/// Every target of a file compensated. A backlash needs each target's approach; in file order
+/// it follows the load-side joints (a first pass solves them) of the targets the robot will
+/// visit: a row that cannot be compensated is not run, so the next one comes from the row
+/// before it.
+pub fn compensate_file(
+    comp: &Compensator,
+    file: &TargetFile,
+    map: &ControllerMap,
+    approach: Approach,
+) -> Vec<Compensated> {
+    let list = to_targets(file, map);
+    let unknown: Vec<(Target, [f64; 6])> = list.iter().map(|t| (*t, [0.0; 6])).collect();
+    // A backlash needs each target's approach; in file order it follows the load-side
+    // joints (a first pass solves them) of the targets the robot will visit: a row that
+    // cannot be compensated is not run, so the next one comes from the row before it.
+    if comp.effects().backlash.is_empty() {
+        comp.compensate_all(&unknown)
+    } else {
+        let load: Vec<Option<[f64; 6]>> = comp
+            .compensate_all(&unknown)
+            .iter()
+            .map(|c| c.q.map(|q| comp.load(&q, &[0.0; 6])))
+            .collect();
+        let ap = approaches(file, map, &load, approach);
+        let with: Vec<(Target, [f64; 6])> = list.iter().copied().zip(ap).collect();
+        comp.compensate_all(&with)
+    }
+}
+
+/// What the report says of a compensated target file (`name`: the file's).
+pub fn report(
+    name: String,
+    file: &TargetFile,
+    results: &[Compensated],
+    comp: &Compensator,
+    map: &ControllerMap,
+) -> TargetsReport {
+    // The residual at the printed joints, as the CSV states it.
+    let printed = |q: &[f64; 6]| -> [f64; 6] {
+        let m = ControllerMap {
+            units: Units::Deg,
+            ..map.clone()
+        };
+        let axes = m
+            .apply(&q.map(|r| r / DEG))
+            .map(|v| fmt_fixed(v, DECIMALS).parse::<f64>().unwrap_or(v));
+        m.undo(&axes).map(|d| d * DEG)
+    };
+    let mut before = Vec::new();
+    let mut after = Vec::new();
+    let mut not = Vec::new();
+    let mut free = 0;
+    for (row, c) in file.rows.iter().zip(results) {
+        match (c.status.is_ok(), c.q, c.nominal) {
+            (true, Some(q), Some(qn)) => {
+                before.push(comp.residual(&c.target, &qn, &c.approach) * 1e6);
+                after.push(comp.residual(&c.target, &printed(&q), &c.approach) * 1e6);
+                free += usize::from(c.orientation_free);
+            }
+            _ => not.push(NotCompensated {
+                line: row.line,
+                name: row.name.clone(),
+                status: c.status.to_string(),
+            }),
+        }
+    }
+    let b: Um = crate::calibrate::predict::spread(&before).into();
+    let r: Um = crate::calibrate::predict::spread(&after).into();
+    before.sort_by(f64::total_cmp);
+    after.sort_by(f64::total_cmp);
+    TargetsReport {
+        file: name,
+        kind: match file.kind {
+            Kind::Joints => "joints",
+            Kind::Pose => "pose",
+            Kind::Position => "position",
+        },
+        rows: file.rows.len(),
+        compensated: before.len(),
+        orientation_free: free,
+        not_compensated: not,
+        before_um: b,
+        residual_um: r,
+        sorted_um: (before, after),
+    }
 }
 
 #[cfg(test)]

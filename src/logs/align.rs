@@ -34,6 +34,7 @@
 //! its start where no pause precedes it), the controller's stops taken out: t_bar = o_s +
 //! (1 + drift)·t_prog, one offset per section (pauses have unknown lengths), one drift.
 
+use crate::stats::median;
 use crate::units::{fmt_fixed, to_mm};
 
 /// One measurement dwell of the program (SI: m, s of program time with pauses as zero).
@@ -627,22 +628,11 @@ fn posterior(sc: &Scorer) -> Vec<f64> {
 
 // ---- the estimates between the passes --------------------------------------------------------
 
-fn median(mut v: Vec<f64>) -> f64 {
-    if v.is_empty() {
-        return 0.0;
-    }
-    v.sort_by(f64::total_cmp);
-    let n = v.len();
-    if n % 2 == 1 {
-        v[n / 2]
-    } else {
-        0.5 * (v[n / 2 - 1] + v[n / 2])
-    }
-}
-
+/// The median absolute deviation scaled to a normal sigma; 0 for no values.
 fn mad(v: &[f64]) -> f64 {
-    let m = median(v.to_vec());
-    1.4826 * median(v.iter().map(|x| (x - m).abs()).collect())
+    let Some(m) = median(v) else { return 0.0 };
+    let dev: Vec<f64> = v.iter().map(|x| (x - m).abs()).collect();
+    1.4826 * median(&dev).unwrap_or(0.0)
 }
 
 /// The timeline fitted to the matched plateaus' program-timed edges: least squares with a
@@ -812,7 +802,7 @@ pub fn align(
         .iter()
         .map(|&(k, j)| obs[j].mean - tpl.slots[k].length)
         .collect();
-    let zero = median(resid.clone());
+    let zero = median(&resid).unwrap_or(0.0);
     // The local zero of every slot: the median of its matched neighbours' (up to three on
     // either side, in its section, itself left out), else the global one.
     let mut of_slot: Vec<Option<f64>> = vec![None; kn];
@@ -827,7 +817,7 @@ pub fn align(
                 .filter_map(|i| of_slot[i])
                 .collect();
             if near.len() >= 2 {
-                median(near)
+                median(&near).unwrap_or(zero)
             } else {
                 zero
             }
@@ -850,7 +840,7 @@ pub fn align(
         .map(|s| (s.0 - s.2) / s.1)
         .collect();
     let move_ratio = if ratios.len() >= 3 {
-        median(ratios)
+        median(&ratios).unwrap_or(1.0)
     } else {
         1.0
     };

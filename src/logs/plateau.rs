@@ -13,6 +13,7 @@
 //! correlation ρ of the core (a vibration's samples are not independent).
 
 use super::core_trim;
+use crate::stats::median_in_place;
 
 /// Trend and range tolerances never fall below these (m): a bar's resolution and the
 /// standstill jitter of a stopped robot; a vibration of the standing robot within the range
@@ -72,15 +73,6 @@ pub enum PlateauError {
     Log(String),
 }
 
-fn median(v: &mut [f64]) -> f64 {
-    if v.is_empty() {
-        return f64::NAN;
-    }
-    let k = v.len() / 2;
-    v.select_nth_unstable_by(k, f64::total_cmp);
-    v[k]
-}
-
 /// The log's sampling and noise; the half window suits `dwell` seconds of standstill.
 pub fn stats(t: &[f64], l: &[f64], dwell: f64) -> Result<LogStats, PlateauError> {
     if t.len() < 3 {
@@ -90,7 +82,8 @@ pub fn stats(t: &[f64], l: &[f64], dwell: f64) -> Result<LogStats, PlateauError>
         )));
     }
     let mut dt: Vec<f64> = t.windows(2).map(|w| w[1] - w[0]).collect();
-    let interval = median(&mut dt);
+    // Not empty: at least three rows.
+    let interval = median_in_place(&mut dt).unwrap_or(f64::NAN);
     let rate = 1.0 / interval;
     let gap = gap_limit(interval);
     // The quietest fifth of the successive differences: half-normal with scale σ√2.
@@ -220,7 +213,7 @@ pub fn detect(
     }
     let level = |a: usize, b: usize| {
         let mut v = l[a..=b].to_vec();
-        median(&mut v)
+        median_in_place(&mut v).unwrap_or(f64::NAN)
     };
     // Merge runs a blip or a short gap splits, at the same level.
     let merge_tol = (8.0 * st.noise).max(MERGE_FLOOR);

@@ -11,6 +11,7 @@ pub mod circle;
 pub mod effects;
 pub mod logsim;
 pub mod measured;
+pub mod recorded;
 pub mod trajectory;
 pub mod truth;
 

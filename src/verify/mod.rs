@@ -11,6 +11,7 @@
 //! are checked for the robot's collisions, limits and harness. A program whose header declares
 //! a controller mapping other than the one in force fails before anything else.
 
+pub mod limits;
 pub mod trace;
 
 /// The RS274/NGC reader as `verify::gcode::parse` (ngc text with the identity mapping); the

@@ -1,111 +1,71 @@
-//! `--bar-log` (with `--program`, and/or `--joint-log`) for `calibrate` and `diagnose`: the
-//! files of one run → checked inputs → the logs stage ([`crate::logs`]) → one run's
-//! [`Measured`] data and what its report says about how they were found.
+//! A recorded run's logs in (the bar's log, the controller's joint log and/or the program it
+//! ran, read back), one run's [`Measured`] data out, with what its report says about how they
+//! were found (plateaus, missing poses, the clock) and the summary lines; or a refusal naming
+//! the input at fault. The counterpart of [`logsim`], which writes what a real cell leaves.
+//!
+//! A stop-and-measure run (a bar log and its program): the measurement poses are the program's
+//! dwells ([`logsim::measurement_dwells`]), the matcher's template its trajectory's timing
+//! ([`logsim::template`]); each matched plateau's mean is a reading. A continuous run (a joint
+//! log): the bar synchronised with the joints by the lengths they predict
+//! ([`crate::logs::sync`]), first against the nominal model; [`resync`] does it again with a
+//! calibrated one.
 
-use super::{usage, Error};
-use crate::dialect::Parsed;
-use crate::logs::{self, ClockReport, PlateauReport};
+use super::measured::Form;
+use super::{logsim, Measured, Trajectory};
+use crate::dialect::{dwell_instruction, Parsed};
+use crate::logs::{self, BarLog, ClockReport, JointLog, PlateauReport};
 use crate::model::MeasurementModel;
-use crate::robot::{self, Robot};
-use crate::twin::{self, measured::Form, Measured};
-use crate::units::{fmt_fixed, to_mm, MM};
-use nalgebra::Vector3;
+use crate::robot::Robot;
+use crate::stats::median;
+use crate::units::{fmt_fixed, to_mm};
 use serde::Serialize;
-use std::path::{Path, PathBuf};
 
-fn file_err(path: &Path, msg: impl std::fmt::Display) -> Error {
-    Error::File {
-        path: path.display().to_string(),
-        msg: msg.to_string(),
-    }
-}
-
-fn name(path: &Path) -> String {
-    path.file_name()
-        .map(|f| f.to_string_lossy().into_owned())
-        .unwrap_or_else(|| path.display().to_string())
-}
-
-/// A program read back for its logs: the text's hash, the parsed steps (model joints) and the
-/// controller mapping they were read with.
-pub(super) struct Program {
-    pub path: PathBuf,
-    pub parsed: Parsed,
-    pub sha256: String,
+/// The program a bar log recorded, read back.
+pub struct Program<'a> {
+    pub parsed: &'a Parsed,
+    /// Its file name, for the report and the summary.
+    pub name: String,
     /// The dialect it was read in (`ngc`, `krl`, ...).
     pub dialect: &'static str,
 }
 
-/// Reads a program with its dialect's default controller mapping (the one `edbbgen` writes
-/// without a cell's `[controller]` section); a program written for another mapping is refused
-/// (calibrate has no cell to take it from).
-pub(super) fn read_program(robot: &Robot, path: &Path) -> Result<Program, Error> {
-    let text = super::read_input(path, "program", crate::files::Kind::Program)?;
-    let dialect = super::program_dialect(None, path, &text)?;
-    let map = dialect
-        .default_map(robot)
-        .map_err(|e| file_err(path, format!("controller mapping: {e}")))?;
-    let parsed = dialect
-        .read(&text, &map)
-        .map_err(|e| file_err(path, format!("{} program: {e}", dialect.name)))?;
-    if let Some(declared) = parsed.header_value("controller") {
-        if declared != map.describe() {
-            return Err(file_err(
-                path,
-                format!(
-                    "the program was written for the controller axes \"{declared}\", not the {} default \"{}\": its joint values and logs cannot be read back without that cell",
-                    dialect.name,
-                    map.describe()
-                ),
-            ));
-        }
+/// The input a refusal is about.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Input {
+    Program,
+    BarLog,
+    JointLog,
+}
+
+/// Why a run cannot be read from its logs, and which input says so.
+#[derive(Debug, thiserror::Error)]
+#[error("{msg}")]
+pub struct Refusal {
+    pub input: Input,
+    pub msg: String,
+}
+
+fn refuse(input: Input, msg: impl std::fmt::Display) -> Refusal {
+    Refusal {
+        input,
+        msg: msg.to_string(),
     }
-    Ok(Program {
-        path: path.to_path_buf(),
-        parsed,
-        sha256: robot::sha256_hex(text.as_bytes()),
-        dialect: dialect.name.as_str(),
-    })
 }
 
-/// The first three numbers of a header value such as "258.000, 1468.000, 708.000 mm ...".
-pub(super) fn header_xyz(v: &str) -> Option<Vector3<f64>> {
-    let nums: Vec<f64> = v
-        .split([',', ' '])
-        .filter_map(|w| w.trim().parse::<f64>().ok())
-        .take(3)
-        .collect();
-    (nums.len() == 3).then(|| Vector3::new(nums[0], nums[1], nums[2]) * MM)
-}
-
-/// One run read from logs: the data calibrate and diagnose take, and the report's additions.
-pub(super) struct LogRun {
-    pub measured: Measured,
-    pub fixture: Vector3<f64>,
-    /// Hash of the inputs (bar log, joint log, program).
-    pub sha256: String,
-    pub label: String,
-    pub extra: RunExtra,
-    /// Lines for the summary.
-    pub summary: Vec<String>,
-    /// A continuous run keeps its logs: synchronised again with a calibrated model
-    /// ([`resync`]), the nominal model's errors no longer bias the clock.
-    pub logs: Option<Logs>,
-}
-
-/// A continuous run's logs: the bar's and the joints (model joints, rad) on their clocks.
-pub(super) struct Logs {
-    pub bar_path: PathBuf,
-    pub joint_path: PathBuf,
-    pub bar: logs::BarLog,
+/// A continuous run's logs: the bar's and the joints (model joints, rad) on their clocks, kept
+/// to be synchronised again ([`resync`]) once a calibrated model no longer biases the clock.
+pub struct Logs {
+    pub bar_name: String,
+    pub joint_name: String,
+    pub program_name: Option<String>,
+    pub bar: BarLog,
     pub t: Vec<f64>,
     pub q: Vec<[f64; 6]>,
 }
 
-/// What a run from logs adds to the report's `runs[k]` (DESIGN.md: `plateaus[]`, `missing[]`,
-/// `clock`).
+/// What a run from logs adds to the report's `runs[k]` (`plateaus[]`, `missing[]`, `clock`).
 #[derive(Clone, Debug, Serialize)]
-pub(super) struct RunExtra {
+pub struct RunExtra {
     pub bar_log: String,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub program: Option<String>,
@@ -131,94 +91,80 @@ pub(super) struct RunExtra {
     pub samples_per_row: Option<usize>,
 }
 
-/// A bar's zero this far from the ball-centre distance is no robot error (m).
-pub const ZERO_LIMIT: f64 = 5e-3;
+/// How a run was read from its logs: the report's additions, the summary lines, and a
+/// continuous run's logs.
+pub struct FromLogs {
+    pub extra: RunExtra,
+    pub summary: Vec<String>,
+    pub logs: Option<Logs>,
+}
 
-/// Reads one run from its logs. `fixture`: the flag's (else the program header's); `map`: the
-/// MAP the campaign uses (the program's header MAP must agree).
-pub(super) fn read_run(
-    robot: &Robot,
-    bar_path: &Path,
-    program: Option<&Program>,
-    joint_path: Option<&Path>,
-    fixture: Option<Vector3<f64>>,
-    map: Vector3<f64>,
-) -> Result<LogRun, Error> {
-    let fixture = match (fixture, program) {
-        (Some(f), _) => f,
-        (None, Some(p)) => p
-            .parsed
-            .header_value("fixture")
-            .and_then(header_xyz)
-            .ok_or_else(|| {
-                file_err(
-                    &p.path,
-                    "the header states no fixture (fixture: X, Y, Z mm): give --fixture",
-                )
-            })?,
-        (None, None) => {
-            return Err(usage(format!(
-                "--fixture: required for {} (no --program whose header states it)",
-                bar_path.display()
-            )))
-        }
-    };
-    if let Some(p) = program {
-        if let Some(m) = p.parsed.header_value("MAP").and_then(header_xyz) {
-            if (m - map).norm() > 1e-6 {
-                return Err(file_err(
-                    &p.path,
-                    format!(
-                        "the program was compiled for the MAP {}, {}, {} mm, the calibration uses {}, {}, {} mm: give --tool",
-                        fmt_fixed(to_mm(m.x), 3),
-                        fmt_fixed(to_mm(m.y), 3),
-                        fmt_fixed(to_mm(m.z), 3),
-                        fmt_fixed(to_mm(map.x), 3),
-                        fmt_fixed(to_mm(map.y), 3),
-                        fmt_fixed(to_mm(map.z), 3)
-                    ),
-                ));
+/// `report` as JSON text, each of its `runs[k]` with the keys of how run k was read from logs
+/// ([`RunExtra`]); `report` as it serialises when no run was.
+pub fn report_with_reads(report: &impl Serialize, from_logs: &[Option<FromLogs>]) -> String {
+    if from_logs.iter().all(Option::is_none) {
+        return serde_json::to_string_pretty(report).unwrap_or_default();
+    }
+    let mut value = serde_json::to_value(report).unwrap_or_default();
+    if let Some(runs) = value.get_mut("runs").and_then(|r| r.as_array_mut()) {
+        for (run, read) in runs.iter_mut().zip(from_logs) {
+            if let (Some(obj), Some(read)) = (run.as_object_mut(), read) {
+                if let Ok(serde_json::Value::Object(add)) = serde_json::to_value(&read.extra) {
+                    obj.extend(add);
+                }
             }
         }
     }
-    let model = MeasurementModel::new(robot, fixture, map);
-    let bar_text = super::read_input(bar_path, "bar log", crate::files::Kind::Measured)?;
-    let bar = logs::parse_bar_log(&bar_text, 10).map_err(|e| file_err(bar_path, e))?;
-    let mut sha = robot::sha256_hex(bar_text.as_bytes());
-    let mut kept: Option<Logs> = None;
-    let run = match joint_path {
+    serde_json::to_string_pretty(&value).unwrap_or_default()
+}
+
+/// A bar's zero this far from the ball-centre distance is no robot error (m).
+pub const ZERO_LIMIT: f64 = 5e-3;
+
+/// A run's data, its report additions and its summary lines.
+pub type Read = (Measured, RunExtra, Vec<String>);
+
+/// Reads one run from its logs: with a joint log, a continuous run synchronised against the
+/// nominal model (`model`: the run's fixture and the campaign's MAP; the joint log in the
+/// program's controller mapping, else in model joints); without one, a stop-and-measure run
+/// matched to `program`'s dwells. A bar whose zero is off by more than [`ZERO_LIMIT`] is refused.
+pub fn read(
+    robot: &Robot,
+    model: &MeasurementModel,
+    bar_name: &str,
+    bar: &BarLog,
+    program: Option<&Program>,
+    joints: Option<(&str, &JointLog)>,
+) -> Result<(Measured, FromLogs), Refusal> {
+    let mut kept = None;
+    let (measured, mut extra, summary) = match joints {
         None => {
             let p = program.ok_or_else(|| {
-                usage(format!(
-                    "--bar-log {}: needs --program (the stop-and-measure program it recorded) or --joint-log",
-                    bar_path.display()
-                ))
+                refuse(
+                    Input::BarLog,
+                    "needs a program (the stop-and-measure program it recorded) or a joint log",
+                )
             })?;
-            sha = robot::sha256_hex(format!("{sha}\n{}", p.sha256).as_bytes());
-            stop_and_measure(&model, robot, bar_path, &bar, p)?
+            stop_and_measure(model, robot, bar_name, bar, p)?
         }
-        Some(jp) => {
-            let text = super::read_input(jp, "joint log", crate::files::Kind::Measured)?;
-            let joints = logs::parse_joint_log(&text, 10).map_err(|e| file_err(jp, e))?;
-            sha = robot::sha256_hex(
-                format!("{sha}\n{}", robot::sha256_hex(text.as_bytes())).as_bytes(),
-            );
+        Some((joint_name, joints)) => {
             // The joint log holds the controller's axis values: the program's mapping, or the
             // model's joints when no program says otherwise.
             let q: Vec<[f64; 6]> = match program {
                 Some(p) => joints
                     .q
                     .iter()
-                    .map(|c| super::twin_cli::model_joints(&p.parsed.map, c))
+                    .map(|c| p.parsed.map.log_joints(c))
                     .collect(),
                 None => joints.q.clone(),
             };
             let length =
                 |x: &[f64; 6]| model.reached_length(&model.nominal, &robot.effects, x, &[0.0; 6]);
-            let read = continuous(&length, bar_path, &bar, jp, &joints.t, &q, "nominal")?;
+            let read = continuous(&length, bar_name, bar, joint_name, &joints.t, &q, "nominal")?;
             kept = Some(Logs {
-                bar_path: bar_path.to_path_buf(),
-                joint_path: jp.to_path_buf(),
+                bar_name: bar_name.to_string(),
+                joint_name: joint_name.to_string(),
+                program_name: program.map(|p| p.name.clone()),
                 bar: bar.clone(),
                 t: joints.t.clone(),
                 q,
@@ -226,74 +172,66 @@ pub(super) fn read_run(
             read
         }
     };
-    let (measured, mut extra, summary) = run;
-    extra.program = program.map(|p| name(&p.path));
-    extra.joint_log = joint_path.map(name);
+    extra.program = program.map(|p| p.name.clone());
+    extra.joint_log = joints.map(|(n, _)| n.to_string());
     if extra.length_zero_mm.abs() > to_mm(ZERO_LIMIT) {
-        return Err(file_err(
-            bar_path,
+        return Err(refuse(
+            Input::BarLog,
             format!(
                 "the bar reads {} mm from the nominal ball-centre distances: its zero is not the ball-centre distance (calibrate with --length-offset free, or correct the log)",
                 fmt_fixed(extra.length_zero_mm, 3)
             ),
         ));
     }
-    Ok(LogRun {
+    Ok((
         measured,
-        fixture,
-        sha256: sha,
-        label: name(bar_path),
-        extra,
-        summary,
-        logs: kept,
-    })
+        FromLogs {
+            extra,
+            summary,
+            logs: kept,
+        },
+    ))
 }
 
 /// A continuous run synchronised again, its lengths predicted by `length` (a calibrated
 /// model): the run's data, its report additions and summary.
-pub(super) fn resync(
-    logs: &Logs,
-    length: &(dyn Fn(&[f64; 6]) -> f64 + Sync),
-    program: Option<&Program>,
-) -> Result<Read, Error> {
+pub fn resync(logs: &Logs, length: &(dyn Fn(&[f64; 6]) -> f64 + Sync)) -> Result<Read, Refusal> {
     let (m, mut extra, summary) = continuous(
         length,
-        &logs.bar_path,
+        &logs.bar_name,
         &logs.bar,
-        &logs.joint_path,
+        &logs.joint_name,
         &logs.t,
         &logs.q,
         "calibrated",
     )?;
-    extra.program = program.map(|p| name(&p.path));
-    extra.joint_log = Some(name(&logs.joint_path));
+    extra.program = logs.program_name.clone();
+    extra.joint_log = Some(logs.joint_name.clone());
     Ok((m, extra, summary))
 }
-
-pub(super) type Read = (Measured, RunExtra, Vec<String>);
 
 fn stop_and_measure(
     model: &MeasurementModel,
     robot: &Robot,
-    bar_path: &Path,
-    bar: &logs::BarLog,
+    bar_name: &str,
+    bar: &BarLog,
     p: &Program,
-) -> Result<Read, Error> {
-    let traj = twin::Trajectory::from_program(robot, model, &p.parsed)
-        .map_err(|e| file_err(&p.path, e))?;
-    let tpl = twin::logsim::template(&traj, model);
-    let instruction = crate::dialect::dwell_instruction(p.dialect);
+) -> Result<Read, Refusal> {
+    let traj =
+        Trajectory::from_program(robot, model, p.parsed).map_err(|e| refuse(Input::Program, e))?;
+    let tpl = logsim::template(&traj, model);
+    let instruction = dwell_instruction(p.dialect);
     if traj.dwells.is_empty() {
-        return Err(file_err(
-            &p.path,
+        return Err(refuse(
+            Input::Program,
             format!(
                 "the program has no dwell ({instruction}): a bar log alone needs a stop-and-measure program, a dwell after each measurement move (edbbgen writes one with --dwell), or give --joint-log"
             ),
         ));
     }
     if tpl.slots.is_empty() {
-        return Err(file_err(
-            &p.path,
+        return Err(refuse(
+            Input::Program,
             format!(
                 "the program has no measurement dwell: none of its dwells ({instruction}) follows a move with the bar in place (between a mount pause and the next removal); a bar log alone needs a stop-and-measure program (edbbgen writes one with --dwell), or give --joint-log"
             ),
@@ -302,15 +240,15 @@ fn stop_and_measure(
     // The measurement poses are the program's dwells; edbbgen's header list, when present, is
     // a check that they are the poses it was compiled for, at this fixture and tool.
     let mut from_dwells = None;
-    match logs::measure_list(&p.parsed).map_err(|e| file_err(&p.path, e))? {
+    match logs::measure_list(p.parsed).map_err(|e| refuse(Input::Program, e))? {
         None => {
-            let sorted = twin::logsim::measurement_dwells(&traj);
+            let sorted = logsim::measurement_dwells(&traj);
             let mut left_out = String::new();
             if !sorted.settling.is_empty() {
                 left_out += &format!(
                     ", {} shorter dwells (under {} s, half the longest) taken as settling, not measured",
                     sorted.settling.len(),
-                    fmt_fixed(twin::logsim::SETTLING_SHARE * tpl.dwell, 2)
+                    fmt_fixed(logsim::SETTLING_SHARE * tpl.dwell, 2)
                 );
             }
             if !sorted.off.is_empty() {
@@ -321,14 +259,14 @@ fn stop_and_measure(
             }
             from_dwells = Some(format!(
                 "{}: {} measurement poses taken from its dwells ({instruction} after a move, the bar in place){left_out}; no measure list in its header to check them against",
-                name(&p.path),
+                p.name,
                 tpl.slots.len(),
             ));
         }
         Some(list) => {
             if list.len() != tpl.slots.len() {
-                return Err(file_err(
-                    &p.path,
+                return Err(refuse(
+            Input::Program,
                     format!(
                         "the header lists {} measurement poses, the program dwells at {} with the bar mounted",
                         list.len(),
@@ -338,8 +276,8 @@ fn stop_and_measure(
             }
             for (k, (l, s)) in list.iter().zip(&tpl.slots).enumerate() {
                 if (l - s.length).abs() > 2e-6 {
-                    return Err(file_err(
-                        &p.path,
+                    return Err(refuse(
+            Input::Program,
                         format!(
                             "pose {}: the header says L {} mm, its joints give {} mm with this fixture and tool: wrong --fixture or --tool?",
                             k + 1,
@@ -351,7 +289,7 @@ fn stop_and_measure(
             }
         }
     }
-    let sm = logs::stop_and_measure(&tpl, bar).map_err(|e| file_err(bar_path, e))?;
+    let sm = logs::stop_and_measure(&tpl, bar).map_err(|e| refuse(Input::BarLog, e))?;
     let mut m = Measured {
         form: Form::Static { timed: true },
         std: Some(Vec::new()),
@@ -384,7 +322,7 @@ fn stop_and_measure(
     let mut summary: Vec<String> = from_dwells.into_iter().collect();
     summary.push(format!(
         "{}: {} of {} poses matched to plateaus{}{}; clock offset {} s (the program's time, its first pause taken out), drift {} ppm; bar reads nominal + {} mm",
-        name(bar_path),
+        bar_name,
         sm.readings.len(),
         tpl.slots.len(),
         if sm.missing.is_empty() {
@@ -430,12 +368,12 @@ fn stop_and_measure(
     if let Some(worst) = spreads.iter().copied().reduce(f64::max) {
         summary.push(format!(
             "plateau spread: median {} um, largest {} um",
-            fmt_fixed(median(&spreads) * 1e6, 2),
+            fmt_fixed(median(&spreads).unwrap_or(worst) * 1e6, 2),
             fmt_fixed(worst * 1e6, 2)
         ));
     }
     let extra = RunExtra {
-        bar_log: name(bar_path),
+        bar_log: bar_name.to_string(),
         program: None,
         joint_log: None,
         form: "stop_and_measure",
@@ -450,26 +388,21 @@ fn stop_and_measure(
     Ok((m, extra, summary))
 }
 
-fn median(v: &[f64]) -> f64 {
-    let mut v = v.to_vec();
-    v.sort_by(f64::total_cmp);
-    v.get(v.len() / 2).copied().unwrap_or(0.0)
-}
-
 fn continuous(
     length: &(dyn Fn(&[f64; 6]) -> f64 + Sync),
-    bar_path: &Path,
-    bar: &logs::BarLog,
-    joint_path: &Path,
+    bar_name: &str,
+    bar: &BarLog,
+    joint_name: &str,
     t: &[f64],
     q: &[[f64; 6]],
     which: &str,
-) -> Result<Read, Error> {
+) -> Result<Read, Refusal> {
     let spline = logs::sync::Spline::new(t, q);
     let s = logs::sync::sync(&bar.t, &bar.length, &spline, length)
-        .map_err(|e| file_err(joint_path, e))?;
+        .map_err(|e| refuse(Input::JointLog, e))?;
     let t0 = bar.t.first().copied().unwrap_or(0.0);
-    let interval = median(&bar.t.windows(2).map(|w| w[1] - w[0]).collect::<Vec<_>>());
+    let interval =
+        median(&bar.t.windows(2).map(|w| w[1] - w[0]).collect::<Vec<_>>()).unwrap_or(0.0);
     let per_row = logs::sync::samples_per_row(interval);
     let bins = logs::sync::bin(&s, length, per_row);
     let m = Measured {
@@ -513,10 +446,10 @@ fn continuous(
     };
     let summary = vec![format!(
         "{}: {} of {} bar samples synchronised with {}{averaged} ({} s mounted); clock offset {} +- {} ms, drift {} +- {} ppm; bar reads nominal + {} mm",
-        name(bar_path),
+        bar_name,
         s.rows.len(),
         bar.len(),
-        name(joint_path),
+        joint_name,
         fmt_fixed(m.t.last().copied().unwrap_or(0.0) - m.t.first().copied().unwrap_or(0.0), 1),
         fmt_fixed(s.offset * 1e3, 3),
         fmt_fixed(s.offset_std * 1e3, 3),
@@ -525,7 +458,7 @@ fn continuous(
         fmt_fixed(to_mm(s.zero), 3)
     ) + &smoothing];
     let extra = RunExtra {
-        bar_log: name(bar_path),
+        bar_log: bar_name.to_string(),
         program: None,
         joint_log: None,
         form: "continuous",
