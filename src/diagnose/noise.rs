@@ -13,6 +13,7 @@
 //! separate noise from the robot's error, and the noise is reported unknown.
 
 use super::fit::{noise_estimate, Problem};
+use crate::stats::median_in_place;
 use crate::twin::measured::Form;
 use serde::Serialize;
 
@@ -212,7 +213,11 @@ pub fn reading_noise(
                     let stated = idx
                         .iter()
                         .all(|&k| std[k] > 0.0)
-                        .then(|| median(idx.iter().map(|&k| std[k] * w(k)).collect()))
+                        .then(|| {
+                            median_in_place(
+                                &mut idx.iter().map(|&k| std[k] * w(k)).collect::<Vec<_>>(),
+                            )
+                        })
                         .flatten();
                     match stated {
                         Some(s) => (s * s, NoiseSource::Stated, 0.0),
@@ -260,7 +265,7 @@ fn from_pairs(
         .filter(|(i, j, _)| problem.weight[*i] > 0.0 && problem.weight[*j] > 0.0)
         .collect();
     TIERS_DEG.iter().find_map(|&tier| {
-        let d: Vec<f64> = live
+        let mut d: Vec<f64> = live
             .iter()
             .filter(|p| p.2 <= tier)
             .map(|&&(i, j, _)| (residual[i] * w(i) - residual[j] * w(j)).abs())
@@ -268,21 +273,7 @@ fn from_pairs(
         if d.len() < MIN_PAIRS {
             return None;
         }
-        median(d).map(|m| (1.4826 * m / 2f64.sqrt(), tier))
-    })
-}
-
-/// The median (the mean of the middle two for an even count), `None` when empty.
-fn median(mut v: Vec<f64>) -> Option<f64> {
-    if v.is_empty() {
-        return None;
-    }
-    v.sort_by(f64::total_cmp);
-    let n = v.len();
-    Some(if n % 2 == 1 {
-        v[n / 2]
-    } else {
-        0.5 * (v[n / 2 - 1] + v[n / 2])
+        median_in_place(&mut d).map(|m| (1.4826 * m / 2f64.sqrt(), tier))
     })
 }
 
@@ -410,12 +401,5 @@ mod tests {
         let n = reading_noise(&problem, &Neighbours::new(&problem), r, None, false);
         assert_eq!(n.source, NoiseSource::Sequence);
         assert!((n.sigma / noise_estimate(r) - 1.0).abs() < 1e-12);
-    }
-
-    #[test]
-    fn the_median_of_an_even_count_is_the_mean_of_the_middle_two() {
-        assert_eq!(median(vec![]), None);
-        assert_eq!(median(vec![3.0, 1.0, 2.0]), Some(2.0));
-        assert_eq!(median(vec![4.0, 1.0, 3.0, 2.0]), Some(2.5));
     }
 }
