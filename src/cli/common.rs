@@ -117,6 +117,24 @@ pub(super) fn resolve_cell(a: &CellArgs) -> Result<CellSpec, Error> {
 }
 
 /// `--margin MM` and `--joint-margin DEG` over the cell's values, range-checked.
+/// `--bar-noise`: the bar's noise per reading (µm), positive.
+pub(super) fn bar_noise(s: &str) -> Result<f64, Error> {
+    let v = scalar("--bar-noise", s)?;
+    if v <= 0.0 {
+        return Err(usage(format!("--bar-noise: {v} um must be positive")));
+    }
+    Ok(v)
+}
+
+/// `--bar-rate`: the bar's sample rate (Hz), 1 to 100,000.
+pub(super) fn bar_rate(s: &str) -> Result<f64, Error> {
+    let v = scalar("--bar-rate", s)?;
+    if !(1.0..=100_000.0).contains(&v) {
+        return Err(usage(format!("--bar-rate: {v} Hz is outside 1..100000 Hz")));
+    }
+    Ok(v)
+}
+
 pub(super) fn set_margins(
     spec: &mut CellSpec,
     margin: Option<&str>,

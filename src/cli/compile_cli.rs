@@ -3,8 +3,9 @@
 
 use super::args::CompileArgs;
 use super::common::{
-    check_outputs, controller_map, load_robot, numbers, program_name, read_input, resolve_cell,
-    resolve_fixture, resolve_template, scalar, steps, write_all_atomic, write_atomic,
+    bar_noise, bar_rate, check_outputs, controller_map, load_robot, numbers, program_name,
+    read_input, resolve_cell, resolve_fixture, resolve_template, scalar, steps, write_all_atomic,
+    write_atomic,
 };
 use super::progress::{Bar, Timed};
 use super::{usage, Error};
@@ -60,18 +61,8 @@ pub fn run(a: &CompileArgs) -> Result<i32, Error> {
     controller_map(&spec, a.cell.cell.as_deref(), dialect, &robot)?;
     let (lo, hi) = robot.limits();
     let start = std::array::from_fn(|i| f64::clamp(start[i], lo[i], hi[i]));
-    let bar_noise = scalar("--bar-noise", &a.bar_noise)?;
-    if bar_noise <= 0.0 {
-        return Err(usage(format!(
-            "--bar-noise: {bar_noise} um must be positive"
-        )));
-    }
-    let bar_rate = scalar("--bar-rate", &a.bar_rate)?;
-    if !(1.0..=100_000.0).contains(&bar_rate) {
-        return Err(usage(format!(
-            "--bar-rate: {bar_rate} Hz is outside 1..100000 Hz"
-        )));
-    }
+    let bar_noise = bar_noise(&a.bar_noise)?;
+    let bar_rate = bar_rate(&a.bar_rate)?;
     let dwell = match &a.dwell {
         Some(d) => {
             // On the 0.01 s grid every dialect prints exactly (FANUC's WAIT resolves 0.01 s).

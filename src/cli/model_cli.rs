@@ -2,7 +2,7 @@
 //! observability and the uncertainty one reading per pose would give → text or JSON.
 
 use super::args::ModelArgs;
-use super::common::{load_robot, resolve_cell, resolve_fixture, scalar};
+use super::common::{bar_noise, load_robot, resolve_cell, resolve_fixture};
 use super::{usage, Error};
 use crate::model::{self, IdentifyOptions, MeasurementModel, Status};
 use crate::pipeline;
@@ -42,12 +42,7 @@ pub fn run(a: &ModelArgs) -> Result<i32, Error> {
     let jm = DMatrix::from_fn(rows.len(), ids.len(), |i, k| rows[i][ids[k]] / norms[k]);
     let obs = model::observability(&jm);
     // What this pose set would buy: one reading per pose at the bar's noise.
-    let bar_noise = scalar("--bar-noise", &a.bar_noise)?;
-    if bar_noise <= 0.0 {
-        return Err(usage(format!(
-            "--bar-noise: {bar_noise} um must be positive"
-        )));
-    }
+    let bar_noise = bar_noise(&a.bar_noise)?;
     let space =
         crate::calibrate::predict::workspace(&robot, pipeline::PREDICTION_POSES, a.cell.seed);
     let predicted = crate::calibrate::predict::spread(&crate::calibrate::predict::after_readings(

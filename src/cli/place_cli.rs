@@ -4,7 +4,8 @@
 
 use super::args::PlaceArgs;
 use super::common::{
-    load_robot, numbers, read_input, resolve_cell, scalar, steps, write_all_atomic, xyz_mm,
+    bar_noise, bar_rate, load_robot, numbers, read_input, resolve_cell, scalar, steps,
+    write_all_atomic, xyz_mm,
 };
 use super::progress::Bar;
 use super::{usage, Error};
@@ -135,18 +136,8 @@ pub fn place(a: &PlaceArgs) -> Result<i32, Error> {
         return Err(usage("--max-candidates: must be at least 30"));
     }
     let step = steps(&a.step)?;
-    let bar_noise = scalar("--bar-noise", &a.bar_noise)?;
-    if bar_noise <= 0.0 {
-        return Err(usage(format!(
-            "--bar-noise: {bar_noise} um must be positive"
-        )));
-    }
-    let bar_rate = scalar("--bar-rate", &a.bar_rate)?;
-    if !(1.0..=100_000.0).contains(&bar_rate) {
-        return Err(usage(format!(
-            "--bar-rate: {bar_rate} Hz is outside 1..100000 Hz"
-        )));
-    }
+    let bar_noise = bar_noise(&a.bar_noise)?;
+    let bar_rate = bar_rate(&a.bar_rate)?;
     let mut prior = crate::calibrate::predict::Prior::default();
     if let Some(p) = &a.prior {
         let v = numbers("--prior", p, Some(2))?;
