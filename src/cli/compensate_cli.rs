@@ -332,8 +332,11 @@ fn read_calibration(a: &CompensateArgs) -> Result<Option<serde_json::Value>, Err
     })
 }
 
-/// `--payload`: the mass (kg) and, where given, its centre (m, flange frame), or none.
-fn parse_payload(a: &CompensateArgs) -> Result<Option<(f64, Option<Vector3<f64>>)>, Error> {
+/// A payload: its mass (kg) and, where given, its centre (m, flange frame).
+type Payload = (f64, Option<Vector3<f64>>);
+
+/// `--payload`: the payload the flag gives, or none.
+fn parse_payload(a: &CompensateArgs) -> Result<Option<Payload>, Error> {
     Ok(match &a.payload {
         Some(p) => {
             let v = numbers("--payload", p, None)?;

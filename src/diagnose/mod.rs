@@ -1048,10 +1048,10 @@ fn round_columns(
     kept: usize,
     more_effects: bool,
     more_steps: bool,
-) -> (Vec<Col>, usize, Vec<(Move, std::ops::Range<usize>)>) {
+) -> (Vec<Col>, usize, Moves) {
     let base_cols = model_cols(&g.s, &g.free);
     let mut cols = base_cols.clone();
-    let mut moves: Vec<(Move, std::ops::Range<usize>)> = Vec::new();
+    let mut moves: Moves = Vec::new();
     // A model with as many unknowns as readings interpolates them: its residual vanishes,
     // its BIC runs to −∞ and its held-out folds are fitted on fewer rows than columns. A
     // move is a candidate only when the model with it keeps at least as many readings
@@ -1093,6 +1093,9 @@ fn round_columns(
     }
     (cols, spare, moves)
 }
+
+/// Candidate moves, each with its range of columns.
+type Moves = Vec<(Move, std::ops::Range<usize>)>;
 
 /// A scored move: the move, its best form, and the model's rss, BIC and held-out sum of
 /// squares with it.

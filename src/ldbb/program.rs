@@ -402,7 +402,7 @@ impl Circle<'_> {
             let mid: [f64; 6] = std::array::from_fn(|i| 0.5 * (a[i] + b[i]));
             dev = dev.max((length(&mid) - setup.bar_length).abs());
             dev = dev.max((length(&b) - setup.bar_length).abs());
-            if let Some(bl) = crate::safety::blend::geometry(&model, &a, &b, &c, blend) {
+            if let Some(bl) = crate::safety::blend::geometry(model, &a, &b, &c, blend) {
                 dev = dev.max((length(&bl.point(0.5)) - setup.bar_length).abs());
             }
         }
