@@ -11,7 +11,7 @@ use crate::calibrate::{self, CalibrateOptions, Effects, LengthOffset};
 use crate::compensate::drift;
 use crate::diagnose::Run;
 use crate::model::MeasurementModel;
-use crate::robot::{self, LoadOptions};
+use crate::robot::{self, LoadOptions, Robot};
 use crate::twin::recorded::{self, FromLogs};
 use crate::twin::{self, Measured};
 use crate::units::{DEG, MM};
@@ -41,6 +41,121 @@ fn is_toml(path: &Path) -> bool {
 }
 
 pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
+    let fixtures = check_runs(a)?;
+    let opts = calibrate_options(a)?;
+
+    // --baseline: the previous report is read before any work.
+    let baseline = read_baseline(a)?;
+
+    let load_opts = LoadOptions {
+        flange_link: a.flange.clone(),
+        package_paths: a.package_path.clone(),
+        ..LoadOptions::default()
+    };
+    let robot_text = read_input(&a.robot, "robot", crate::files::Kind::Robot)?;
+    let robot = robot::load(&a.robot, &load_opts)?;
+    let programs: Vec<logruns::Program> = a
+        .program
+        .iter()
+        .map(|p| logruns::read_program(&robot, p))
+        .collect::<Result<_, _>>()?;
+    // The MAP: the flag, else the first program header's, else the robot file's.
+    let map = match (
+        &a.tool,
+        programs.first().and_then(|p| p.parsed.header_value("MAP")),
+    ) {
+        (Some(s), _) => xyz_mm("--tool", s)?,
+        (None, Some(h)) => header_xyz(h)
+            .ok_or_else(|| usage("the program header's MAP is not X, Y, Z mm: give --tool"))?,
+        (None, None) => robot.tool.unwrap_or_else(Vector3::zeros),
+    };
+    let mut c = read_campaign(a, &robot, &programs, &fixtures, map)?;
+    let model = MeasurementModel::new(&robot, c.fixtures[0], map);
+    let first = c.sources[0].bar;
+    // --baseline: the fit starts from the previous calibration and states what moved since.
+    let fit = |runs: &[Run]| match &baseline {
+        Some((baseline, label, _)) => {
+            drift::calibrate_against(&model, &robot, runs, &c.labels, &opts, baseline, label)
+                .map(|(cal, d)| (cal, Some(d)))
+                .map_err(|e| file_err(first, e))
+        }
+        None => calibrate::run(&model, &robot, runs, &c.labels, &opts)
+            .map(|cal| (cal, None))
+            .map_err(|e| file_err(first, e)),
+    };
+    let (cal, drift) =
+        resync::fit_resynchronised(&model, &mut c.data, &c.fixtures, &mut c.from_logs, fit)
+            .map_err(|e| match e {
+                ResyncError::Fit(e) => e,
+                ResyncError::Logs { run, refusal } => c.sources[run].error(refusal),
+            })?;
+
+    // The report's keys, then `drift` (also when nothing is written as calibrated).
+    #[derive(serde::Serialize)]
+    struct WithDrift<'a> {
+        #[serde(flatten)]
+        report: &'a calibrate::Report,
+        #[serde(skip_serializing_if = "Option::is_none")]
+        drift: Option<&'a drift::Drift>,
+    }
+    let with_drift = WithDrift {
+        report: &cal.report,
+        drift: drift.as_ref(),
+    };
+    // Runs read from logs keep how they were read: their plateaus, missing poses and clock,
+    // added to their run's keys.
+    let json = recorded::report_with_reads(&with_drift, &c.from_logs) + "\n";
+    // Not calibrated (nothing of the robot determined, or no better than nominal held out)
+    // and no set-up found either: no robot file is written; the report says why, and so does
+    // one line on stderr.
+    if !cal.writes_robot() {
+        if let Some(p) = &a.json {
+            write_all_atomic(&[(p.as_path(), json.as_str())])?;
+        }
+        print!("{}", cal.summary);
+        eprintln!("calibrate: {}", cal.report.verdict);
+        return Ok(1);
+    }
+
+    let (calibrated, sidecar, sidecar_text) =
+        robot_files(a, &robot, &robot_text, &load_opts, &cal, &c, drift.as_ref())?;
+    let svg = match &a.plot {
+        Some(_) => Some(crate::calibrate::plot::svg(&cal)?),
+        None => None,
+    };
+    let baseline_sha = baseline.as_ref().map(|b| b.2.as_str());
+    let html = html_report(a, &robot, &cal, &c, &map, baseline_sha, drift.as_ref())?;
+    let mut files: Vec<(&Path, &str)> = vec![(a.output.as_path(), calibrated.as_str())];
+    if let (Some(p), Some(t)) = (&sidecar, &sidecar_text) {
+        files.push((p.as_path(), t.as_str()));
+    }
+    if let Some(p) = &a.json {
+        files.push((p.as_path(), json.as_str()));
+    }
+    if let (Some(p), Some(svg)) = (&a.plot, &svg) {
+        files.push((p.as_path(), svg.as_str()));
+    }
+    if let (Some(p), Some(html)) = (&a.html, &html) {
+        files.push((p.as_path(), html.as_str()));
+    }
+    write_all_atomic(&files)?;
+    for (k, read) in c.from_logs.iter().enumerate() {
+        for l in read.iter().flat_map(|r| &r.summary) {
+            println!("run {}: {l}", k + 1);
+        }
+    }
+    print!("{}", cal.summary);
+    println!("wrote {}", a.output.display());
+    if let Some(p) = &sidecar {
+        println!("wrote {} (the effects the URDF names)", p.display());
+    }
+    // The set-up only, with the nominal geometry: a result, told apart from a calibration.
+    Ok(if cal.setup_only() { 3 } else { 0 })
+}
+
+/// The run and output flags checked before anything is read (a URDF robot calibrates to a URDF,
+/// a DH robot to a DH file): the `--fixture` positions (m).
+fn check_runs(a: &CalibrateArgs) -> Result<Vec<Vector3<f64>>, Error> {
     // Everything about the command line first: nothing is read before it is sound.
     let logs_n = a.bar_log.len();
     let runs_n = a.measured.len() + logs_n;
@@ -83,13 +198,6 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
         .iter()
         .map(|f| xyz_mm("--fixture", f))
         .collect::<Result<_, _>>()?;
-    let fixture_flag = |k: usize| -> Option<Vector3<f64>> {
-        match fixtures.len() {
-            0 => None,
-            1 => Some(fixtures[0]),
-            _ => Some(fixtures[k]),
-        }
-    };
     check_outputs(&[
         Some(a.output.as_path()),
         a.json.as_deref(),
@@ -112,6 +220,12 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
             )))
         }
     }
+    Ok(fixtures)
+}
+
+/// The calibration options the flags give (effects, what is known, length offset, resolution,
+/// noise, prior), or the usage error of the first bad one.
+fn calibrate_options(a: &CalibrateArgs) -> Result<CalibrateOptions, Error> {
     let effects = parse_effects(&a.effects)?;
     let mut opts = CalibrateOptions {
         effects,
@@ -143,9 +257,12 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
             opts.prior_setup = s * MM;
         }
     }
+    Ok(opts)
+}
 
-    // --baseline: the previous report is read before any work.
-    let baseline = match &a.baseline {
+/// `--baseline`: the previous calibration report read, with its label and hash, or none.
+fn read_baseline(a: &CalibrateArgs) -> Result<Option<(drift::Calibrated, String, String)>, Error> {
+    Ok(match &a.baseline {
         Some(path) => {
             let text = read_input(path, "calibration report", crate::files::Kind::Config)?;
             let value: serde_json::Value = serde_json::from_str(&text)
@@ -157,34 +274,41 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
             ))
         }
         None => None,
-    };
+    })
+}
 
-    let load_opts = LoadOptions {
-        flange_link: a.flange.clone(),
-        package_paths: a.package_path.clone(),
-        ..LoadOptions::default()
+/// The runs of a campaign as read: per run its readings, the hash of its input, its fixture,
+/// its label, its files and, for a run from logs, how it was read.
+struct Campaign<'a> {
+    data: Vec<Measured>,
+    hashes: Vec<String>,
+    fixtures: Vec<Vector3<f64>>,
+    labels: Vec<String>,
+    sources: Vec<logruns::RunFiles<'a>>,
+    from_logs: Vec<Option<FromLogs>>,
+}
+
+/// Every run of the flags (`--measured` first, then `--bar-log`) read for `robot` with its
+/// `programs`, the flags' `fixtures` (m) and the campaign's MAP `map` (m).
+fn read_campaign<'a>(
+    a: &'a CalibrateArgs,
+    robot: &Robot,
+    programs: &'a [logruns::Program],
+    fixtures: &[Vector3<f64>],
+    map: Vector3<f64>,
+) -> Result<Campaign<'a>, Error> {
+    let runs_n = a.measured.len() + a.bar_log.len();
+    let fixture_flag = |k: usize| -> Option<Vector3<f64>> {
+        match fixtures.len() {
+            0 => None,
+            1 => Some(fixtures[0]),
+            _ => Some(fixtures[k]),
+        }
     };
-    let robot_text = read_input(&a.robot, "robot", crate::files::Kind::Robot)?;
-    let robot = robot::load(&a.robot, &load_opts)?;
-    let programs: Vec<logruns::Program> = a
-        .program
-        .iter()
-        .map(|p| logruns::read_program(&robot, p))
-        .collect::<Result<_, _>>()?;
     let program_of = |k: usize| match programs.len() {
         0 => None,
         1 => Some(&programs[0]),
         _ => Some(&programs[k]),
-    };
-    // The MAP: the flag, else the first program header's, else the robot file's.
-    let map = match (
-        &a.tool,
-        programs.first().and_then(|p| p.parsed.header_value("MAP")),
-    ) {
-        (Some(s), _) => xyz_mm("--tool", s)?,
-        (None, Some(h)) => header_xyz(h)
-            .ok_or_else(|| usage("the program header's MAP is not X, Y, Z mm: give --tool"))?,
-        (None, None) => robot.tool.unwrap_or_else(Vector3::zeros),
     };
     // As for a measured file: one run alone must carry the robot, a campaign's run may be
     // short.
@@ -212,7 +336,7 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
     for (i, bar) in a.bar_log.iter().enumerate() {
         let k = a.measured.len() + i;
         let joint_log = a.joint_log.get(i).map(|p| p.as_path());
-        let run = logruns::read_run(&robot, bar, program_of(i), joint_log, fixture_flag(k), map)?;
+        let run = logruns::read_run(robot, bar, program_of(i), joint_log, fixture_flag(k), map)?;
         if run.measured.len() < min {
             return Err(file_err(
                 bar,
@@ -238,58 +362,31 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
         });
         from_logs.push(Some(run.from_logs));
     }
-    let model = MeasurementModel::new(&robot, run_fixtures[0], map);
-    let first = sources[0].bar;
-    // --baseline: the fit starts from the previous calibration and states what moved since.
-    let fit = |runs: &[Run]| match &baseline {
-        Some((baseline, label, _)) => {
-            drift::calibrate_against(&model, &robot, runs, &labels, &opts, baseline, label)
-                .map(|(cal, d)| (cal, Some(d)))
-                .map_err(|e| file_err(first, e))
-        }
-        None => calibrate::run(&model, &robot, runs, &labels, &opts)
-            .map(|cal| (cal, None))
-            .map_err(|e| file_err(first, e)),
-    };
-    let (cal, drift) =
-        resync::fit_resynchronised(&model, &mut data, &run_fixtures, &mut from_logs, fit).map_err(
-            |e| match e {
-                ResyncError::Fit(e) => e,
-                ResyncError::Logs { run, refusal } => sources[run].error(refusal),
-            },
-        )?;
-    let fixtures = run_fixtures;
+    Ok(Campaign {
+        data,
+        hashes,
+        fixtures: run_fixtures,
+        labels,
+        sources,
+        from_logs,
+    })
+}
 
-    // The report's keys, then `drift` (also when nothing is written as calibrated).
-    #[derive(serde::Serialize)]
-    struct WithDrift<'a> {
-        #[serde(flatten)]
-        report: &'a calibrate::Report,
-        #[serde(skip_serializing_if = "Option::is_none")]
-        drift: Option<&'a drift::Drift>,
-    }
-    let with_drift = WithDrift {
-        report: &cal.report,
-        drift: drift.as_ref(),
-    };
-    // Runs read from logs keep how they were read: their plateaus, missing poses and clock,
-    // added to their run's keys.
-    let json = recorded::report_with_reads(&with_drift, &from_logs) + "\n";
-    // Not calibrated (nothing of the robot determined, or no better than nominal held out)
-    // and no set-up found either: no robot file is written; the report says why, and so does
-    // one line on stderr.
-    if !cal.writes_robot() {
-        if let Some(p) = &a.json {
-            write_all_atomic(&[(p.as_path(), json.as_str())])?;
-        }
-        print!("{}", cal.summary);
-        eprintln!("calibrate: {}", cal.report.verdict);
-        return Ok(1);
-    }
-
+/// The calibrated robot file's text rendered from `cal` over the robot file `robot_text`, with
+/// a URDF's sidecar file of effects (its path and text) where it has effects.
+fn robot_files(
+    a: &CalibrateArgs,
+    robot: &Robot,
+    robot_text: &str,
+    load_opts: &LoadOptions,
+    cal: &calibrate::Calibration,
+    c: &Campaign,
+    drift: Option<&drift::Drift>,
+) -> Result<(String, Option<std::path::PathBuf>, Option<String>), Error> {
+    let urdf = is_urdf(&a.robot);
     // Everything is rendered before the first file is written: a failure leaves no file.
-    let mut header = calibrate::header::lines(&robot, &cal, &hashes, &labels);
-    if let (Some(d), Some(p)) = (&drift, &a.baseline) {
+    let mut header = calibrate::header::lines(robot, cal, &c.hashes, &c.labels);
+    if let (Some(d), Some(p)) = (drift, &a.baseline) {
         header.push(format!("since {}: {}", name(p), d.verdict));
     }
     let p = cal.params();
@@ -306,22 +403,16 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
     }
     let calibrated = if urdf {
         robot::urdf::calibrated(
-            &robot_text,
-            &a.robot,
-            &load_opts,
-            &robot,
-            &p.dh,
-            &p.map,
-            &header,
+            robot_text, &a.robot, load_opts, robot, &p.dh, &p.map, &header,
         )?
     } else {
-        robot::dh::calibrated(&robot_text, &a.robot, &p.dh, &p.map, &header, &effects_text)?
+        robot::dh::calibrated(robot_text, &a.robot, &p.dh, &p.map, &header, &effects_text)?
     };
     // The URDF loads to a DH table of its own (its common normals may point the other way):
     // the effects go to the sidecar referred to that table's frames.
     let effects_text = if sidecar.is_some() {
         let (b, dh, f) =
-            robot::urdf::dh_chain(&calibrated, &load_opts).map_err(|e| file_err(&a.output, e))?;
+            robot::urdf::dh_chain(&calibrated, load_opts).map_err(|e| file_err(&a.output, e))?;
         let moved = effects.reframed((&robot.base, &p.dh, &robot.flange), (&b, &dh, &f));
         robot::effects::to_toml(&moved, &cal.file.reference)
     } else {
@@ -336,54 +427,38 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
                 .unwrap_or_default()
         )
     });
-    let svg = match &a.plot {
-        Some(_) => Some(crate::calibrate::plot::svg(&cal)?),
-        None => None,
-    };
-    let html = match &a.html {
+    Ok((calibrated, sidecar, sidecar_text))
+}
+
+/// `--html`: the calibration page of `cal` for `robot` and the campaign `c` (MAP `map`, the
+/// baseline report's hash and drift where given), rendered; none without the flag.
+fn html_report(
+    a: &CalibrateArgs,
+    robot: &Robot,
+    cal: &calibrate::Calibration,
+    c: &Campaign,
+    map: &Vector3<f64>,
+    baseline_sha: Option<&str>,
+    drift: Option<&drift::Drift>,
+) -> Result<Option<String>, Error> {
+    Ok(match &a.html {
         Some(_) => {
             // The baseline is an input too.
-            let effects = match &baseline {
-                Some((_, _, sha)) => format!("{}\nbaseline {sha}", a.effects),
+            let effects = match baseline_sha {
+                Some(sha) => format!("{}\nbaseline {sha}", a.effects),
                 None => a.effects.clone(),
             };
-            let hash = calibrate::header::inputs_hash(&robot, &hashes, &fixtures, &map, &effects);
+            let hash = calibrate::header::inputs_hash(robot, &c.hashes, &c.fixtures, map, &effects);
             let name = format!("{} [{}]", robot.name, robot.source);
-            let mut page = crate::report::calibrate::page(&cal, &name, &hash)?;
-            if let Some(d) = &drift {
+            let mut page = crate::report::calibrate::page(cal, &name, &hash)?;
+            if let Some(d) = drift {
                 page.sections
                     .push(crate::report::compensate::drift_section(d)?);
             }
             Some(crate::report::render(&page)?)
         }
         None => None,
-    };
-    let mut files: Vec<(&Path, &str)> = vec![(a.output.as_path(), calibrated.as_str())];
-    if let (Some(p), Some(t)) = (&sidecar, &sidecar_text) {
-        files.push((p.as_path(), t.as_str()));
-    }
-    if let Some(p) = &a.json {
-        files.push((p.as_path(), json.as_str()));
-    }
-    if let (Some(p), Some(svg)) = (&a.plot, &svg) {
-        files.push((p.as_path(), svg.as_str()));
-    }
-    if let (Some(p), Some(html)) = (&a.html, &html) {
-        files.push((p.as_path(), html.as_str()));
-    }
-    write_all_atomic(&files)?;
-    for (k, read) in from_logs.iter().enumerate() {
-        for l in read.iter().flat_map(|r| &r.summary) {
-            println!("run {}: {l}", k + 1);
-        }
-    }
-    print!("{}", cal.summary);
-    println!("wrote {}", a.output.display());
-    if let Some(p) = &sidecar {
-        println!("wrote {} (the effects the URDF names)", p.display());
-    }
-    // The set-up only, with the nominal geometry: a result, told apart from a calibration.
-    Ok(if cal.setup_only() { 3 } else { 0 })
+    })
 }
 
 /// The sidecar file of a calibrated URDF: `robot.cal.urdf` → `robot.cal.effects.toml`.

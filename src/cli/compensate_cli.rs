@@ -51,33 +51,11 @@ fn plain_map(
     ControllerMap::resolve(spec, &defaults, "targets", robot)
 }
 
+/// `edbbgen compensate`: the flags resolved, the targets or the program compensated, and the
+/// files written; the exit code.
 pub fn compensate(a: &CompensateArgs) -> Result<i32, Error> {
     // The command line first: nothing is read before it is sound.
-    let input = match (&a.targets, &a.program) {
-        (Some(t), None) => Some((t, true)),
-        (None, Some(p)) => Some((p, false)),
-        (None, None) => None,
-        (Some(_), Some(_)) => {
-            return Err(usage(
-                "--targets and --program: give one of them (run compensate twice for both)",
-            ))
-        }
-    };
-    match (&input, &a.output) {
-        (Some(_), None) => {
-            return Err(usage(
-                "-o: required with --targets or --program (the compensated file)",
-            ))
-        }
-        (None, Some(o)) => {
-            return Err(usage(format!(
-                "-o {}: give --targets T.csv or --program PROGRAM to compensate",
-                o.display()
-            )))
-        }
-        _ => {}
-    }
-    check_outputs(&[a.output.as_deref(), a.json.as_deref(), a.html.as_deref()])?;
+    let input = check_input(a)?;
     let tcp = a.tcp.as_deref().map(parse_tcp).transpose()?;
     let spec = match &a.cell {
         Some(p) => Some(crate::cell::load(p)?),
@@ -93,48 +71,11 @@ pub fn compensate(a: &CompensateArgs) -> Result<i32, Error> {
         None => None,
     };
 
-    let load_opts = LoadOptions {
-        flange_link: a.flange.clone(),
-        package_paths: a.package_path.clone(),
-        speeds: spec.as_ref().and_then(|s| s.speeds),
-        ..LoadOptions::default()
-    };
-    let nominal = robot::load(&a.nominal, &load_opts)?;
-    let calibrated = robot::load(&a.calibrated, &load_opts)?;
-    for (i, (n, c)) in nominal.joints.iter().zip(&calibrated.joints).enumerate() {
-        if n.name != c.name {
-            return Err(file_err(
-                &a.calibrated,
-                format!(
-                    "joint {} is '{}' here but '{}' in the nominal robot {}: not a calibration of it",
-                    i + 1,
-                    c.name,
-                    n.name,
-                    a.nominal.display()
-                ),
-            ));
-        }
-    }
+    let (nominal, calibrated) = load_robots(a, spec.as_ref())?;
     // The tool point: --tcp on both robots; else the MAP: the cell's (what the programs were
     // planned with) or the nominal file's on the nominal robot, the calibrated file's own (its
     // calibrated MAP) on the calibrated one.
-    let (tcp_n, tcp_c) = match tcp {
-        Some(t) => (t, t),
-        None => {
-            let n = spec
-                .as_ref()
-                .and_then(|s| s.map)
-                .or(nominal.tool)
-                .map(Frame::translation)
-                .ok_or_else(|| {
-                    usage(format!(
-                        "--tcp: required: {} declares no tool point (MAP) and no cell gives one",
-                        a.nominal.display()
-                    ))
-                })?;
-            (n, calibrated.tool.map(Frame::translation).unwrap_or(n))
-        }
-    };
+    let (tcp_n, tcp_c) = tool_points(a, tcp, spec.as_ref(), &nominal, &calibrated)?;
     // The program (its dialect decides the mapping's defaults and the mastering's family).
     let program_text = match &a.program {
         Some(p) => Some(read_input(p, "program", crate::files::Kind::Program)?),
@@ -144,39 +85,8 @@ pub fn compensate(a: &CompensateArgs) -> Result<i32, Error> {
         (Some(text), Some(p)) => Some(program_dialect(a.dialect.as_deref(), p, text)?),
         _ => named_dialect,
     };
-    let cell_spec = spec.as_ref().and_then(|s| s.controller.as_ref());
-    let map = match dialect {
-        Some(d) => match &spec {
-            Some(s) => controller_map(s, a.cell.as_deref(), d, &nominal)?,
-            None => controller_map(&crate::cell::CellSpec::default(), None, d, &nominal)?,
-        },
-        None => plain_map(cell_spec, &nominal).map_err(|e| Error::File {
-            path: a
-                .cell
-                .as_ref()
-                .map_or_else(|| "[controller]".into(), |p| p.display().to_string()),
-            msg: e.to_string(),
-        })?,
-    };
-    let pulses = cell_spec.and_then(|c| c.pulses_per_deg);
-    if let Some(p) = pulses {
-        if p.iter().any(|v| !(v.is_finite() && *v != 0.0)) {
-            return Err(file_err(
-                a.cell.as_deref().unwrap_or(Path::new("[controller]")),
-                "[controller] pulses_per_deg: six non-zero numbers (encoder pulses per axis degree)",
-            ));
-        }
-    }
-    let report_json = match &a.calibration {
-        Some(p) => {
-            let text = read_input(p, "calibration report", crate::files::Kind::Config)?;
-            Some(
-                serde_json::from_str::<serde_json::Value>(&text)
-                    .map_err(|e| file_err(p, format!("not JSON: {e}")))?,
-            )
-        }
-        None => None,
-    };
+    let (map, pulses) = resolve_map(a, spec.as_ref(), dialect, &nominal)?;
+    let report_json = read_calibration(a)?;
 
     let approach = targets::Approach::parse(&a.approach).ok_or_else(|| {
         usage(format!(
@@ -185,21 +95,7 @@ pub fn compensate(a: &CompensateArgs) -> Result<i32, Error> {
         ))
     })?;
     let mut calibrated = calibrated;
-    let payload = match &a.payload {
-        Some(p) => {
-            let v = numbers("--payload", p, None)?;
-            if !(v.len() == 1 || v.len() == 4) || v[0].is_nan() || v[0] < 0.0 {
-                return Err(usage(format!(
-                    "--payload: '{p}' needs a mass (kg, >= 0) and optionally its centre X,Y,Z (mm, flange frame)"
-                )));
-            }
-            Some((
-                v[0],
-                (v.len() == 4).then(|| Vector3::new(v[1], v[2], v[3]) * MM),
-            ))
-        }
-        None => None,
-    };
+    let payload = parse_payload(a)?;
     let state = setup::Setup {
         payload,
         approach,
@@ -228,35 +124,8 @@ pub fn compensate(a: &CompensateArgs) -> Result<i32, Error> {
     }
 
     // The joint zero offsets: the calibration report's, else the two files' θ.
-    let joint_offsets: Option<JointOffsets> = match &report_json {
-        Some(v) => Some(
-            offsets::from_report(v)
-                .map_err(|e| file_err(a.calibration.as_deref().unwrap_or(Path::new("")), e))?,
-        ),
-        None => match offsets::from_tables(&nominal, &calibrated) {
-            Ok(o) => Some(o),
-            Err(e) => {
-                notes.push(format!(
-                    "no mastering offsets: {e}; give --calibration REPORT.json"
-                ));
-                None
-            }
-        },
-    };
-    let predicted = report_json.as_ref().and_then(|v| {
-        Some((
-            v.pointer("/predicted_position_std_um/workspace_rms")?
-                .as_f64()?,
-            v.pointer("/predicted_position_std_um/workspace_p95")?
-                .as_f64()?,
-        ))
-    });
-    if predicted.is_some() && tcp.is_some() {
-        notes.push("the calibration's predicted uncertainty is the MAP's: at another tool point the flange's orientation uncertainty adds, times their distance".into());
-    }
-    if predicted.is_none() {
-        notes.push("the calibration's predicted accuracy is not known here: give --calibration REPORT.json".into());
-    }
+    let joint_offsets = joint_offsets(a, report_json.as_ref(), &nominal, &calibrated, &mut notes)?;
+    let predicted = predicted_accuracy(report_json.as_ref(), tcp.is_some(), &mut notes);
     let poses =
         crate::calibrate::predict::workspace(&calibrated, crate::calibrate::WORKSPACE_POSES, 1);
     let offsets_rad = joint_offsets.map_or([0.0; 6], |o| o.delta);
@@ -289,28 +158,12 @@ pub fn compensate(a: &CompensateArgs) -> Result<i32, Error> {
             &comp,
             &crate::timing::Limits::of(&nominal),
             &note,
-            match approach {
-                targets::Approach::Positive => [1.0; 6],
-                targets::Approach::Negative => [-1.0; 6],
-                targets::Approach::Order | targets::Approach::Unknown => [0.0; 6],
-            },
+            approach_signs(approach),
         )
         .map_err(|e| file_err(path, e))?
         {
             Outcome::Refused(list) => {
-                for r in &list {
-                    eprintln!(
-                        "edbbgen: {}: line {}: cannot be compensated: {}",
-                        path.display(),
-                        r.line,
-                        r.status
-                    );
-                }
-                eprintln!(
-                    "edbbgen: {}: {} of its moves cannot be compensated; nothing written",
-                    path.display(),
-                    list.len()
-                );
+                print_refused(path, &list);
                 return Ok(1);
             }
             Outcome::Written(w) => {
@@ -339,19 +192,265 @@ pub fn compensate(a: &CompensateArgs) -> Result<i32, Error> {
         accuracy,
         notes,
     };
-    let json = serde_json::to_string_pretty(&report).unwrap_or_default() + "\n";
+    write_outputs(a, &report, &calibrated, output_text.as_deref())
+}
+
+/// The input the flags name (the targets file, `true`, or the program, `false`), checked
+/// against `-o` and the other outputs; none without an input.
+fn check_input(a: &CompensateArgs) -> Result<Option<(&std::path::PathBuf, bool)>, Error> {
+    let input = match (&a.targets, &a.program) {
+        (Some(t), None) => Some((t, true)),
+        (None, Some(p)) => Some((p, false)),
+        (None, None) => None,
+        (Some(_), Some(_)) => {
+            return Err(usage(
+                "--targets and --program: give one of them (run compensate twice for both)",
+            ))
+        }
+    };
+    match (&input, &a.output) {
+        (Some(_), None) => {
+            return Err(usage(
+                "-o: required with --targets or --program (the compensated file)",
+            ))
+        }
+        (None, Some(o)) => {
+            return Err(usage(format!(
+                "-o {}: give --targets T.csv or --program PROGRAM to compensate",
+                o.display()
+            )))
+        }
+        _ => {}
+    }
+    check_outputs(&[a.output.as_deref(), a.json.as_deref(), a.html.as_deref()])?;
+    Ok(input)
+}
+
+/// The nominal and the calibrated robot (the cell's `spec` gives the speeds), checked to be the
+/// same robot joint by joint.
+fn load_robots(
+    a: &CompensateArgs,
+    spec: Option<&crate::cell::CellSpec>,
+) -> Result<(Robot, Robot), Error> {
+    let load_opts = LoadOptions {
+        flange_link: a.flange.clone(),
+        package_paths: a.package_path.clone(),
+        speeds: spec.and_then(|s| s.speeds),
+        ..LoadOptions::default()
+    };
+    let nominal = robot::load(&a.nominal, &load_opts)?;
+    let calibrated = robot::load(&a.calibrated, &load_opts)?;
+    for (i, (n, c)) in nominal.joints.iter().zip(&calibrated.joints).enumerate() {
+        if n.name != c.name {
+            return Err(file_err(
+                &a.calibrated,
+                format!(
+                    "joint {} is '{}' here but '{}' in the nominal robot {}: not a calibration of it",
+                    i + 1,
+                    c.name,
+                    n.name,
+                    a.nominal.display()
+                ),
+            ));
+        }
+    }
+    Ok((nominal, calibrated))
+}
+
+/// The tool point on the nominal and on the calibrated robot: `tcp` on both, else the MAP
+/// (the cell `spec`'s or the nominal file's; the calibrated file's own on the calibrated robot).
+fn tool_points(
+    a: &CompensateArgs,
+    tcp: Option<Frame>,
+    spec: Option<&crate::cell::CellSpec>,
+    nominal: &Robot,
+    calibrated: &Robot,
+) -> Result<(Frame, Frame), Error> {
+    Ok(match tcp {
+        Some(t) => (t, t),
+        None => {
+            let n = spec
+                .and_then(|s| s.map)
+                .or(nominal.tool)
+                .map(Frame::translation)
+                .ok_or_else(|| {
+                    usage(format!(
+                        "--tcp: required: {} declares no tool point (MAP) and no cell gives one",
+                        a.nominal.display()
+                    ))
+                })?;
+            (n, calibrated.tool.map(Frame::translation).unwrap_or(n))
+        }
+    })
+}
+
+/// The controller mapping (from the `dialect`'s defaults and the cell `spec`'s `[controller]`,
+/// else the plain one) and the cell's encoder pulses per degree, checked.
+fn resolve_map(
+    a: &CompensateArgs,
+    spec: Option<&crate::cell::CellSpec>,
+    dialect: Option<&'static crate::dialect::Dialect>,
+    nominal: &Robot,
+) -> Result<(ControllerMap, Option<[f64; 6]>), Error> {
+    let cell_spec = spec.and_then(|s| s.controller.as_ref());
+    let map = match dialect {
+        Some(d) => match spec {
+            Some(s) => controller_map(s, a.cell.as_deref(), d, nominal)?,
+            None => controller_map(&crate::cell::CellSpec::default(), None, d, nominal)?,
+        },
+        None => plain_map(cell_spec, nominal).map_err(|e| Error::File {
+            path: a
+                .cell
+                .as_ref()
+                .map_or_else(|| "[controller]".into(), |p| p.display().to_string()),
+            msg: e.to_string(),
+        })?,
+    };
+    let pulses = cell_spec.and_then(|c| c.pulses_per_deg);
+    if let Some(p) = pulses {
+        if p.iter().any(|v| !(v.is_finite() && *v != 0.0)) {
+            return Err(file_err(
+                a.cell.as_deref().unwrap_or(Path::new("[controller]")),
+                "[controller] pulses_per_deg: six non-zero numbers (encoder pulses per axis degree)",
+            ));
+        }
+    }
+    Ok((map, pulses))
+}
+
+/// `--calibration`: the calibration report as JSON, or none.
+fn read_calibration(a: &CompensateArgs) -> Result<Option<serde_json::Value>, Error> {
+    Ok(match &a.calibration {
+        Some(p) => {
+            let text = read_input(p, "calibration report", crate::files::Kind::Config)?;
+            Some(
+                serde_json::from_str::<serde_json::Value>(&text)
+                    .map_err(|e| file_err(p, format!("not JSON: {e}")))?,
+            )
+        }
+        None => None,
+    })
+}
+
+/// A payload: its mass (kg) and, where given, its centre (m, flange frame).
+type Payload = (f64, Option<Vector3<f64>>);
+
+/// `--payload`: the payload the flag gives, or none.
+fn parse_payload(a: &CompensateArgs) -> Result<Option<Payload>, Error> {
+    Ok(match &a.payload {
+        Some(p) => {
+            let v = numbers("--payload", p, None)?;
+            if !(v.len() == 1 || v.len() == 4) || v[0].is_nan() || v[0] < 0.0 {
+                return Err(usage(format!(
+                    "--payload: '{p}' needs a mass (kg, >= 0) and optionally its centre X,Y,Z (mm, flange frame)"
+                )));
+            }
+            Some((
+                v[0],
+                (v.len() == 4).then(|| Vector3::new(v[1], v[2], v[3]) * MM),
+            ))
+        }
+        None => None,
+    })
+}
+
+/// The joint zero offsets: the calibration report's, else the two robots' θ; a note says why
+/// there are none.
+fn joint_offsets(
+    a: &CompensateArgs,
+    report_json: Option<&serde_json::Value>,
+    nominal: &Robot,
+    calibrated: &Robot,
+    notes: &mut Vec<String>,
+) -> Result<Option<JointOffsets>, Error> {
+    Ok(match report_json {
+        Some(v) => Some(
+            offsets::from_report(v)
+                .map_err(|e| file_err(a.calibration.as_deref().unwrap_or(Path::new("")), e))?,
+        ),
+        None => match offsets::from_tables(nominal, calibrated) {
+            Ok(o) => Some(o),
+            Err(e) => {
+                notes.push(format!(
+                    "no mastering offsets: {e}; give --calibration REPORT.json"
+                ));
+                None
+            }
+        },
+    })
+}
+
+/// The calibration report's predicted accuracy (RMS, p95, µm) where it states one; notes say
+/// what it does not cover (another tool point given with `tcp_given`) or that it is missing.
+fn predicted_accuracy(
+    report_json: Option<&serde_json::Value>,
+    tcp_given: bool,
+    notes: &mut Vec<String>,
+) -> Option<(f64, f64)> {
+    let predicted = report_json.and_then(|v| {
+        Some((
+            v.pointer("/predicted_position_std_um/workspace_rms")?
+                .as_f64()?,
+            v.pointer("/predicted_position_std_um/workspace_p95")?
+                .as_f64()?,
+        ))
+    });
+    if predicted.is_some() && tcp_given {
+        notes.push("the calibration's predicted uncertainty is the MAP's: at another tool point the flange's orientation uncertainty adds, times their distance".into());
+    }
+    if predicted.is_none() {
+        notes.push("the calibration's predicted accuracy is not known here: give --calibration REPORT.json".into());
+    }
+    predicted
+}
+
+/// The direction each joint approaches its target from: +1, −1, or 0 when not known.
+fn approach_signs(approach: targets::Approach) -> [f64; 6] {
+    match approach {
+        targets::Approach::Positive => [1.0; 6],
+        targets::Approach::Negative => [-1.0; 6],
+        targets::Approach::Order | targets::Approach::Unknown => [0.0; 6],
+    }
+}
+
+/// Tells on stderr which moves of the program at `path` cannot be compensated.
+fn print_refused(path: &Path, list: &[program::Refused]) {
+    for r in list {
+        eprintln!(
+            "edbbgen: {}: line {}: cannot be compensated: {}",
+            path.display(),
+            r.line,
+            r.status
+        );
+    }
+    eprintln!(
+        "edbbgen: {}: {} of its moves cannot be compensated; nothing written",
+        path.display(),
+        list.len()
+    );
+}
+
+/// Writes the compensated file (`output_text`), the JSON `report` and the page for `calibrated`
+/// all together or not at all, and prints the summary; the exit code.
+fn write_outputs(
+    a: &CompensateArgs,
+    report: &Report,
+    calibrated: &Robot,
+    output_text: Option<&str>,
+) -> Result<i32, Error> {
+    let json = serde_json::to_string_pretty(report).unwrap_or_default() + "\n";
     let html = match &a.html {
         Some(_) => {
             let title = format!("{} [{}]", calibrated.name, calibrated.source);
             Some(crate::report::render(&crate::report::compensate::page(
-                &report, &title,
+                report, &title,
             )?)?)
         }
         None => None,
     };
     let mut files: Vec<(&Path, &str)> = Vec::new();
-    if let (Some(o), Some(t)) = (&a.output, &output_text) {
-        files.push((o.as_path(), t.as_str()));
+    if let (Some(o), Some(t)) = (&a.output, output_text) {
+        files.push((o.as_path(), t));
     }
     if let Some(p) = &a.json {
         files.push((p.as_path(), json.as_str()));
@@ -360,7 +459,7 @@ pub fn compensate(a: &CompensateArgs) -> Result<i32, Error> {
         files.push((p.as_path(), h.as_str()));
     }
     write_all_atomic(&files)?;
-    print!("{}", compensate::summary::text(&report));
+    print!("{}", compensate::summary::text(report));
     if let Some(o) = &a.output {
         println!("wrote {}", o.display());
     }

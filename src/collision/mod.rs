@@ -1104,6 +1104,63 @@ pub fn build(
     fixture: &Vector3<f64>,
     map: &Vector3<f64>,
 ) -> Result<(Scene, SceneReport), CollisionError> {
+    let (mut bodies, passive_body) = robot_bodies(robot, cell, map)?;
+    let n_robot = bodies.len();
+    bodies.extend(world_bodies(cell, fixture)?);
+
+    // Pairs.
+    let home = chain_frames(&robot.base, &robot.dh, &robot.flange, &[0.0; 6]);
+    let home_poses = Poses::new(&[0.0; 6], &home, &robot.passive);
+    let mut excluded = Vec::new();
+    let pairs = body_pairs(
+        robot,
+        cell,
+        &bodies,
+        n_robot,
+        &passive_body,
+        &home_poses,
+        &mut excluded,
+    )?;
+    let bar_pairs = bar_pairs(cell, &bodies, fixture, map, &home_poses, &mut excluded)?;
+
+    // Sweep bound (see `Scene::sweep_radius`).
+    let legs = legs(robot);
+    let reach = body_reach(robot, &bodies, n_robot, &legs);
+    let sweep: [f64; 6] = std::array::from_fn(|i| reach.iter().map(|r| r[i]).fold(0.0, f64::max));
+    // The MAP's reach, for the bar: a bar point moves at most 1.5 times as fast as the MAP (the
+    // fixture end is fixed; the ends sit a ball radius inside the balls), 2 is used.
+    let map_reach: [f64; 6] =
+        std::array::from_fn(|i| legs[i + 1..=7].iter().sum::<f64>() + map.norm());
+    let rates = pair_rates(&bodies, &reach, &pairs, &bar_pairs, &map_reach);
+
+    let report = SceneReport {
+        bodies: bodies.iter().map(|b| b.name.clone()).collect(),
+        pairs_checked: pairs.len() + bar_pairs.len(),
+        excluded,
+    };
+    Ok((
+        Scene {
+            bodies,
+            passive: robot.passive.clone(),
+            pairs,
+            bar_pairs,
+            fixture: *fixture,
+            bar_radius: 0.5 * cell.bar_diameter,
+            ball_radius: 0.5 * cell.ball,
+            sweep,
+            rates,
+        },
+        report,
+    ))
+}
+
+/// The robot's bodies (links, passive links, tool, MAP ball at `map`, hoses) from its shapes and
+/// `cell`, and per passive link the index of its body, if it has one.
+fn robot_bodies(
+    robot: &Robot,
+    cell: &CellSpec,
+    map: &Vector3<f64>,
+) -> Result<(Vec<Body>, Vec<Option<usize>>), CollisionError> {
     let mut bodies: Vec<Body> = Vec::new();
     // Links.
     let mut link_parts: Vec<Vec<Part>> = (0..7).map(|_| Vec::new()).collect();
@@ -1191,8 +1248,13 @@ pub fn build(
             vec![p],
         ));
     }
-    let n_robot = bodies.len();
-    // World.
+    Ok((bodies, passive_body))
+}
+
+/// The world's bodies from `cell` and the `fixture`: the floor, the environment, the fixture
+/// ball and its stand.
+fn world_bodies(cell: &CellSpec, fixture: &Vector3<f64>) -> Result<Vec<Body>, CollisionError> {
+    let mut bodies = Vec::new();
     let floor = Part {
         shape: SharedShape::new(HalfSpace::new(Unit::new_unchecked(Vector3::z()))),
         hull: None,
@@ -1214,10 +1276,20 @@ pub fn build(
     let (ball, stand) = fixture_bodies(cell, fixture)?;
     bodies.extend(ball);
     bodies.extend(stand);
+    Ok(bodies)
+}
 
-    // Pairs.
-    let home = chain_frames(&robot.base, &robot.dh, &robot.flange, &[0.0; 6]);
-    let home_poses = Poses::new(&[0.0; 6], &home, &robot.passive);
+/// The body pairs to check among the robot's first `n_robot` `bodies` and against the world's,
+/// judged at the home pose; excluded pairs go into `excluded` with the reason.
+fn body_pairs(
+    robot: &Robot,
+    cell: &CellSpec,
+    bodies: &[Body],
+    n_robot: usize,
+    passive_body: &[Option<usize>],
+    home_poses: &Poses,
+    excluded: &mut Vec<ExcludedPair>,
+) -> Result<Vec<(usize, usize)>, CollisionError> {
     let exact = |a: &Body, b: &Body| -> Result<f64, CollisionError> {
         let (ia, ib) = (&home_poses.of(a), &home_poses.of(b));
         let mut best = f64::INFINITY;
@@ -1260,7 +1332,6 @@ pub fn build(
         })
     };
     let mut pairs = Vec::new();
-    let mut excluded = Vec::new();
     let mut exclude = |a: &Body, b: &Body, reason: String| {
         excluded.push(ExcludedPair {
             a: a.name.clone(),
@@ -1297,7 +1368,7 @@ pub fn build(
             pairs.push((i, j));
         }
     }
-    let vertical_j1 = home[0].r.column(2).z.abs() > 1.0 - 1e-9;
+    let vertical_j1 = home_poses.frames[0].r.column(2).z.abs() > 1.0 - 1e-9;
     for i in 0..n_robot {
         for j in n_robot..bodies.len() {
             let (a, b) = (&bodies[i], &bodies[j]);
@@ -1323,8 +1394,21 @@ pub fn build(
             pairs.push((i, j));
         }
     }
+    Ok(pairs)
+}
+
+/// The bodies the bar is checked against (by index), each shape pair proven supported with a
+/// bar from the `fixture` toward the home pose's MAP at `map`; excluded bodies go into `excluded`.
+fn bar_pairs(
+    cell: &CellSpec,
+    bodies: &[Body],
+    fixture: &Vector3<f64>,
+    map: &Vector3<f64>,
+    home_poses: &Poses,
+    excluded: &mut Vec<ExcludedPair>,
+) -> Result<Vec<usize>, CollisionError> {
     let mut bar_pairs = Vec::new();
-    let home_map = home[7].apply(map);
+    let home_map = home_poses.frames[7].apply(map);
     let probe = {
         // Any bar will do to find unsupported shape pairs: the one at the home pose, or a
         // stand-in when the balls overlap there.
@@ -1343,11 +1427,11 @@ pub fn build(
     for (j, b) in bodies.iter().enumerate() {
         match b.role {
             Role::Tool | Role::MapBall => {
-                exclude_bar(&mut excluded, b, "bar ends in the tool cup");
+                exclude_bar(excluded, b, "bar ends in the tool cup");
                 continue;
             }
             Role::FixtureBall | Role::Stand => {
-                exclude_bar(&mut excluded, b, "bar starts at the fixture");
+                exclude_bar(excluded, b, "bar starts at the fixture");
                 continue;
             }
             _ => {}
@@ -1364,13 +1448,21 @@ pub fn build(
         }
         bar_pairs.push(j);
     }
+    Ok(bar_pairs)
+}
 
-    // Sweep bound (see `Scene::sweep_radius`).
-    let legs: [f64; 8] = std::array::from_fn(|f| match f {
+/// The length of each link of `robot`'s chain (m): frame f's distance from frame f − 1.
+fn legs(robot: &Robot) -> [f64; 8] {
+    std::array::from_fn(|f| match f {
         1..=6 => robot.dh[f - 1].a.hypot(robot.dh[f - 1].d),
         7 => robot.flange.t.norm(),
         _ => 0.0,
-    });
+    })
+}
+
+/// Per body of `bodies` (the robot's first `n_robot`, then the world's): how far any point of it
+/// moves per radian of each joint, from the chain's `legs`.
+fn body_reach(robot: &Robot, bodies: &[Body], n_robot: usize, legs: &[f64; 8]) -> Vec<[f64; 6]> {
     let (lo, hi) = robot.limits();
     // reach[b][i]: how far any point of body b moves per radian of joint i + 1 (0 for the world).
     let mut reach: Vec<[f64; 6]> = vec![[0.0; 6]; bodies.len()];
@@ -1424,32 +1516,7 @@ pub fn build(
             Attach::World => {}
         }
     }
-    let sweep: [f64; 6] = std::array::from_fn(|i| reach.iter().map(|r| r[i]).fold(0.0, f64::max));
-    // The MAP's reach, for the bar: a bar point moves at most 1.5 times as fast as the MAP (the
-    // fixture end is fixed; the ends sit a ball radius inside the balls), 2 is used.
-    let map_reach: [f64; 6] =
-        std::array::from_fn(|i| legs[i + 1..=7].iter().sum::<f64>() + map.norm());
-    let rates = pair_rates(&bodies, &reach, &pairs, &bar_pairs, &map_reach);
-
-    let report = SceneReport {
-        bodies: bodies.iter().map(|b| b.name.clone()).collect(),
-        pairs_checked: pairs.len() + bar_pairs.len(),
-        excluded,
-    };
-    Ok((
-        Scene {
-            bodies,
-            passive: robot.passive.clone(),
-            pairs,
-            bar_pairs,
-            fixture: *fixture,
-            bar_radius: 0.5 * cell.bar_diameter,
-            ball_radius,
-            sweep,
-            rates,
-        },
-        report,
-    ))
+    reach
 }
 
 /// Per checked pair (the body pairs, then the bar pairs): for each joint, a bound on how fast the

@@ -702,197 +702,231 @@ pub fn select(
     start: Estimate,
     opts: &DiagnoseOptions,
 ) -> Selected {
-    let mut free = free.to_vec();
     let kept = problem.kept().max(1);
     let folds = opts.folds.clamp(2, 20).min(kept / 8).max(2);
     let nominal = Estimate::nominal(problem);
     let nominal_res = accumulate(problem, &nominal, &[], 1).residual;
     let rms_nominal = kept_rms(&nominal_res, &problem.weight);
-    let mut stages = vec![("nominal".to_string(), nominal_res.clone())];
     let n = kept as f64;
 
     // Calibration: the geometric fit.
-    let mut s = start;
-    let st = fit::refit_stats(problem, &mut s, &free);
-    let mut residual = st.residual.clone();
-    let x_var = {
-        let sel: Vec<usize> = (0..st.c).collect();
-        solve(&st.n[0], &st.b[0], &sel).1
+    let (s, residual, heldout_geometry, geometric) = geometry_stage(problem, start, free, folds, n);
+    let mut log = Log {
+        stages: vec![
+            ("nominal".to_string(), nominal_res.clone()),
+            ("geometric".to_string(), residual.clone()),
+        ],
+        steps: vec![geometric],
+        named: vec![NamedEffect {
+            effect: "geometric",
+            joint: None,
+        }],
+        records: vec![Candidate {
+            effect: Effect::Geometric,
+            basis: Basis::Standard,
+            heldout_rms: heldout_geometry,
+            adopted: true,
+        }],
     };
-    let (bic0, cv0) = {
-        let cols = model_cols(&s, &free);
-        let st = accumulate(problem, &s, &cols, folds);
-        let sel: Vec<usize> = (0..cols.len()).collect();
-        let (_, _, bic, cv) = score(&st, &sel);
-        (bic, cv)
-    };
-    let heldout_geometry = (cv0 / n).sqrt();
-    let sigma2 = st.rr[0] / (n - free.len() as f64).max(1.0);
-    let var: Vec<f64> = x_var.iter().map(|v| v * sigma2).collect();
-    let (params, std) = geometry_report(problem, &s, &free, &var);
-    let mut steps = vec![StepReport {
-        effect: "geometric",
-        joint: None,
-        rms_after_um: round(kept_rms(&residual, &problem.weight) * 1e6, 3),
-        params,
-        std,
-        bic: round(bic0, 1),
-        cv_rms_um: round(heldout_geometry * 1e6, 3),
-    }];
-    stages.push(("geometric".to_string(), residual.clone()));
-    let mut named = vec![NamedEffect {
-        effect: "geometric",
-        joint: None,
-    }];
-    let mut records: Vec<Candidate> = vec![Candidate {
-        effect: Effect::Geometric,
-        basis: Basis::Standard,
-        heldout_rms: heldout_geometry,
-        adopted: true,
-    }];
-    let mut found: Vec<Step> = Vec::new();
 
     // The reading noise: the instrument's as given, or from the data (its form decides how);
     // 0 when the data cannot tell it (every excess then counts).
     let neighbours = noise::Neighbours::new(problem);
-    let mut found_noise = noise::reading_noise(problem, &neighbours, &residual, opts.noise, false);
-    let mut noise = found_noise.or(0.0);
+    let noise_found = noise::reading_noise(problem, &neighbours, &residual, opts.noise, false);
+    let mut g = Grown {
+        s,
+        free: free.to_vec(),
+        residual,
+        noise: noise_found.or(0.0),
+        noise_found,
+        found: Vec::new(),
+        pending: None,
+    };
     let (mut effects_added, mut steps_added) = (0, 0);
-    // Steps split off but not yet proven: the state before the first of them. Several faults
-    // in one run (a zero that jumps twice) leave the residual of the first split as
-    // correlated as before, the other jump in it; they are judged together, by the residual
-    // after the last.
-    let mut pending: Option<Pending> = None;
     while effects_added < opts.max_effects || steps_added < opts.max_steps {
-        let live = fit::kept_values(&residual, &problem.weight);
-        let now = noise::reading_noise(problem, &neighbours, &residual, opts.noise, false);
-        if now.known() && now.sigma < noise {
-            (noise, found_noise) = (now.sigma, now);
-        }
+        let live = fit::kept_values(&g.residual, &problem.weight);
+        g.lower_noise(problem, &neighbours, opts.noise);
         let r_now = rms(&live);
         // The noise a fitted form's uncertainty is judged with: when unknown, the residual's
         // (the larger: fewer forms count as determined).
-        let noise_form = if found_noise.known() { noise } else { r_now };
+        let noise_form = if g.noise_found.known() {
+            g.noise
+        } else {
+            r_now
+        };
         // At the noise level and white: nothing left to explain. The candidates are still
         // scored once, so that the report lists each with its held-out error.
-        let settled = r_now <= 1.5 * noise && lag1(&live) < 0.2;
-        if settled && records.len() > 1 {
+        let settled = r_now <= 1.5 * g.noise && lag1(&live) < 0.2;
+        if settled && log.records.len() > 1 {
             break;
         }
         // One pass: the current model's columns plus every candidate's.
-        let base_cols = model_cols(&s, &free);
-        let mut cols = base_cols.clone();
-        let mut moves: Vec<(Move, std::ops::Range<usize>)> = Vec::new();
-        // A model with as many unknowns as readings interpolates them: its residual vanishes,
-        // its BIC runs to −∞ and its held-out folds are fitted on fewer rows than columns. A
-        // move is a candidate only when the model with it keeps at least as many readings
-        // spare as it has unknowns (a general compliance basis of 60 terms is no candidate
-        // for 42 plateau means).
-        let spare = base_cols.len();
-        let mut add = |m: Move, cols: &mut Vec<Col>| {
-            let c = move_cols(&m);
-            let least = match m {
-                Move::Cyclic(_) => 2,
-                _ => c.len(),
-            };
-            if 2 * (spare + least) > kept {
-                return;
-            }
-            moves.push((m, cols.len()..cols.len() + c.len()));
-            cols.extend(c);
-        };
-        if effects_added < opts.max_effects {
-            for m in candidates(problem) {
-                let present = match &m {
-                    Move::Effect(e, _, _) => s.effects.iter().any(|t| t.effect == *e),
-                    Move::Cyclic(j) => s
-                        .effects
-                        .iter()
-                        .any(|t| t.effect == Effect::CyclicError(*j)),
-                    Move::Step(_) => false,
-                };
-                if !present {
-                    add(m, &mut cols);
-                }
-            }
-        }
-        if steps_added < opts.max_steps {
-            for split in steps::scan(problem, &s, &free) {
-                add(Move::Step(split), &mut cols);
-            }
-        }
+        let (cols, base_len, moves) = round_columns(
+            problem,
+            &g,
+            kept,
+            effects_added < opts.max_effects,
+            steps_added < opts.max_steps,
+        );
         if moves.is_empty() {
             break;
         }
-        let st = accumulate(problem, &s, &cols, folds);
-        let base_sel: Vec<usize> = (0..base_cols.len()).collect();
+        let st = accumulate(problem, &g.s, &cols, folds);
+        let base_sel: Vec<usize> = (0..base_len).collect();
         let (rss0, _, bic0, cv0) = score(&st, &base_sel);
-        let excess = (rss0 - n * noise * noise).max(0.0);
-        let excess_heldout = (cv0 - n * noise * noise).max(0.0);
-        let normal = st.total();
-        // Each move's best form: its score (rss, bic, held-out) on the shared sums.
-        let scored: Vec<(Move, Basis, f64, f64, f64)> = moves
-            .par_iter()
-            .map(|(m, range)| {
-                let with = |extra: &[usize]| -> (f64, f64, f64) {
-                    let sel: Vec<usize> = base_sel.iter().chain(extra).copied().collect();
-                    let (rss, _, bic, cv) = score(&st, &sel);
-                    (rss, bic, cv)
-                };
-                match m {
-                    Move::Cyclic(j) => {
-                        // Harmonic orders 1..H, H the smallest whose held-out error is within
-                        // HARMONIC_GAIN of the best: a higher order joins only when the data
-                        // support it, and the first (which a joint short of a turn confuses
-                        // with its zero offset) is never left out for a higher one that
-                        // happens to mimic it. H is at most an order the joint's measured
-                        // range determines over the joint's whole range (`form_determined`):
-                        // held-out blocks lie inside the range too, so they cannot judge the
-                        // form beyond it.
-                        let cap = (1..=fit::MAX_HARMONIC)
-                            .take_while(|&h| {
-                                form_determined(
-                                    problem,
-                                    *j,
-                                    h,
-                                    &normal,
-                                    &base_sel,
-                                    range.start,
-                                    noise_form,
-                                )
-                            })
-                            .last()
-                            .unwrap_or(1);
-                        let upto = |h: usize| -> (f64, f64, f64) {
-                            let sel: Vec<usize> = (range.start..range.start + 2 * h).collect();
-                            with(&sel)
-                        };
-                        let all: Vec<(f64, f64, f64)> = (1..=cap).map(upto).collect();
-                        let min = all.iter().map(|x| x.2).fold(f64::INFINITY, f64::min);
-                        let h = (1..=cap)
-                            .find(|&h| all[h - 1].2 * (1.0 - HARMONIC_GAIN) <= min)
-                            .unwrap_or(cap);
-                        let best = all[h - 1];
-                        let mask = ((1u16 << h) - 1) as u8;
-                        (m.clone(), Basis::Harmonics(mask), best.0, best.1, best.2)
-                    }
-                    Move::Effect(_, b, _) => {
-                        let extra: Vec<usize> = range.clone().collect();
-                        let (rss, bic, cv) = with(&extra);
-                        (m.clone(), *b, rss, bic, cv)
-                    }
-                    Move::Step(_) => {
-                        let extra: Vec<usize> = range.clone().collect();
-                        let (rss, bic, cv) = with(&extra);
-                        // The step's place is one more parameter, chosen on these data.
-                        (m.clone(), Basis::Standard, rss, bic + 2.0 * n.ln(), cv)
-                    }
-                }
-            })
-            .collect();
-        // The record of every effect considered: its best form this round.
+        let scored = score_moves(problem, &st, &moves, &base_sel, n, noise_form);
+        log.record_round(&scored, n);
+        let base = (rss0, bic0, cv0);
+        let Some((m, basis, _, _, cv)) = best_move(problem, &scored, base, n, g.noise, opts) else {
+            break;
+        };
+        if settled {
+            break;
+        }
+        if g.pending.is_some() && !matches!(m, Move::Step(_)) {
+            // Unproven steps are not a model to add an effect to: back to the last proven one,
+            // and no more steps.
+            g.undo_pending(problem);
+            steps_added = opts.max_steps;
+            continue;
+        }
+        let heldout = (cv / n).sqrt();
+        let (e, tau0) = match m {
+            Move::Effect(e, _, tau) => (e, tau),
+            Move::Cyclic(j) => (Effect::CyclicError(j), 0.0),
+            Move::Step(split) => {
+                g.split_off(problem, &split, (cv0 / n).sqrt(), heldout);
+                steps_added += 1;
+                continue;
+            }
+        };
+        let Some((trial, st, bic, basis)) = refit_forms(problem, &g, e, basis, tau0, n) else {
+            break;
+        };
+        g.s = trial;
+        g.residual = st.residual.clone();
+        effects_added += 1;
+        log.adopt(problem, &g, e, basis, bic, heldout);
+    }
+    // Steps never proven are undone.
+    g.undo_pending(problem);
+    g.lower_noise(problem, &neighbours, opts.noise);
+    conclude(problem, g, log, rms_nominal, &nominal_res, heldout_geometry)
+}
+
+/// The model the selection grows: its estimate, free parameters and residual, the reading
+/// noise (the lowest seen and where it came from), the steps split off and those not proven.
+struct Grown {
+    s: Estimate,
+    free: Vec<Param>,
+    residual: Vec<f64>,
+    noise: f64,
+    noise_found: noise::Noise,
+    found: Vec<Step>,
+    pending: Option<Pending>,
+}
+
+impl Grown {
+    /// Measures the reading noise of the current residual and keeps it when it is lower.
+    fn lower_noise(
+        &mut self,
+        problem: &Problem,
+        neighbours: &noise::Neighbours,
+        given: Option<f64>,
+    ) {
+        let now = noise::reading_noise(problem, neighbours, &self.residual, given, false);
+        if now.known() && now.sigma < self.noise {
+            (self.noise, self.noise_found) = (now.sigma, now);
+        }
+    }
+
+    /// Undoes the steps not yet proven, if any: back to the model before the first of them.
+    fn undo_pending(&mut self, problem: &mut Problem) {
+        if let Some(p) = self.pending.take() {
+            (self.s, self.free, self.residual, self.noise) = p.restore(problem, &mut self.found);
+        }
+    }
+
+    /// Splits `split` off and refits: the step joins the model, proven or pending, recorded with
+    /// the held-out RMS (m) before and with it.
+    fn split_off(
+        &mut self,
+        problem: &mut Problem,
+        split: &steps::Split,
+        heldout_before: f64,
+        heldout_after: f64,
+    ) {
+        let mut trial = self.s.clone();
+        let group = problem.split(&mut trial, split.fixture, split.at);
+        if split.fixture {
+            self.free
+                .extend((0..3).map(|axis| Param::Fixture { group, axis }));
+        } else {
+            self.free.push(Param::Offset { group });
+        }
+        let st = fit::refit_stats(problem, &mut trial, &self.free);
+        // A step must beat the model's own systematic residual, not the noise alone:
+        // the change-point test again on the refitted residual, its rows counted as
+        // the independent readings they are worth (a model error that wanders with the
+        // pose makes consecutive residuals alike, and any split of it "explains" a
+        // share; a real step leaves a residual as white as before). Steps not yet
+        // proven are judged with this one, from the last proven model.
+        let params = if split.fixture { 4.0 } else { 2.0 };
+        let (before, params) = match &self.pending {
+            Some(p) => (
+                fit::kept_values(&p.residual, &problem.weight),
+                p.params + params,
+            ),
+            None => (fit::kept_values(&self.residual, &problem.weight), params),
+        };
+        let after = fit::kept_values(&st.residual, &problem.weight);
+        let ss = |r: &[f64]| r.iter().map(|v| v * v).sum::<f64>();
+        let n_eff = after.len() as f64 / fit::correlation_time(&after).max(1.0);
+        let gain =
+            n_eff * (ss(&before) / ss(&after).max(1e-300)).ln() - params * n_eff.max(1.0).ln();
+        let proven = gain > 10.0;
+        if !proven {
+            self.pending
+                .get_or_insert_with(|| Pending {
+                    s: self.s.clone(),
+                    free: self.free[..self.free.len() - if split.fixture { 3 } else { 1 }].to_vec(),
+                    residual: self.residual.clone(),
+                    noise: self.noise,
+                    found: self.found.len(),
+                    splits: Vec::new(),
+                    params: 0.0,
+                })
+                .add(split.fixture, group, params);
+        } else {
+            self.pending = None;
+        }
+        self.s = trial;
+        self.residual = st.residual;
+        self.found.push(Step {
+            fixture: split.fixture,
+            at: split.at,
+            group,
+            heldout_before,
+            heldout_after,
+        });
+    }
+}
+
+/// What the selection records as it goes: the residual after each stage, each stage's report,
+/// the named effects and every candidate considered.
+struct Log {
+    stages: Vec<(String, Vec<f64>)>,
+    steps: Vec<StepReport>,
+    named: Vec<NamedEffect>,
+    records: Vec<Candidate>,
+}
+
+impl Log {
+    /// Records every effect of a round's `scored` moves with its best form and held-out RMS
+    /// (from the held-out sum of squares over `n` rows).
+    fn record_round(&mut self, scored: &[Scored], n: f64) {
         let mut round_best: Vec<(Effect, Basis, f64)> = Vec::new();
-        for (m, b, _, _, cv) in &scored {
+        for (m, b, _, _, cv) in scored {
             let e = match m {
                 Move::Effect(e, _, _) => *e,
                 Move::Cyclic(j) => Effect::CyclicError(*j),
@@ -906,12 +940,12 @@ pub fn select(
         }
         for (e, b, cv) in round_best {
             let h = (cv / n).sqrt();
-            match records.iter_mut().find(|r| r.effect == e) {
+            match self.records.iter_mut().find(|r| r.effect == e) {
                 Some(r) => {
                     r.heldout_rms = h;
                     r.basis = b;
                 }
-                None => records.push(Candidate {
+                None => self.records.push(Candidate {
                     effect: e,
                     basis: b,
                     heldout_rms: h,
@@ -919,172 +953,325 @@ pub fn select(
                 }),
             }
         }
-        // An effect must lower the held-out error; a step (a fault, not a model of the robot)
-        // must pass the change-point test, the BIC with its place as a parameter, and in a
-        // continuous recording (whose real faults leave long segments) lower the held-out
-        // error too. Held-out blocks cannot judge a static run's short segments (a drifting
-        // zero cut into steps), whose own zero no other block sees.
-        let best = scored
-            .iter()
-            .filter(|(m, _, rss, bic, cv)| match m {
-                Move::Step(split) => {
-                    let run = problem.run_of(split.at);
-                    *bic < bic0 - 10.0
-                        && (problem.forms[run] != Form::Continuous
-                            || *cv < (1.0 - HELDOUT_GAIN) * cv0)
-                }
-                _ => {
-                    *bic < bic0 - 10.0
-                        && *cv < (1.0 - HELDOUT_GAIN) * cv0
-                        && rss0 - rss >= opts.min_explained * excess
-                        && cv0 - cv >= opts.min_explained_heldout * excess_heldout
-                }
-            })
-            // Of those that qualify, the one the BIC prefers (on the same rows for every kind).
-            .min_by(|a, b| a.3.total_cmp(&b.3));
-        let Some((m, basis, _, _, cv)) = best.cloned() else {
-            break;
-        };
-        if settled {
-            break;
-        }
-        if pending.is_some() && !matches!(m, Move::Step(_)) {
-            // Unproven steps are not a model to add an effect to: back to the last proven one,
-            // and no more steps.
-            if let Some(p) = pending.take() {
-                (s, free, residual, noise) = p.restore(problem, &mut found);
-            }
-            steps_added = opts.max_steps;
-            continue;
-        }
-        let heldout = (cv / n).sqrt();
-        let (e, tau0) = match m {
-            Move::Effect(e, _, tau) => (e, tau),
-            Move::Cyclic(j) => (Effect::CyclicError(j), 0.0),
-            Move::Step(split) => {
-                let mut trial = s.clone();
-                let group = problem.split(&mut trial, split.fixture, split.at);
-                if split.fixture {
-                    free.extend((0..3).map(|axis| Param::Fixture { group, axis }));
-                } else {
-                    free.push(Param::Offset { group });
-                }
-                let st = fit::refit_stats(problem, &mut trial, &free);
-                // A step must beat the model's own systematic residual, not the noise alone:
-                // the change-point test again on the refitted residual, its rows counted as
-                // the independent readings they are worth (a model error that wanders with the
-                // pose makes consecutive residuals alike, and any split of it "explains" a
-                // share; a real step leaves a residual as white as before). Steps not yet
-                // proven are judged with this one, from the last proven model.
-                let params = if split.fixture { 4.0 } else { 2.0 };
-                let (before, params) = match &pending {
-                    Some(p) => (
-                        fit::kept_values(&p.residual, &problem.weight),
-                        p.params + params,
-                    ),
-                    None => (fit::kept_values(&residual, &problem.weight), params),
-                };
-                let after = fit::kept_values(&st.residual, &problem.weight);
-                let ss = |r: &[f64]| r.iter().map(|v| v * v).sum::<f64>();
-                let n_eff = after.len() as f64 / fit::correlation_time(&after).max(1.0);
-                let gain = n_eff * (ss(&before) / ss(&after).max(1e-300)).ln()
-                    - params * n_eff.max(1.0).ln();
-                let proven = gain > 10.0;
-                if !proven {
-                    pending
-                        .get_or_insert_with(|| Pending {
-                            s: s.clone(),
-                            free: free[..free.len() - if split.fixture { 3 } else { 1 }].to_vec(),
-                            residual: residual.clone(),
-                            noise,
-                            found: found.len(),
-                            splits: Vec::new(),
-                            params: 0.0,
-                        })
-                        .add(split.fixture, group, params);
-                } else {
-                    pending = None;
-                }
-                s = trial;
-                residual = st.residual;
-                found.push(Step {
-                    fixture: split.fixture,
-                    at: split.at,
-                    group,
-                    heldout_before: (cv0 / n).sqrt(),
-                    heldout_after: heldout,
-                });
-                steps_added += 1;
-                continue;
-            }
-        };
-        // The linearised score judged the forms at a geometry that still absorbs the effect;
-        // an effect with two forms (joint compliance with and without known masses) is
-        // refitted in both and the better BIC kept, so the small model wins where it is right.
-        // A thermal drift likewise: one scale for the whole arm, or one per link (a link that
-        // warms more than another, a motor on the upper arm), the small one where it is right.
-        let links = fit::grown_links(&problem.model.nominal);
-        let forms: Vec<Basis> = match (e, basis) {
-            (Effect::JointCompliance, _) if !problem.masses.is_empty() => {
-                vec![Basis::KnownMasses, Basis::Standard]
-            }
-            (Effect::ThermalDrift, Basis::Lag) if links.count_ones() > 1 => {
-                vec![Basis::Lag, Basis::LagLinks(links)]
-            }
-            (Effect::ThermalDrift, Basis::Temperature) if links.count_ones() > 1 => {
-                vec![Basis::Temperature, Basis::TemperatureLinks(links)]
-            }
-            _ => vec![basis],
-        };
-        let mut chosen: Option<(Estimate, fit::Stats, f64, Basis)> = None;
-        for b in forms {
-            let mut trial = s.clone();
-            trial.add_effect(e, b, tau0);
-            let st = fit::refit_stats(problem, &mut trial, &free);
-            let k = model_cols(&trial, &free).len() as f64;
-            let bic = n * (st.rr[0] / n).max(1e-300).ln() + k * n.ln();
-            if chosen.as_ref().is_none_or(|c| bic < c.2 - 10.0) {
-                chosen = Some((trial, st, bic, b));
-            }
-        }
-        let Some((trial, st, bic, basis)) = chosen else {
-            break;
-        };
-        s = trial;
-        residual = st.residual.clone();
-        effects_added += 1;
-        records.retain(|r| r.effect != e);
-        records.push(Candidate {
+    }
+
+    /// Records effect `e`, just adopted into `g` in form `basis` with its BIC and held-out RMS
+    /// (m): the candidate adopted, its stage report, its name and the residual after it.
+    fn adopt(
+        &mut self,
+        problem: &Problem,
+        g: &Grown,
+        e: Effect,
+        basis: Basis,
+        bic: f64,
+        heldout: f64,
+    ) {
+        self.records.retain(|r| r.effect != e);
+        self.records.push(Candidate {
             effect: e,
             basis,
             heldout_rms: heldout,
             adopted: true,
         });
-        let coef = s.effects.last().map(|x| x.coef.clone()).unwrap_or_default();
+        let coef =
+            g.s.effects
+                .last()
+                .map(|x| x.coef.clone())
+                .unwrap_or_default();
         let step = effect_report(e, basis, &coef, &[]);
         let label = match e.joint() {
             Some(j) => format!("+{} (joint {j})", e.name()),
             None => format!("+{}", e.name()),
         };
-        steps.push(StepReport {
+        self.steps.push(StepReport {
             effect: e.name(),
             joint: e.joint(),
-            rms_after_um: round(kept_rms(&residual, &problem.weight) * 1e6, 3),
+            rms_after_um: round(kept_rms(&g.residual, &problem.weight) * 1e6, 3),
             params: step.params,
             std: serde_json::Map::new(),
             bic: round(bic, 1),
             cv_rms_um: round(heldout * 1e6, 3),
         });
-        named.push(NamedEffect {
+        self.named.push(NamedEffect {
             effect: e.name(),
             joint: e.joint(),
         });
-        stages.push((label, residual.clone()));
+        self.stages.push((label, g.residual.clone()));
     }
-    // Steps never proven are undone.
-    if let Some(p) = pending.take() {
-        (s, free, residual, noise) = p.restore(problem, &mut found);
+}
+
+/// The geometric fit of `start` with `free` on `n` kept rows: the estimate, its residual, its
+/// held-out RMS (m, over `folds` folds) and its stage report.
+fn geometry_stage(
+    problem: &Problem,
+    start: Estimate,
+    free: &[Param],
+    folds: usize,
+    n: f64,
+) -> (Estimate, Vec<f64>, f64, StepReport) {
+    let mut s = start;
+    let st = fit::refit_stats(problem, &mut s, free);
+    let residual = st.residual.clone();
+    let x_var = {
+        let sel: Vec<usize> = (0..st.c).collect();
+        solve(&st.n[0], &st.b[0], &sel).1
+    };
+    let (bic0, cv0) = {
+        let cols = model_cols(&s, free);
+        let st = accumulate(problem, &s, &cols, folds);
+        let sel: Vec<usize> = (0..cols.len()).collect();
+        let (_, _, bic, cv) = score(&st, &sel);
+        (bic, cv)
+    };
+    let heldout_geometry = (cv0 / n).sqrt();
+    let sigma2 = st.rr[0] / (n - free.len() as f64).max(1.0);
+    let var: Vec<f64> = x_var.iter().map(|v| v * sigma2).collect();
+    let (params, std) = geometry_report(problem, &s, free, &var);
+    let step = StepReport {
+        effect: "geometric",
+        joint: None,
+        rms_after_um: round(kept_rms(&residual, &problem.weight) * 1e6, 3),
+        params,
+        std,
+        bic: round(bic0, 1),
+        cv_rms_um: round(heldout_geometry * 1e6, 3),
+    };
+    (s, residual, heldout_geometry, step)
+}
+
+/// The columns of one round for `kept` rows: the model `g`'s (the count returned) and then every
+/// candidate move's, each move with its range; the flags say whether effects and steps may
+/// still be added.
+fn round_columns(
+    problem: &Problem,
+    g: &Grown,
+    kept: usize,
+    more_effects: bool,
+    more_steps: bool,
+) -> (Vec<Col>, usize, Moves) {
+    let base_cols = model_cols(&g.s, &g.free);
+    let mut cols = base_cols.clone();
+    let mut moves: Moves = Vec::new();
+    // A model with as many unknowns as readings interpolates them: its residual vanishes,
+    // its BIC runs to −∞ and its held-out folds are fitted on fewer rows than columns. A
+    // move is a candidate only when the model with it keeps at least as many readings
+    // spare as it has unknowns (a general compliance basis of 60 terms is no candidate
+    // for 42 plateau means).
+    let spare = base_cols.len();
+    let mut add = |m: Move, cols: &mut Vec<Col>| {
+        let c = move_cols(&m);
+        let least = match m {
+            Move::Cyclic(_) => 2,
+            _ => c.len(),
+        };
+        if 2 * (spare + least) > kept {
+            return;
+        }
+        moves.push((m, cols.len()..cols.len() + c.len()));
+        cols.extend(c);
+    };
+    if more_effects {
+        for m in candidates(problem) {
+            let present = match &m {
+                Move::Effect(e, _, _) => g.s.effects.iter().any(|t| t.effect == *e),
+                Move::Cyclic(j) => {
+                    g.s.effects
+                        .iter()
+                        .any(|t| t.effect == Effect::CyclicError(*j))
+                }
+                Move::Step(_) => false,
+            };
+            if !present {
+                add(m, &mut cols);
+            }
+        }
     }
+    if more_steps {
+        for split in steps::scan(problem, &g.s, &g.free) {
+            add(Move::Step(split), &mut cols);
+        }
+    }
+    (cols, spare, moves)
+}
+
+/// Candidate moves, each with its range of columns.
+type Moves = Vec<(Move, std::ops::Range<usize>)>;
+
+/// A scored move: the move, its best form, and the model's rss, BIC and held-out sum of
+/// squares with it.
+type Scored = (Move, Basis, f64, f64, f64);
+
+/// Each move's best form and its score on the shared sums `st` beside the model's columns
+/// `base_sel` (`n` kept rows; `noise_form` judges which harmonic orders the data determine).
+fn score_moves(
+    problem: &Problem,
+    st: &fit::Stats,
+    moves: &[(Move, std::ops::Range<usize>)],
+    base_sel: &[usize],
+    n: f64,
+    noise_form: f64,
+) -> Vec<Scored> {
+    let normal = st.total();
+    moves
+        .par_iter()
+        .map(|(m, range)| {
+            let with = |extra: &[usize]| -> (f64, f64, f64) {
+                let sel: Vec<usize> = base_sel.iter().chain(extra).copied().collect();
+                let (rss, _, bic, cv) = score(st, &sel);
+                (rss, bic, cv)
+            };
+            match m {
+                Move::Cyclic(j) => {
+                    // Harmonic orders 1..H, H the smallest whose held-out error is within
+                    // HARMONIC_GAIN of the best: a higher order joins only when the data
+                    // support it, and the first (which a joint short of a turn confuses
+                    // with its zero offset) is never left out for a higher one that
+                    // happens to mimic it. H is at most an order the joint's measured
+                    // range determines over the joint's whole range (`form_determined`):
+                    // held-out blocks lie inside the range too, so they cannot judge the
+                    // form beyond it.
+                    let cap = (1..=fit::MAX_HARMONIC)
+                        .take_while(|&h| {
+                            form_determined(
+                                problem,
+                                *j,
+                                h,
+                                &normal,
+                                base_sel,
+                                range.start,
+                                noise_form,
+                            )
+                        })
+                        .last()
+                        .unwrap_or(1);
+                    let upto = |h: usize| -> (f64, f64, f64) {
+                        let sel: Vec<usize> = (range.start..range.start + 2 * h).collect();
+                        with(&sel)
+                    };
+                    let all: Vec<(f64, f64, f64)> = (1..=cap).map(upto).collect();
+                    let min = all.iter().map(|x| x.2).fold(f64::INFINITY, f64::min);
+                    let h = (1..=cap)
+                        .find(|&h| all[h - 1].2 * (1.0 - HARMONIC_GAIN) <= min)
+                        .unwrap_or(cap);
+                    let best = all[h - 1];
+                    let mask = ((1u16 << h) - 1) as u8;
+                    (m.clone(), Basis::Harmonics(mask), best.0, best.1, best.2)
+                }
+                Move::Effect(_, b, _) => {
+                    let extra: Vec<usize> = range.clone().collect();
+                    let (rss, bic, cv) = with(&extra);
+                    (m.clone(), *b, rss, bic, cv)
+                }
+                Move::Step(_) => {
+                    let extra: Vec<usize> = range.clone().collect();
+                    let (rss, bic, cv) = with(&extra);
+                    // The step's place is one more parameter, chosen on these data.
+                    (m.clone(), Basis::Standard, rss, bic + 2.0 * n.ln(), cv)
+                }
+            }
+        })
+        .collect()
+}
+
+/// The move to adopt of those `scored`, against the model's own (rss, BIC, held-out) `base` on
+/// `n` rows with reading noise `noise` (m), or none when no move qualifies.
+fn best_move(
+    problem: &Problem,
+    scored: &[Scored],
+    base: (f64, f64, f64),
+    n: f64,
+    noise: f64,
+    opts: &DiagnoseOptions,
+) -> Option<Scored> {
+    let (rss0, bic0, cv0) = base;
+    let excess = (rss0 - n * noise * noise).max(0.0);
+    let excess_heldout = (cv0 - n * noise * noise).max(0.0);
+    // An effect must lower the held-out error; a step (a fault, not a model of the robot)
+    // must pass the change-point test, the BIC with its place as a parameter, and in a
+    // continuous recording (whose real faults leave long segments) lower the held-out
+    // error too. Held-out blocks cannot judge a static run's short segments (a drifting
+    // zero cut into steps), whose own zero no other block sees.
+    scored
+        .iter()
+        .filter(|(m, _, rss, bic, cv)| match m {
+            Move::Step(split) => {
+                let run = problem.run_of(split.at);
+                *bic < bic0 - 10.0
+                    && (problem.forms[run] != Form::Continuous || *cv < (1.0 - HELDOUT_GAIN) * cv0)
+            }
+            _ => {
+                *bic < bic0 - 10.0
+                    && *cv < (1.0 - HELDOUT_GAIN) * cv0
+                    && rss0 - rss >= opts.min_explained * excess
+                    && cv0 - cv >= opts.min_explained_heldout * excess_heldout
+            }
+        })
+        // Of those that qualify, the one the BIC prefers (on the same rows for every kind).
+        .min_by(|a, b| a.3.total_cmp(&b.3))
+        .cloned()
+}
+
+/// Effect `e` (scored in form `basis`, thermal lag from `tau0`) added to `g`'s model and
+/// refitted in each of its forms on `n` rows: the estimate, fit, BIC and form kept.
+fn refit_forms(
+    problem: &Problem,
+    g: &Grown,
+    e: Effect,
+    basis: Basis,
+    tau0: f64,
+    n: f64,
+) -> Option<(Estimate, fit::Stats, f64, Basis)> {
+    // The linearised score judged the forms at a geometry that still absorbs the effect;
+    // an effect with two forms (joint compliance with and without known masses) is
+    // refitted in both and the better BIC kept, so the small model wins where it is right.
+    // A thermal drift likewise: one scale for the whole arm, or one per link (a link that
+    // warms more than another, a motor on the upper arm), the small one where it is right.
+    let links = fit::grown_links(&problem.model.nominal);
+    let forms: Vec<Basis> = match (e, basis) {
+        (Effect::JointCompliance, _) if !problem.masses.is_empty() => {
+            vec![Basis::KnownMasses, Basis::Standard]
+        }
+        (Effect::ThermalDrift, Basis::Lag) if links.count_ones() > 1 => {
+            vec![Basis::Lag, Basis::LagLinks(links)]
+        }
+        (Effect::ThermalDrift, Basis::Temperature) if links.count_ones() > 1 => {
+            vec![Basis::Temperature, Basis::TemperatureLinks(links)]
+        }
+        _ => vec![basis],
+    };
+    let mut chosen: Option<(Estimate, fit::Stats, f64, Basis)> = None;
+    for b in forms {
+        let mut trial = g.s.clone();
+        trial.add_effect(e, b, tau0);
+        let st = fit::refit_stats(problem, &mut trial, &g.free);
+        let k = model_cols(&trial, &g.free).len() as f64;
+        let bic = n * (st.rr[0] / n).max(1e-300).ln() + k * n.ln();
+        if chosen.as_ref().is_none_or(|c| bic < c.2 - 10.0) {
+            chosen = Some((trial, st, bic, b));
+        }
+    }
+    chosen
+}
+
+/// The selection's outcome from the final model `g` and its `log`: the joint fit at the
+/// estimate, the report (against the nominal model's RMS and residual) and its summary.
+fn conclude(
+    problem: &Problem,
+    g: Grown,
+    log: Log,
+    rms_nominal: f64,
+    nominal_res: &[f64],
+    heldout_geometry: f64,
+) -> Selected {
+    let Grown {
+        s,
+        free,
+        residual,
+        noise,
+        noise_found,
+        found,
+        ..
+    } = g;
     // The final model: the joint fit's normal matrix at the estimate.
     let cols = model_cols(&s, &free);
     let st = accumulate(problem, &s, &cols, 1);
@@ -1097,13 +1284,9 @@ pub fn select(
         rows,
     };
     let live = fit::kept_values(&residual, &problem.weight);
-    let now = noise::reading_noise(problem, &neighbours, &residual, opts.noise, false);
-    if now.known() && now.sigma < noise {
-        (noise, found_noise) = (now.sigma, now);
-    }
     let rms_final = rms(&live);
     let l1 = lag1(&live);
-    let unexplained = (found_noise.known() && rms_final > 2.0 * noise) || l1 > 0.5;
+    let unexplained = (noise_found.known() && rms_final > 2.0 * noise) || l1 > 0.5;
     let m = &problem.m;
     let where_ = if unexplained {
         locate(m, &residual)
@@ -1112,7 +1295,8 @@ pub fn select(
     };
     // Candidates in a fixed order: as considered (the geometry first), adopted ones where
     // they were adopted.
-    let candidate_reports = records
+    let candidate_reports = log
+        .records
         .iter()
         .map(|c| CandidateReport {
             effect: c.effect.name(),
@@ -1129,18 +1313,18 @@ pub fn select(
     let report = Report {
         schema: "edbbgen.diagnose/1",
         rms_nominal_um: round(rms_nominal * 1e6, 3),
-        named_effects: named,
+        named_effects: log.named,
         unexplained,
         where_,
         rms_final_um: round(rms_final * 1e6, 3),
-        steps,
+        steps: log.steps,
         rows: m.len(),
         duration_s: round(m.t[m.len() - 1] - m.t[0], 3),
         noise_um: round(noise * 1e6, 3),
-        noise_source: found_noise.source,
-        noise_within_deg: found_noise.within_deg,
+        noise_source: noise_found.source,
+        noise_within_deg: noise_found.within_deg,
         lag1_final: round(l1, 4),
-        nominal_where: locate(m, &nominal_res),
+        nominal_where: locate(m, nominal_res),
         model: model_report(problem, &s, &fitted),
         candidates: candidate_reports,
     };
@@ -1149,13 +1333,13 @@ pub fn select(
         estimate: s,
         fitted,
         free,
-        candidates: records,
+        candidates: log.records,
         steps: found,
         heldout_geometry,
         diagnosis: Diagnosis {
             report,
             t: m.t.clone(),
-            stages,
+            stages: log.stages,
             summary,
         },
     }

@@ -346,6 +346,173 @@ pub fn run(
     reference: Option<&Reference>,
     opts: &Options,
 ) -> Result<Analysis, LdbbError> {
+    let angles = grid_angles(opts)?;
+    let nodes = angles.len();
+    let loads = setup.loads.clone();
+    let nl = loads.len();
+
+    // ---- group the rows by load and run -------------------------------------------------
+    let groups = group_rows(loaded, setup)?;
+
+    // ---- 1. every run onto the grid ----------------------------------------------------------
+    let runs = grid_runs(loaded, &groups, &loads, nodes, opts)?;
+    let nr = setup.repeats;
+    let (mean, repeat_std) = repeat_means(&runs, nl, nr, nodes);
+
+    // ---- 2. Eq. 8 and the compliance per angle ---------------------------------------------
+    let deflection: Vec<Vec<f64>> = (0..nl)
+        .map(|j| (0..nodes).map(|k| mean[j][k] - mean[0][k]).collect())
+        .collect();
+    let (compliance, compliance_std) =
+        compliance_per_angle(&loads, &mean, &repeat_std, nr, nodes, opts);
+
+    // ---- 3. compensated trajectories, their spread and average ------------------------------
+    let compensated: Vec<Vec<f64>> = (0..nl)
+        .map(|j| {
+            (0..nodes)
+                .map(|k| mean[j][k] - compliance[k] * loads[j])
+                .collect()
+        })
+        .collect();
+    let spread: Vec<f64> = (0..nodes)
+        .map(|k| {
+            let v = (0..nl).map(|j| compensated[j][k]);
+            v.clone().fold(f64::NEG_INFINITY, f64::max) - v.fold(f64::INFINITY, f64::min)
+        })
+        .collect();
+    let average: Vec<f64> = (0..nodes)
+        .map(|k| (0..nl).map(|j| compensated[j][k]).sum::<f64>() / nl as f64)
+        .collect();
+
+    // ---- 4. the centring sine (Eq. 9) ----------------------------------------------------------
+    let mut warnings = setup.warnings();
+    let (lin, nonlin, disagree) = centring_sine(&angles, &average, opts, &mut warnings)?;
+    let sine_used = match (&nonlin, opts.sine) {
+        (Some(_), SineModel::Nonlinear) => SineModel::Nonlinear,
+        _ => SineModel::Linear,
+    };
+    let used = match (sine_used, &nonlin) {
+        (SineModel::Nonlinear, Some(n)) => n.clone(),
+        _ => lin.clone(),
+    };
+
+    // ---- 5. the kinematic remainder and the reference ------------------------------------------
+    let kinematic: Vec<f64> = (0..nodes)
+        .map(|k| average[k] - used.eval(angles[k]))
+        .collect();
+    let (reference_grid, reference_report) = compare_reference(reference, &angles, &kinematic)?;
+
+    // ---- 6. stiffness -----------------------------------------------------------------------
+    let stiff = match robot {
+        None => None,
+        Some(robot) => Some(stiffness_of(
+            robot,
+            setup,
+            &runs,
+            &angles,
+            &mean,
+            &compliance,
+            &mut warnings,
+        )?),
+    };
+
+    // ---- report -----------------------------------------------------------------------------
+    let (outliers, noise) = data_warnings(&runs, &compliance, &mut warnings);
+    let deg: Vec<f64> = angles.iter().map(|a| r(a / DEG, 6)).collect();
+    let report = Report {
+        schema: "edbbgen.ldbb/1",
+        compliance: ComplianceReport {
+            angle_deg: deg.clone(),
+            um_per_n: compliance.iter().map(|c| r(c / UM, 6)).collect(),
+            std_um_per_n: compliance_std.iter().map(|s| opt(s / UM, 6)).collect(),
+        },
+        sine_fit: SineReport::of(&used, sine_used),
+        kinematic_error: Curve {
+            angle_deg: deg.clone(),
+            um: curve_um(&kinematic),
+        },
+        stiffness_nm_per_rad: match &stiff {
+            Some((s, _)) => s
+                .stiffness_nm_per_rad
+                .iter()
+                .map(|k| k.map(|v| sig(v, 4)))
+                .collect(),
+            None => vec![None; 6],
+        },
+        linearity_spread_um: r(spread.iter().cloned().fold(0.0, f64::max) / UM, 3),
+        reference: reference_report,
+        grid_step_deg: r(opts.grid_step / DEG, 9),
+        rows: loaded.samples.len(),
+        loads_n: loads.clone(),
+        repeats: nr,
+        noise_um: r(noise / UM, 3),
+        outliers,
+        compliance_rms_um_per_n: r(rms(&compliance) / UM, 6),
+        kinematic_error_rms_um: r(rms(&kinematic) / UM, 3),
+        sine_fits: SineFits {
+            linear: SineReport::of(&lin, SineModel::Linear),
+            nonlinear: nonlin
+                .as_ref()
+                .map(|n| SineReport::of(n, SineModel::Nonlinear)),
+            nonlinear_start: opts.start,
+            disagree,
+        },
+        stiffness: stiff
+            .as_ref()
+            .map(|(s, recorded)| stiffness_report(s, *recorded)),
+        loads: load_reports(&loads, &mean, &deflection, &compensated, &repeat_std),
+        warnings: warnings.clone(),
+    };
+    Ok(Analysis {
+        angles,
+        loads,
+        runs,
+        mean,
+        repeat_std,
+        deflection,
+        compliance,
+        compliance_std,
+        compensated,
+        spread,
+        average,
+        sine_linear: lin,
+        sine_nonlinear: nonlin,
+        sine_used,
+        kinematic,
+        reference: reference_grid,
+        stiffness: stiff.map(|s| s.0),
+        report,
+        warnings,
+    })
+}
+
+/// A curve (m) in µm, rounded for the report.
+fn curve_um(v: &[f64]) -> Vec<f64> {
+    v.iter().map(|x| r(x / UM, 4)).collect::<Vec<_>>()
+}
+
+/// The report's per-load section from the loads and their mean, deflection, compensated and
+/// repeat-deviation curves (m).
+fn load_reports(
+    loads: &[f64],
+    mean: &[Vec<f64>],
+    deflection: &[Vec<f64>],
+    compensated: &[Vec<f64>],
+    repeat_std: &[Vec<f64>],
+) -> Vec<LoadReport> {
+    (0..loads.len())
+        .map(|j| LoadReport {
+            load_n: loads[j],
+            mean_um: curve_um(&mean[j]),
+            deflection_um: curve_um(&deflection[j]),
+            compensated_um: curve_um(&compensated[j]),
+            max_repeat_std_um: r(repeat_std[j].iter().cloned().fold(0.0, f64::max) / UM, 3),
+        })
+        .collect()
+}
+
+/// The grid angles (rad) of `opts`' grid step, or the error when it does not divide the circle.
+fn grid_angles(opts: &Options) -> Result<Vec<f64>, LdbbError> {
     let bad_step = || {
         LdbbError::Options(format!(
             "--grid-step: {} deg must divide 360 deg into at least 12 steps",
@@ -359,8 +526,13 @@ pub fn run(
     if nodes < 12 || (nodes as f64 * opts.grid_step - TAU).abs() > 1e-9 {
         return Err(bad_step());
     }
-    let angles: Vec<f64> = (0..nodes).map(|k| k as f64 * TAU / nodes as f64).collect();
-    let loads = setup.loads.clone();
+    Ok((0..nodes).map(|k| k as f64 * TAU / nodes as f64).collect())
+}
+
+/// The rows of `loaded` grouped by load and run (indices per run per load of `setup`), or the
+/// error naming a load or run that the setup does not have or that has no rows.
+fn group_rows(loaded: &Loaded, setup: &Setup) -> Result<Vec<Vec<Vec<usize>>>, LdbbError> {
+    let loads = &setup.loads;
     let nl = loads.len();
     let loads_list = loads
         .iter()
@@ -368,7 +540,6 @@ pub fn run(
         .collect::<Vec<_>>()
         .join(", ");
 
-    // ---- group the rows by load and run -------------------------------------------------
     let mut groups: Vec<Vec<Vec<usize>>> = vec![vec![Vec::new(); setup.repeats]; nl];
     for (k, s) in loaded.samples.iter().enumerate() {
         let j = loads
@@ -407,8 +578,18 @@ pub fn run(
             });
         }
     }
+    Ok(groups)
+}
 
-    // ---- 1. every run onto the grid ----------------------------------------------------------
+/// Every run of the `groups` onto the grid of `nodes` angles, runs in load order, or the error
+/// naming a run that leaves a gap in the circle.
+fn grid_runs(
+    loaded: &Loaded,
+    groups: &[Vec<Vec<usize>>],
+    loads: &[f64],
+    nodes: usize,
+    opts: &Options,
+) -> Result<Vec<Run>, LdbbError> {
     let mut runs = Vec::new();
     for (j, g) in groups.iter().enumerate() {
         for (r, idx) in g.iter().enumerate() {
@@ -436,7 +617,16 @@ pub fn run(
             });
         }
     }
-    let nr = setup.repeats;
+    Ok(runs)
+}
+
+/// Per load (of `nl`, `nr` repeats each): the mean of its runs per angle and their standard deviation.
+fn repeat_means(
+    runs: &[Run],
+    nl: usize,
+    nr: usize,
+    nodes: usize,
+) -> (Vec<Vec<f64>>, Vec<Vec<f64>>) {
     let run_of = |j: usize, r: usize| &runs[j * nr + r].grid;
     let mut mean = vec![vec![0.0; nodes]; nl];
     let mut repeat_std = vec![vec![0.0; nodes]; nl];
@@ -452,18 +642,34 @@ pub fn run(
             };
         }
     }
+    (mean, repeat_std)
+}
 
-    // ---- 2. Eq. 8 and the compliance per angle ---------------------------------------------
-    let deflection: Vec<Vec<f64>> = (0..nl)
-        .map(|j| (0..nodes).map(|k| mean[j][k] - mean[0][k]).collect())
-        .collect();
+/// The sum of squared deviations of the loads from their mean (N²).
+fn load_sxx(loads: &[f64]) -> f64 {
+    let nl = loads.len();
     let fm = loads.iter().sum::<f64>() / nl as f64;
     let sxx: f64 = loads.iter().map(|f| (f - fm).powi(2)).sum();
+    sxx
+}
+
+/// The compliance per angle (the slope of the load means over the loads) and its standard
+/// uncertainty, from the per-load means and repeat deviations of `nr` repeats.
+fn compliance_per_angle(
+    loads: &[f64],
+    mean: &[Vec<f64>],
+    repeat_std: &[Vec<f64>],
+    nr: usize,
+    nodes: usize,
+    opts: &Options,
+) -> (Vec<f64>, Vec<f64>) {
+    let nl = loads.len();
+    let sxx = load_sxx(loads);
     let mut compliance = vec![0.0; nodes];
     let mut lack = vec![0.0; nodes];
     for k in 0..nodes {
         let y: Vec<f64> = (0..nl).map(|j| mean[j][k]).collect();
-        let (slope, _, rss) = fit::line(&loads, &y);
+        let (slope, _, rss) = fit::line(loads, &y);
         compliance[k] = slope;
         lack[k] = if nl > 2 {
             rss / (nl - 2) as f64
@@ -494,34 +700,24 @@ pub fn run(
             (v / sxx).sqrt()
         })
         .collect();
+    (compliance, compliance_std)
+}
 
-    // ---- 3. compensated trajectories, their spread and average ------------------------------
-    let compensated: Vec<Vec<f64>> = (0..nl)
-        .map(|j| {
-            (0..nodes)
-                .map(|k| mean[j][k] - compliance[k] * loads[j])
-                .collect()
-        })
-        .collect();
-    let spread: Vec<f64> = (0..nodes)
-        .map(|k| {
-            let v = (0..nl).map(|j| compensated[j][k]);
-            v.clone().fold(f64::NEG_INFINITY, f64::max) - v.fold(f64::INFINITY, f64::min)
-        })
-        .collect();
-    let average: Vec<f64> = (0..nodes)
-        .map(|k| (0..nl).map(|j| compensated[j][k]).sum::<f64>() / nl as f64)
-        .collect();
-
-    // ---- 4. the centring sine (Eq. 9) ----------------------------------------------------------
-    let mut warnings = setup.warnings();
-    let lin = fit::sine_linear(&angles, &average)
+/// Eq. 9 fitted to the `average` trajectory: the linear sine, the nonlinear one (b free) and
+/// whether they disagree; their warnings go into `warnings`.
+fn centring_sine(
+    angles: &[f64],
+    average: &[f64],
+    opts: &Options,
+    warnings: &mut Vec<String>,
+) -> Result<(Sine, Option<Sine>, bool), LdbbError> {
+    let lin = fit::sine_linear(angles, average)
         .ok_or_else(|| LdbbError::Options("the sine fit failed (degenerate data)".into()))?;
     let start = match opts.start {
         SineStart::Linear => [lin.a, 1.0, lin.phi, lin.offset],
         SineStart::Paper => [0.8e-3, 1.0, 22.5 * DEG, lin.offset],
     };
-    let nonlin = fit::sine_nonlinear(&angles, &average, start);
+    let nonlin = fit::sine_nonlinear(angles, average, start);
     let mut disagree = false;
     if let Some(n) = &nonlin {
         let dphi =
@@ -550,20 +746,18 @@ pub fn run(
     } else if opts.sine == SineModel::Nonlinear {
         warnings.push("the nonlinear sine fit failed; the linear fit is used".into());
     }
-    let sine_used = match (&nonlin, opts.sine) {
-        (Some(_), SineModel::Nonlinear) => SineModel::Nonlinear,
-        _ => SineModel::Linear,
-    };
-    let used = match (sine_used, &nonlin) {
-        (SineModel::Nonlinear, Some(n)) => n.clone(),
-        _ => lin.clone(),
-    };
+    Ok((lin, nonlin, disagree))
+}
 
-    // ---- 5. the kinematic remainder and the reference ------------------------------------------
-    let kinematic: Vec<f64> = (0..nodes)
-        .map(|k| average[k] - used.eval(angles[k]))
-        .collect();
-    let (reference_grid, reference_report) = match reference {
+/// The `reference` on the grid (mean removed) and its comparison with the `kinematic` remainder,
+/// or none without a reference; the error when it does not cover the circle.
+fn compare_reference(
+    reference: Option<&Reference>,
+    angles: &[f64],
+    kinematic: &[f64],
+) -> Result<(Option<Vec<f64>>, Option<ReferenceReport>), LdbbError> {
+    let nodes = angles.len();
+    Ok(match reference {
         None => (None, None),
         Some(rf) => {
             let g = resample::run(&rf.angle, &rf.error, None, nodes).map_err(|gap| {
@@ -577,7 +771,7 @@ pub fn run(
             let mk = kinematic.iter().sum::<f64>() / nodes as f64;
             let refc: Vec<f64> = g.y.iter().map(|v| v - mr).collect();
             let diff: Vec<f64> = (0..nodes).map(|k| (kinematic[k] - mk) - refc[k]).collect();
-            let h1 = without_first_harmonic(&angles, &diff);
+            let h1 = without_first_harmonic(angles, &diff);
             let mad = |v: &[f64]| v.iter().map(|x| x.abs()).sum::<f64>() / v.len() as f64;
             (
                 Some(refc),
@@ -588,95 +782,110 @@ pub fn run(
                 }),
             )
         }
-    };
+    })
+}
 
-    // ---- 6. stiffness -----------------------------------------------------------------------
-    let stiff = match robot {
-        None => None,
-        Some(robot) => {
-            let (map, orientation) = setup.tool().map_err(LdbbError::Robot)?;
-            let arm = kin::Arm { robot, map };
-            let recorded = runs.iter().all(|r| r.grid.q.is_some());
-            let q: Vec<[f64; 6]> = if recorded {
-                (0..nodes)
-                    .map(|k| {
-                        let mut s = [0.0; 6];
-                        for r in &runs {
-                            let qk = r.grid.q.as_ref().map_or([0.0; 6], |q| q[k]);
-                            for i in 0..6 {
-                                s[i] += qk[i] / runs.len() as f64;
-                            }
-                        }
-                        s
-                    })
-                    .collect()
-            } else {
-                let ik = kin::CircleIk::new(arm.clone(), orientation, setup)
-                    .map_err(LdbbError::Robot)?;
-                angles
-                    .iter()
-                    .map(|&t| {
-                        ik.at(setup, t).ok_or_else(|| {
-                            LdbbError::Robot(format!("no IK at circle angle {:.2} deg", t / DEG))
-                        })
-                    })
-                    .collect::<Result<_, _>>()?
-            };
-            // The bar direction from the recorded pose to the table ball; how far the recorded
-            // poses are from the setup's circle tells whether robot and setup belong together.
-            let mut worst = 0.0f64;
-            let rows: Vec<[f64; 6]> = (0..nodes)
-                .map(|k| {
-                    let p = arm.map_position(&q[k]);
-                    worst = worst.max((p - setup.circle.point(angles[k])).norm());
-                    arm.compliance_row(&q[k], &(p - setup.table_ball).normalize())
+/// The joint stiffnesses of `robot` from the compliance per angle, the per-load means and the
+/// runs (their recorded joint angles, else inverse kinematics), and whether the angles were
+/// recorded; a warning goes into `warnings` when the recorded poses are off the setup's circle.
+fn stiffness_of(
+    robot: &Robot,
+    setup: &Setup,
+    runs: &[Run],
+    angles: &[f64],
+    mean: &[Vec<f64>],
+    compliance: &[f64],
+    warnings: &mut Vec<String>,
+) -> Result<(stiffness::Stiffness, bool), LdbbError> {
+    let nodes = angles.len();
+    let loads = &setup.loads;
+    let (nl, nr) = (loads.len(), setup.repeats);
+    let sxx = load_sxx(loads);
+    let run_of = |j: usize, r: usize| &runs[j * nr + r].grid;
+    let (map, orientation) = setup.tool().map_err(LdbbError::Robot)?;
+    let arm = kin::Arm { robot, map };
+    let recorded = runs.iter().all(|r| r.grid.q.is_some());
+    let q: Vec<[f64; 6]> = if recorded {
+        (0..nodes)
+            .map(|k| {
+                let mut s = [0.0; 6];
+                for r in runs {
+                    let qk = r.grid.q.as_ref().map_or([0.0; 6], |q| q[k]);
+                    for i in 0..6 {
+                        s[i] += qk[i] / runs.len() as f64;
+                    }
+                }
+                s
+            })
+            .collect()
+    } else {
+        let ik = kin::CircleIk::new(arm.clone(), orientation, setup).map_err(LdbbError::Robot)?;
+        angles
+            .iter()
+            .map(|&t| {
+                ik.at(setup, t).ok_or_else(|| {
+                    LdbbError::Robot(format!("no IK at circle angle {:.2} deg", t / DEG))
                 })
-                .collect();
-            if worst > 1e-3 {
-                warnings.push(format!(
+            })
+            .collect::<Result<_, _>>()?
+    };
+    // The bar direction from the recorded pose to the table ball; how far the recorded
+    // poses are from the setup's circle tells whether robot and setup belong together.
+    let mut worst = 0.0f64;
+    let rows: Vec<[f64; 6]> = (0..nodes)
+        .map(|k| {
+            let p = arm.map_position(&q[k]);
+            worst = worst.max((p - setup.circle.point(angles[k])).norm());
+            arm.compliance_row(&q[k], &(p - setup.table_ball).normalize())
+        })
+        .collect();
+    if worst > 1e-3 {
+        warnings.push(format!(
                     "the recorded joint angles put the tool ball up to {:.1} mm off the setup's circle: check the robot file, end_link and [tool] of the setup",
                     worst * 1e3
                 ));
+    }
+    // The covariance of the compliance over the angles, from whole run curves: each
+    // run's deviation from its load's mean, scaled so that Σ e eᵀ = Cov(c).
+    let mut c_err = Vec::new();
+    if nr > 1 {
+        let scale = 1.0 / (sxx * (nr * nl * (nr - 1)) as f64).sqrt();
+        for j in 0..nl {
+            for r in 0..nr {
+                c_err.push(
+                    (0..nodes)
+                        .map(|k| (run_of(j, r).y[k] - mean[j][k]) * scale)
+                        .collect::<Vec<f64>>(),
+                );
             }
-            // The covariance of the compliance over the angles, from whole run curves: each
-            // run's deviation from its load's mean, scaled so that Σ e eᵀ = Cov(c).
-            let mut c_err = Vec::new();
-            if nr > 1 {
-                let scale = 1.0 / (sxx * (nr * nl * (nr - 1)) as f64).sqrt();
-                for j in 0..nl {
-                    for r in 0..nr {
-                        c_err.push(
-                            (0..nodes)
-                                .map(|k| (run_of(j, r).y[k] - mean[j][k]) * scale)
-                                .collect::<Vec<f64>>(),
-                        );
-                    }
-                }
-            }
-            // The compliance of the lower and of the upper half of the loads (they share the
-            // middle load when the count is odd).
-            let half_c = |js: std::ops::Range<usize>| -> Vec<f64> {
-                (0..nodes)
-                    .map(|k| {
-                        let y: Vec<f64> = js.clone().map(|j| mean[j][k]).collect();
-                        fit::line(&loads[js.clone()], &y).0
-                    })
-                    .collect()
-            };
-            let levels = (nl >= 3).then(|| (half_c(0..nl.div_ceil(2)), half_c(nl / 2..nl)));
-            Some((
-                stiffness::identify(
-                    &rows,
-                    &compliance,
-                    &c_err,
-                    levels.as_ref().map(|(a, b)| (a.as_slice(), b.as_slice())),
-                ),
-                recorded,
-            ))
         }
+    }
+    // The compliance of the lower and of the upper half of the loads (they share the
+    // middle load when the count is odd).
+    let half_c = |js: std::ops::Range<usize>| -> Vec<f64> {
+        (0..nodes)
+            .map(|k| {
+                let y: Vec<f64> = js.clone().map(|j| mean[j][k]).collect();
+                fit::line(&loads[js.clone()], &y).0
+            })
+            .collect()
     };
+    let levels = (nl >= 3).then(|| (half_c(0..nl.div_ceil(2)), half_c(nl / 2..nl)));
+    Ok((
+        stiffness::identify(
+            &rows,
+            compliance,
+            &c_err,
+            levels.as_ref().map(|(a, b)| (a.as_slice(), b.as_slice())),
+        ),
+        recorded,
+    ))
+}
 
-    // ---- report -----------------------------------------------------------------------------
+/// The runs' outlier count and median noise (m); warnings go into `warnings` for outliers and
+/// for angles whose compliance is not positive.
+fn data_warnings(runs: &[Run], compliance: &[f64], warnings: &mut Vec<String>) -> (usize, f64) {
+    let nodes = compliance.len();
     let outliers: usize = runs.iter().map(|r| r.grid.outliers).sum();
     if outliers > 0 {
         warnings.push(format!(
@@ -692,103 +901,35 @@ pub fn run(
             "the compliance along the bar is not positive at {negative} of {nodes} angles: check the sign of deflection_um (positive = longer) and the load order"
         ));
     }
-    let deg: Vec<f64> = angles.iter().map(|a| r(a / DEG, 6)).collect();
-    let to_um = |v: &[f64]| v.iter().map(|x| r(x / UM, 4)).collect::<Vec<_>>();
-    let report = Report {
-        schema: "edbbgen.ldbb/1",
-        compliance: ComplianceReport {
-            angle_deg: deg.clone(),
-            um_per_n: compliance.iter().map(|c| r(c / UM, 6)).collect(),
-            std_um_per_n: compliance_std.iter().map(|s| opt(s / UM, 6)).collect(),
-        },
-        sine_fit: SineReport::of(&used, sine_used),
-        kinematic_error: Curve {
-            angle_deg: deg.clone(),
-            um: to_um(&kinematic),
-        },
-        stiffness_nm_per_rad: match &stiff {
-            Some((s, _)) => s
-                .stiffness_nm_per_rad
-                .iter()
-                .map(|k| k.map(|v| sig(v, 4)))
-                .collect(),
-            None => vec![None; 6],
-        },
-        linearity_spread_um: r(spread.iter().cloned().fold(0.0, f64::max) / UM, 3),
-        reference: reference_report,
-        grid_step_deg: r(opts.grid_step / DEG, 9),
-        rows: loaded.samples.len(),
-        loads_n: loads.clone(),
-        repeats: nr,
-        noise_um: r(noise / UM, 3),
-        outliers,
-        compliance_rms_um_per_n: r(rms(&compliance) / UM, 6),
-        kinematic_error_rms_um: r(rms(&kinematic) / UM, 3),
-        sine_fits: SineFits {
-            linear: SineReport::of(&lin, SineModel::Linear),
-            nonlinear: nonlin
-                .as_ref()
-                .map(|n| SineReport::of(n, SineModel::Nonlinear)),
-            nonlinear_start: opts.start,
-            disagree,
-        },
-        stiffness: stiff.as_ref().map(|(s, recorded)| StiffnessReport {
-            std_nm_per_rad: s
-                .std_nm_per_rad
-                .iter()
-                .map(|v| v.map(|x| sig(x, 3)))
-                .collect(),
-            why: s.why.to_vec(),
-            combinations: s
-                .combinations
-                .iter()
-                .map(|c| stiffness::Combination {
-                    joints: c.joints.clone(),
-                    weights: c.weights.iter().map(|w| r(*w, 4)).collect(),
-                    compliance_rad_per_nm: sig(c.compliance_rad_per_nm, 4),
-                    std_rad_per_nm: sig(c.std_rad_per_nm, 3),
-                    effective_stiffness_nm_per_rad: c
-                        .effective_stiffness_nm_per_rad
-                        .map(|v| sig(v, 4)),
-                })
-                .collect(),
-            singular_values: s.singular_values.iter().map(|v| sig(*v, 4)).collect(),
-            fit_rms_um_per_n: sig(s.fit_rms_um_per_n, 3),
-            relative_std_limit: s.relative_std_limit,
-            joint_angles: if *recorded { "recorded" } else { "ik" },
-        }),
-        loads: (0..nl)
-            .map(|j| LoadReport {
-                load_n: loads[j],
-                mean_um: to_um(&mean[j]),
-                deflection_um: to_um(&deflection[j]),
-                compensated_um: to_um(&compensated[j]),
-                max_repeat_std_um: r(repeat_std[j].iter().cloned().fold(0.0, f64::max) / UM, 3),
+    (outliers, noise)
+}
+
+/// The report's stiffness section from the identified stiffness `s`, rounded; `recorded` says
+/// where the joint angles came from.
+fn stiffness_report(s: &stiffness::Stiffness, recorded: bool) -> StiffnessReport {
+    StiffnessReport {
+        std_nm_per_rad: s
+            .std_nm_per_rad
+            .iter()
+            .map(|v| v.map(|x| sig(x, 3)))
+            .collect(),
+        why: s.why.to_vec(),
+        combinations: s
+            .combinations
+            .iter()
+            .map(|c| stiffness::Combination {
+                joints: c.joints.clone(),
+                weights: c.weights.iter().map(|w| r(*w, 4)).collect(),
+                compliance_rad_per_nm: sig(c.compliance_rad_per_nm, 4),
+                std_rad_per_nm: sig(c.std_rad_per_nm, 3),
+                effective_stiffness_nm_per_rad: c.effective_stiffness_nm_per_rad.map(|v| sig(v, 4)),
             })
             .collect(),
-        warnings: warnings.clone(),
-    };
-    Ok(Analysis {
-        angles,
-        loads,
-        runs,
-        mean,
-        repeat_std,
-        deflection,
-        compliance,
-        compliance_std,
-        compensated,
-        spread,
-        average,
-        sine_linear: lin,
-        sine_nonlinear: nonlin,
-        sine_used,
-        kinematic,
-        reference: reference_grid,
-        stiffness: stiff.map(|s| s.0),
-        report,
-        warnings,
-    })
+        singular_values: s.singular_values.iter().map(|v| sig(*v, 4)).collect(),
+        fit_rms_um_per_n: sig(s.fit_rms_um_per_n, 3),
+        relative_std_limit: s.relative_std_limit,
+        joint_angles: if recorded { "recorded" } else { "ik" },
+    }
 }
 
 /// A few lines for the terminal.

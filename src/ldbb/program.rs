@@ -195,177 +195,237 @@ pub fn compile(
                 })
         })
         .collect::<Result<_, _>>()?;
-    let at = |k: i64| qs[k.rem_euclid(per_rev as i64) as usize];
+    let circle = Circle {
+        setup,
+        arm,
+        table,
+        qs,
+        step,
+        over,
+        chord: 2.0 * setup.circle.radius * (0.5 * step).sin(),
+        blend,
+        blend_value,
+    };
     let model = MeasurementModel::new(robot, table, map);
-    let length = |q: &[f64; 6]| (arm.map_position(q) - table).norm();
-    let chord = 2.0 * setup.circle.radius * (0.5 * step).sin();
+    let moves = circle.moves(&speeds);
+    let dev = circle.path_deviation(&model);
+    let header = ldbb_header(robot, spec, opts, &circle, dev, &moves, inputs_sha256);
+    let base = Program { header, moves };
+    let cmap = crate::controller::ControllerMap::resolve(
+        spec.controller.as_ref(),
+        &template.dialect.defaults(),
+        &template.dialect.name,
+        robot,
+    )
+    .map_err(|e| input(e.to_string()))?;
+    // Check the text, not the memory: the same last step and `verify` as every program.
+    let (scene, _) = crate::pipeline::build_scene(robot, spec, &table, &map)
+        .map_err(|e| input(e.to_string()))?;
+    let cellv =
+        crate::pipeline::make_cell(robot, table, map, spec).map_err(|e| input(e.to_string()))?;
+    let ck = crate::safety::Checker::new(robot, &model, &cellv, &scene, spec.margin);
+    let (program, text, verified) = crate::pipeline::emit_checked(
+        &ck,
+        robot,
+        &base,
+        &template,
+        &cmap,
+        "LDBB_CIRCLE",
+        inputs_sha256,
+    )
+    .map_err(|e| match e {
+        crate::pipeline::PipelineError::Template(m) => ProgramError::Template(m),
+        crate::pipeline::PipelineError::Unsafe(m) => ProgramError::Unsafe(m),
+        e => input(e.to_string()),
+    })?;
+    Ok(Compiled {
+        program,
+        text,
+        verified,
+        cell: spec.clone(),
+        path_deviation: dev,
+    })
+}
 
-    let mut moves = Vec::new();
-    let mut start: i64 = -(over as i64);
-    let per_load = 2 * over + setup.repeats * per_rev;
-    for (j, &load) in setup.loads.iter().enumerate() {
-        let f = load_text(load);
-        let q0 = at(start);
-        moves.push(Move {
-            q_deg: q0.map(to_deg),
-            support: false,
-            transit: true,
-            pose: moves.len() + 1,
-            blend_mm: 0.0,
-            time_s: 0.0,
-            cruise_s: 0.0,
-            blend_value: 0.0,
-            length_mm: to_mm(length(&q0)),
-            note: format!(
-                "{f} N: start of the lead-in, angle {} deg{}",
-                fmt_fixed((start.rem_euclid(per_rev as i64)) as f64 * step / DEG, 1),
-                if j == 0 { ", approach without the LDBB" } else { ", standstill" }
-            ),
-            pause: if j == 0 {
-                format!("mount the LDBB between the table ball and the tool ball, set the load to {f} N, then resume")
-            } else {
-                format!("set the load to {f} N, then resume")
-            },
-            pause_before: if j == 0 {
-                String::new()
-            } else {
-                "release the load; the LDBB may stay mounted, the next move is a standstill".into()
-            },
-            section: j + 1,
-            remove_before: j > 0,
-            mount_after: true,
-            axes: [0.0; 6],
-            speed_pct: 0.0,
-            dwell_s: 0.0,
-        });
-        for s in 1..=per_load {
-            let k = start + s as i64;
-            let q = at(k);
-            let angle = k.rem_euclid(per_rev as i64) as f64 * step / DEG;
-            let phase = if s <= over {
-                "lead-in".to_string()
-            } else if s > over + setup.repeats * per_rev {
-                "lead-out".to_string()
-            } else {
-                format!("run {}", (s - over - 1) / per_rev + 1)
-            };
-            let starts =
-                s > over && (s - over) % per_rev == 0 && s < over + setup.repeats * per_rev;
-            let note = if s == over {
-                format!(
-                    "{f} N {phase} {} deg: run 1 starts here",
-                    fmt_fixed(angle, 1)
-                )
-            } else if starts {
-                format!(
-                    "{f} N {phase} {} deg: run {} starts here",
-                    fmt_fixed(angle, 1),
-                    (s - over) / per_rev + 1
-                )
-            } else {
-                format!("{f} N {phase} {} deg", fmt_fixed(angle, 1))
-            };
-            let prev = at(k - 1);
-            let t = (chord / setup.circle.speed).max(crate::order::move_time(&prev, &q, &speeds));
+/// The programmed circle: the set-up, the arm with its tool ball, the table ball (m), the joint
+/// solutions of one revolution `step` (rad) apart, the lead-in and lead-out (steps), the chord
+/// (m) and the blend (m, and the value the dialect writes).
+struct Circle<'a> {
+    setup: &'a Setup,
+    arm: Arm<'a>,
+    table: Vector3<f64>,
+    qs: Vec<[f64; 6]>,
+    step: f64,
+    over: usize,
+    chord: f64,
+    blend: f64,
+    blend_value: f64,
+}
+
+impl Circle<'_> {
+    /// The joint solution at step `k` of the circle, any revolution.
+    fn at(&self, k: i64) -> [f64; 6] {
+        let per_rev = self.qs.len();
+        self.qs[k.rem_euclid(per_rev as i64) as usize]
+    }
+
+    /// The bar length (m) at joint position `q`.
+    fn length(&self, q: &[f64; 6]) -> f64 {
+        (self.arm.map_position(q) - self.table).norm()
+    }
+
+    /// Steps per load: the lead-in, the measured revolutions and the lead-out.
+    fn per_load(&self) -> usize {
+        2 * self.over + self.setup.repeats * self.qs.len()
+    }
+
+    /// The moves of every load in turn, timed with the joints' `speeds` (rad/s).
+    fn moves(&self, speeds: &[f64; 6]) -> Vec<Move> {
+        let setup = self.setup;
+        let (per_rev, step, over, chord) = (self.qs.len(), self.step, self.over, self.chord);
+        let (blend, blend_value) = (self.blend, self.blend_value);
+        let at = |k: i64| self.at(k);
+        let length = |q: &[f64; 6]| self.length(q);
+        let per_load = self.per_load();
+        let mut moves = Vec::new();
+        let mut start: i64 = -(over as i64);
+        for (j, &load) in setup.loads.iter().enumerate() {
+            let f = load_text(load);
+            let q0 = at(start);
             moves.push(Move {
-                q_deg: q.map(to_deg),
+                q_deg: q0.map(to_deg),
                 support: false,
-                transit: false,
+                transit: true,
                 pose: moves.len() + 1,
-                blend_mm: if s == per_load || blend_value <= 0.0 {
-                    0.0
+                blend_mm: 0.0,
+                time_s: 0.0,
+                cruise_s: 0.0,
+                blend_value: 0.0,
+                length_mm: to_mm(length(&q0)),
+                note: format!(
+                    "{f} N: start of the lead-in, angle {} deg{}",
+                    fmt_fixed((start.rem_euclid(per_rev as i64)) as f64 * step / DEG, 1),
+                    if j == 0 { ", approach without the LDBB" } else { ", standstill" }
+                ),
+                pause: if j == 0 {
+                    format!("mount the LDBB between the table ball and the tool ball, set the load to {f} N, then resume")
                 } else {
-                    to_mm(blend)
+                    format!("set the load to {f} N, then resume")
                 },
-                time_s: t,
-                // The circle's constant speed is the cruise; its chords blend into each other.
-                cruise_s: t,
-                blend_value: if s == per_load || blend_value <= 0.0 {
-                    0.0
+                pause_before: if j == 0 {
+                    String::new()
                 } else {
-                    blend_value
+                    "release the load; the LDBB may stay mounted, the next move is a standstill".into()
                 },
-                length_mm: to_mm(length(&q)),
-                note,
-                pause: String::new(),
-                pause_before: String::new(),
                 section: j + 1,
-                remove_before: false,
-                mount_after: false,
+                remove_before: j > 0,
+                mount_after: true,
                 axes: [0.0; 6],
                 speed_pct: 0.0,
                 dwell_s: 0.0,
             });
+            for s in 1..=per_load {
+                let k = start + s as i64;
+                let q = at(k);
+                let angle = k.rem_euclid(per_rev as i64) as f64 * step / DEG;
+                let phase = if s <= over {
+                    "lead-in".to_string()
+                } else if s > over + setup.repeats * per_rev {
+                    "lead-out".to_string()
+                } else {
+                    format!("run {}", (s - over - 1) / per_rev + 1)
+                };
+                let starts =
+                    s > over && (s - over) % per_rev == 0 && s < over + setup.repeats * per_rev;
+                let note = if s == over {
+                    format!(
+                        "{f} N {phase} {} deg: run 1 starts here",
+                        fmt_fixed(angle, 1)
+                    )
+                } else if starts {
+                    format!(
+                        "{f} N {phase} {} deg: run {} starts here",
+                        fmt_fixed(angle, 1),
+                        (s - over) / per_rev + 1
+                    )
+                } else {
+                    format!("{f} N {phase} {} deg", fmt_fixed(angle, 1))
+                };
+                let prev = at(k - 1);
+                let t =
+                    (chord / setup.circle.speed).max(crate::order::move_time(&prev, &q, speeds));
+                moves.push(Move {
+                    q_deg: q.map(to_deg),
+                    support: false,
+                    transit: false,
+                    pose: moves.len() + 1,
+                    blend_mm: if s == per_load || blend_value <= 0.0 {
+                        0.0
+                    } else {
+                        to_mm(blend)
+                    },
+                    time_s: t,
+                    // The circle's constant speed is the cruise; its chords blend into each other.
+                    cruise_s: t,
+                    blend_value: if s == per_load || blend_value <= 0.0 {
+                        0.0
+                    } else {
+                        blend_value
+                    },
+                    length_mm: to_mm(length(&q)),
+                    note,
+                    pause: String::new(),
+                    pause_before: String::new(),
+                    section: j + 1,
+                    remove_before: false,
+                    mount_after: false,
+                    axes: [0.0; 6],
+                    speed_pct: 0.0,
+                    dwell_s: 0.0,
+                });
+            }
+            start += per_load as i64;
         }
-        start += per_load as i64;
+        moves
     }
 
-    // How far chords and blends take the bar length from the circle's, over one revolution.
-    let mut dev = 0.0f64;
-    for k in 0..per_rev as i64 {
-        let (a, b, c) = (at(k - 1), at(k), at(k + 1));
-        let mid: [f64; 6] = std::array::from_fn(|i| 0.5 * (a[i] + b[i]));
-        dev = dev.max((length(&mid) - setup.bar_length).abs());
-        dev = dev.max((length(&b) - setup.bar_length).abs());
-        if let Some(bl) = crate::safety::blend::geometry(&model, &a, &b, &c, blend) {
-            dev = dev.max((length(&bl.point(0.5)) - setup.bar_length).abs());
+    /// How far chords and blends take the bar length from the circle's over one revolution (m).
+    fn path_deviation(&self, model: &MeasurementModel) -> f64 {
+        let setup = self.setup;
+        let at = |k: i64| self.at(k);
+        let length = |q: &[f64; 6]| self.length(q);
+        let blend = self.blend;
+        let per_rev = self.qs.len();
+        let mut dev = 0.0f64;
+        for k in 0..per_rev as i64 {
+            let (a, b, c) = (at(k - 1), at(k), at(k + 1));
+            let mid: [f64; 6] = std::array::from_fn(|i| 0.5 * (a[i] + b[i]));
+            dev = dev.max((length(&mid) - setup.bar_length).abs());
+            dev = dev.max((length(&b) - setup.bar_length).abs());
+            if let Some(bl) = crate::safety::blend::geometry(model, &a, &b, &c, blend) {
+                dev = dev.max((length(&bl.point(0.5)) - setup.bar_length).abs());
+            }
         }
+        dev
     }
-    let run_time = per_load as f64 * chord / setup.circle.speed;
+}
+
+/// The program's header for `robot` in the cell `spec`: the circle's notes (with its path
+/// deviation `dev`, m), the moves' count and time, the inputs' hash.
+fn ldbb_header(
+    robot: &Robot,
+    spec: &CellSpec,
+    opts: &ProgramOptions,
+    c: &Circle,
+    dev: f64,
+    moves: &[Move],
+    inputs_sha256: &str,
+) -> Header {
+    let setup = c.setup;
+    let (table, map, blend) = (c.table, c.arm.map, c.blend);
     let total: f64 = moves.iter().map(|m| m.time_s).sum();
-    let dir = match setup.circle.direction {
-        super::setup::Direction::Clockwise => "clockwise",
-        super::setup::Direction::Counterclockwise => "counterclockwise",
-    };
-    let c = &setup.circle;
-    let r = setup
-        .orientation
-        .unwrap_or_else(nalgebra::Matrix3::identity);
-    let row = |i: usize| {
-        format!(
-            "[{}, {}, {}]",
-            fmt_fixed(r[(i, 0)], 6),
-            fmt_fixed(r[(i, 1)], 6),
-            fmt_fixed(r[(i, 2)], 6)
-        )
-    };
-    let notes = vec![
-        format!(
-            "circle: centre {}, {}, {} mm, diameter {} mm, {dir} seen from +z, {} mm/s; angle 0 at +x of the circle, growing along the travel",
-            fmt_fixed(to_mm(c.centre.x), 3),
-            fmt_fixed(to_mm(c.centre.y), 3),
-            fmt_fixed(to_mm(c.centre.z), 3),
-            fmt_fixed(to_mm(2.0 * c.radius), 3),
-            fmt_fixed(to_mm(c.speed), 1)
-        ),
-        format!(
-            "table ball = fixture; nominal bar length {} mm, LVDT stroke +-{} mm",
-            fmt_fixed(to_mm(setup.bar_length), 3),
-            fmt_fixed(to_mm(opts.stroke), 1)
-        ),
-        format!("tool orientation [rows of base_R_end]: {}, {}, {}", row(0), row(1), row(2)),
-        format!(
-            "loads: {} N ascending; per load {} measured circle{} between {} deg of lead-in and of lead-out, {} s at speed",
-            setup.loads.iter().map(|f| load_text(*f)).collect::<Vec<_>>().join(", "),
-            setup.repeats,
-            if setup.repeats == 1 { "" } else { "s" },
-            fmt_fixed(over as f64 * step / DEG, 1),
-            fmt_fixed(run_time, 1)
-        ),
-        format!(
-            "path: joint moves {} deg apart, {}; they change the bar length by at most {} um against the circle",
-            fmt_fixed(step / DEG, 3),
-            if blend > 0.0 {
-                format!("{} mm blends", fmt_fixed(to_mm(blend), 2))
-            } else {
-                "an exact stop at each (this controller's joint-move blends bound no corner region)"
-                    .to_string()
-            },
-            fmt_fixed(dev * 1e6, 2)
-        ),
-        format!("estimated time: {} s of motion; pauses not included", fmt_fixed(total, 1)),
-    ];
-    let header = Header {
+    let notes = header_notes(c, opts, dev, total);
+    Header {
         title: "LDBB loaded circle test".into(),
         instrument: "LDBB".into(),
         notes,
@@ -403,40 +463,66 @@ pub fn compile(
         measure_mm: Vec::new(),
         plateau_samples: 0,
         predicted_continuous_std_um: 0.0,
+    }
+}
+
+/// The header's notes of the `circle`: the circle, the bar, the tool orientation, the loads, the path (its
+/// deviation `dev`, m) and the estimated time `total` (s).
+fn header_notes(circle: &Circle, opts: &ProgramOptions, dev: f64, total: f64) -> Vec<String> {
+    let setup = circle.setup;
+    let (step, over, chord, blend) = (circle.step, circle.over, circle.chord, circle.blend);
+    let per_load = circle.per_load();
+    let run_time = per_load as f64 * chord / setup.circle.speed;
+    let dir = match setup.circle.direction {
+        super::setup::Direction::Clockwise => "clockwise",
+        super::setup::Direction::Counterclockwise => "counterclockwise",
     };
-    let base = Program { header, moves };
-    let cmap = crate::controller::ControllerMap::resolve(
-        spec.controller.as_ref(),
-        &template.dialect.defaults(),
-        &template.dialect.name,
-        robot,
-    )
-    .map_err(|e| input(e.to_string()))?;
-    // Check the text, not the memory: the same last step and `verify` as every program.
-    let (scene, _) = crate::pipeline::build_scene(robot, spec, &table, &map)
-        .map_err(|e| input(e.to_string()))?;
-    let cellv =
-        crate::pipeline::make_cell(robot, table, map, spec).map_err(|e| input(e.to_string()))?;
-    let ck = crate::safety::Checker::new(robot, &model, &cellv, &scene, spec.margin);
-    let (program, text, verified) = crate::pipeline::emit_checked(
-        &ck,
-        robot,
-        &base,
-        &template,
-        &cmap,
-        "LDBB_CIRCLE",
-        inputs_sha256,
-    )
-    .map_err(|e| match e {
-        crate::pipeline::PipelineError::Template(m) => ProgramError::Template(m),
-        crate::pipeline::PipelineError::Unsafe(m) => ProgramError::Unsafe(m),
-        e => input(e.to_string()),
-    })?;
-    Ok(Compiled {
-        program,
-        text,
-        verified,
-        cell: spec.clone(),
-        path_deviation: dev,
-    })
+    let c = &setup.circle;
+    let r = setup
+        .orientation
+        .unwrap_or_else(nalgebra::Matrix3::identity);
+    let row = |i: usize| {
+        format!(
+            "[{}, {}, {}]",
+            fmt_fixed(r[(i, 0)], 6),
+            fmt_fixed(r[(i, 1)], 6),
+            fmt_fixed(r[(i, 2)], 6)
+        )
+    };
+    vec![
+        format!(
+            "circle: centre {}, {}, {} mm, diameter {} mm, {dir} seen from +z, {} mm/s; angle 0 at +x of the circle, growing along the travel",
+            fmt_fixed(to_mm(c.centre.x), 3),
+            fmt_fixed(to_mm(c.centre.y), 3),
+            fmt_fixed(to_mm(c.centre.z), 3),
+            fmt_fixed(to_mm(2.0 * c.radius), 3),
+            fmt_fixed(to_mm(c.speed), 1)
+        ),
+        format!(
+            "table ball = fixture; nominal bar length {} mm, LVDT stroke +-{} mm",
+            fmt_fixed(to_mm(setup.bar_length), 3),
+            fmt_fixed(to_mm(opts.stroke), 1)
+        ),
+        format!("tool orientation [rows of base_R_end]: {}, {}, {}", row(0), row(1), row(2)),
+        format!(
+            "loads: {} N ascending; per load {} measured circle{} between {} deg of lead-in and of lead-out, {} s at speed",
+            setup.loads.iter().map(|f| load_text(*f)).collect::<Vec<_>>().join(", "),
+            setup.repeats,
+            if setup.repeats == 1 { "" } else { "s" },
+            fmt_fixed(over as f64 * step / DEG, 1),
+            fmt_fixed(run_time, 1)
+        ),
+        format!(
+            "path: joint moves {} deg apart, {}; they change the bar length by at most {} um against the circle",
+            fmt_fixed(step / DEG, 3),
+            if blend > 0.0 {
+                format!("{} mm blends", fmt_fixed(to_mm(blend), 2))
+            } else {
+                "an exact stop at each (this controller's joint-move blends bound no corner region)"
+                    .to_string()
+            },
+            fmt_fixed(dev * 1e6, 2)
+        ),
+        format!("estimated time: {} s of motion; pauses not included", fmt_fixed(total, 1)),
+    ]
 }

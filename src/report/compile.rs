@@ -3,8 +3,9 @@
 //! warnings of the JSON report (`--report`).
 
 use super::{Block, Page, ReportError, Section};
+use crate::ir::Header;
 use crate::model::identify::Status;
-use crate::pipeline::Compiled;
+use crate::pipeline::{Compiled, Report};
 use crate::plot::{Figure, Legend, Mark, Panel, Series};
 use crate::robot::{kinematics::chain_frames, Robot};
 use crate::units::{fmt_fixed, to_deg, to_mm};
@@ -94,13 +95,83 @@ fn joint_panel(title: &str, poses: &[[f64; 6]], times: &[f64]) -> Panel {
 /// The compiler's page.
 pub fn page(robot: &Robot, out: &Compiled) -> Result<Page, ReportError> {
     let h = &out.program.header;
-    let r = &out.report;
     let cell = &out.cell;
     let fixture = mm(&cell.fixture);
-    let map_of = |q: &[f64; 6]| mm(&out.model.map_position(&out.model.nominal, q));
-    let lim = crate::timing::Limits::of(robot);
+    let (fig4, stride) = poses_figure(out, &fixture);
+    let fig5 = cond_figure(out);
+    let fig6 = joints_figure(robot, out);
+    let fig7 = path_figure(robot, out, &fixture);
+    Ok(Page {
+        title: format!("edbbgen — EDBB measurement program for {}", h.robot),
+        kind: "compile".into(),
+        tool_version: h.tool_version.clone(),
+        inputs_sha256: h.inputs_sha256.clone(),
+        facts: facts(h),
+        warnings: out.warnings.clone(),
+        sections: vec![
+            Section {
+                heading: "Poses around the fixture (Fig. 4)".into(),
+                blocks: vec![Block::figure(
+                    "fig-poses",
+                    &format!(
+                        "MAP positions of the pose pool ({} poses{}) and of the {} selected poses, in three orthogonal views of the robot base frame; circles: the bar's shell (ball-centre distance {} .. {} mm) around the fixture.",
+                        out.pool.candidates.len(),
+                        if stride > 1 { format!(", 1 in {stride} drawn") } else { String::new() },
+                        out.selection.indices.len(),
+                        fmt_fixed(to_mm(cell.bar_min), 0),
+                        fmt_fixed(to_mm(cell.bar_max), 0)
+                    ),
+                    &fig4,
+                )?],
+            },
+            Section {
+                heading: "Pose count (Fig. 5)".into(),
+                blocks: vec![Block::figure(
+                    "fig-cond",
+                    &format!("Condition number of the scaled identification Jacobian while the greedy elimination removes poses, down to n = m = {}; the dot marks the chosen count ({}).", out.selection.m, out.selection.rule),
+                    &fig5,
+                )?],
+            },
+            Section {
+                heading: "Joint trajectories (Fig. 6)".into(),
+                blocks: vec![Block::figure(
+                    "fig-joints",
+                    "Joint angles over the estimated time (each move with its acceleration ramps from rest to rest; the program's blends overlap moves, which its stated time takes off): the selected poses in pool order by direct moves, and the program in tour order with its support poses. Like for like, the ordering takes the direct-move time of the same poses from the first panel's to the one in the second panel's title.",
+                    &fig6,
+                )?],
+            },
+            Section {
+                heading: "The measurement path (Fig. 7)".into(),
+                blocks: vec![Block::figure(
+                    "fig-path",
+                    "MAP path of the program (joint-space moves sampled), measurement and support poses, corners with a blend; top row: the whole cell with the bar-free transits and the robot as a stick figure (base, DH frame origins, flange, MAP) at a few poses of the tour; bottom row: the measurement itself.",
+                    &fig7,
+                )?],
+            },
+            Section {
+                heading: "Stages".into(),
+                blocks: vec![Block::table(&["stage", "count"], stage_counts(&out.report))],
+            },
+            Section {
+                heading: "Safety (as verified on the program text)".into(),
+                blocks: vec![
+                    Block::table(&["check", "value"], safety_rows(&out.report)),
+                    Block::text("Body pairs excluded from the collision check, with the reason:"),
+                    Block::table(&["body", "body", "reason"], excluded_rows(&out.report)),
+                ],
+            },
+            Section {
+                heading: "Identifiability (Section 2.1.2)".into(),
+                blocks: vec![Block::table(&["parameter", "status"], identifiability_rows(out))],
+            },
+        ],
+    })
+}
 
-    // ---- Fig. 4: pool and selection around the fixture --------------------------------------
+/// Fig. 4 from the compiled pool and selection around the fixture (mm): the figure and the
+/// stride the pool is drawn with.
+fn poses_figure(out: &Compiled, fixture: &[f64; 3]) -> (Figure, usize) {
+    let cell = &out.cell;
     let stride = out.pool.candidates.len().div_ceil(POOL_DOTS).max(1);
     let pool: Vec<[f64; 3]> = out
         .pool
@@ -130,9 +201,9 @@ pub fn page(robot: &Robot, out: &Compiled) -> Result<Page, ReportError> {
                     vec![
                         Series::dots("pool", GREY, project(&pool, v)),
                         Series::dots("selected", BLUE, project(&selected, v)),
-                        Series::dots("fixture", RED, project(&[fixture], v)),
-                        Series::line("bar max", SKY, circle(&fixture, to_mm(cell.bar_max), v)),
-                        Series::line("bar min", GREY, circle(&fixture, to_mm(cell.bar_min), v)),
+                        Series::dots("fixture", RED, project(&[*fixture], v)),
+                        Series::line("bar max", SKY, circle(fixture, to_mm(cell.bar_max), v)),
+                        Series::line("bar min", GREY, circle(fixture, to_mm(cell.bar_min), v)),
                     ],
                 )
             })
@@ -140,8 +211,12 @@ pub fn page(robot: &Robot, out: &Compiled) -> Result<Page, ReportError> {
         columns: 3,
         panel_px: (330, 330),
     };
+    (fig4, stride)
+}
 
-    // ---- Fig. 5: cond(n) --------------------------------------------------------------------
+/// Fig. 5 from the compiled selection: the condition number over the pose count, whole and
+/// near the end.
+fn cond_figure(out: &Compiled) -> Figure {
     let sel_n = out.selection.indices.len();
     let curve: Vec<(f64, f64)> = out
         .selection
@@ -169,7 +244,7 @@ pub fn page(robot: &Robot, out: &Compiled) -> Result<Page, ReportError> {
         legend: Legend::Outside,
         ..Panel::default()
     };
-    let fig5 = Figure {
+    Figure {
         title: String::new(),
         panels: vec![
             cond_panel(
@@ -189,9 +264,13 @@ pub fn page(robot: &Robot, out: &Compiled) -> Result<Page, ReportError> {
         ],
         columns: 2,
         panel_px: (480, 320),
-    };
+    }
+}
 
-    // ---- Fig. 6: joint trajectories, unsorted and in tour order ------------------------------
+/// Fig. 6 from the robot's limits and the compiled selection and path: the joint trajectories
+/// unsorted and in tour order.
+fn joints_figure(robot: &Robot, out: &Compiled) -> Figure {
+    let lim = crate::timing::Limits::of(robot);
     let unsorted: Vec<[f64; 6]> = out
         .selection
         .indices
@@ -208,7 +287,7 @@ pub fn page(robot: &Robot, out: &Compiled) -> Result<Page, ReportError> {
             }
         })
         .collect();
-    let fig6 = Figure {
+    Figure {
         title: String::new(),
         panels: vec![
             joint_panel(
@@ -231,9 +310,13 @@ pub fn page(robot: &Robot, out: &Compiled) -> Result<Page, ReportError> {
         ],
         columns: 1,
         panel_px: (960, 300),
-    };
+    }
+}
 
-    // ---- Fig. 7: the MAP path with support poses, blends and the robot -----------------------
+/// Fig. 7 from the robot and the compiled plan around the fixture (mm): the MAP path with
+/// support poses, blends and the robot as stick figures.
+fn path_figure(robot: &Robot, out: &Compiled, fixture: &[f64; 3]) -> Figure {
+    let map_of = |q: &[f64; 6]| mm(&out.model.map_position(&out.model.nominal, q));
     let wps = &out.plan.waypoints;
     let mut path: Vec<[f64; 3]> = Vec::new();
     let mut transit: Vec<[f64; 3]> = Vec::new();
@@ -284,7 +367,7 @@ pub fn page(robot: &Robot, out: &Compiled) -> Result<Page, ReportError> {
             Series::dots("measurement pose", GREEN, project(&measure, v)),
             Series::dots("support pose", RED, project(&support, v)),
             Series::dots("blended corner", PURPLE, project(&blended, v)),
-            Series::dots("fixture", BLACK, project(&[fixture], v)),
+            Series::dots("fixture", BLACK, project(&[*fixture], v)),
         ];
         if whole {
             s.push(Series::line(
@@ -301,7 +384,7 @@ pub fn page(robot: &Robot, out: &Compiled) -> Result<Page, ReportError> {
         }
         s
     };
-    let fig7 = Figure {
+    Figure {
         title: String::new(),
         panels: VIEWS
             .iter()
@@ -322,9 +405,11 @@ pub fn page(robot: &Robot, out: &Compiled) -> Result<Page, ReportError> {
             .collect(),
         columns: 3,
         panel_px: (330, 330),
-    };
+    }
+}
 
-    // ---- tables -----------------------------------------------------------------------------
+/// The stage counts table's rows from the compiler's report.
+fn stage_counts(r: &Report) -> Vec<Vec<String>> {
     let num = |v: u64| v.to_string();
     let mut counts = vec![
         vec!["joint grid".into(), num(r.grid_size)],
@@ -380,7 +465,12 @@ pub fn page(robot: &Robot, out: &Compiled) -> Result<Page, ReportError> {
             r.exact_stops.to_string(),
         ],
     ]);
-    let safety = vec![
+    counts
+}
+
+/// The safety table's rows from the compiler's report.
+fn safety_rows(r: &Report) -> Vec<Vec<String>> {
+    vec![
         vec![
             "minimum clearance".into(),
             format!(
@@ -414,14 +504,20 @@ pub fn page(robot: &Robot, out: &Compiled) -> Result<Page, ReportError> {
             "body pairs excluded".into(),
             r.excluded_pairs.len().to_string(),
         ],
-    ];
-    let excluded: Vec<Vec<String>> = r
-        .excluded_pairs
+    ]
+}
+
+/// The excluded body pairs' rows (body, body, reason) from the compiler's report.
+fn excluded_rows(r: &Report) -> Vec<Vec<String>> {
+    r.excluded_pairs
         .iter()
         .map(|p| vec![p.a.clone(), p.b.clone(), p.reason.clone()])
-        .collect();
-    let ident: Vec<Vec<String>> = out
-        .identifiability
+        .collect()
+}
+
+/// The identifiability table's rows (parameter, status) from the compiled model.
+fn identifiability_rows(out: &Compiled) -> Vec<Vec<String>> {
+    out.identifiability
         .params
         .iter()
         .map(|p| {
@@ -433,9 +529,12 @@ pub fn page(robot: &Robot, out: &Compiled) -> Result<Page, ReportError> {
             };
             vec![p.name.clone(), status]
         })
-        .collect();
+        .collect()
+}
 
-    let facts = vec![
+/// The page's facts (name, value) from the program's header.
+fn facts(h: &Header) -> Vec<(String, String)> {
+    vec![
         (
             "robot".to_string(),
             format!("{} [{}]", h.robot, h.robot_file),
@@ -491,73 +590,7 @@ pub fn page(robot: &Robot, out: &Compiled) -> Result<Page, ReportError> {
                 fmt_fixed(h.margin_mm, 1)
             ),
         ),
-    ];
-
-    Ok(Page {
-        title: format!("edbbgen — EDBB measurement program for {}", h.robot),
-        kind: "compile".into(),
-        tool_version: h.tool_version.clone(),
-        inputs_sha256: h.inputs_sha256.clone(),
-        facts,
-        warnings: out.warnings.clone(),
-        sections: vec![
-            Section {
-                heading: "Poses around the fixture (Fig. 4)".into(),
-                blocks: vec![Block::figure(
-                    "fig-poses",
-                    &format!(
-                        "MAP positions of the pose pool ({} poses{}) and of the {} selected poses, in three orthogonal views of the robot base frame; circles: the bar's shell (ball-centre distance {} .. {} mm) around the fixture.",
-                        out.pool.candidates.len(),
-                        if stride > 1 { format!(", 1 in {stride} drawn") } else { String::new() },
-                        selected.len(),
-                        fmt_fixed(to_mm(cell.bar_min), 0),
-                        fmt_fixed(to_mm(cell.bar_max), 0)
-                    ),
-                    &fig4,
-                )?],
-            },
-            Section {
-                heading: "Pose count (Fig. 5)".into(),
-                blocks: vec![Block::figure(
-                    "fig-cond",
-                    &format!("Condition number of the scaled identification Jacobian while the greedy elimination removes poses, down to n = m = {}; the dot marks the chosen count ({}).", out.selection.m, out.selection.rule),
-                    &fig5,
-                )?],
-            },
-            Section {
-                heading: "Joint trajectories (Fig. 6)".into(),
-                blocks: vec![Block::figure(
-                    "fig-joints",
-                    "Joint angles over the estimated time (each move with its acceleration ramps from rest to rest; the program's blends overlap moves, which its stated time takes off): the selected poses in pool order by direct moves, and the program in tour order with its support poses. Like for like, the ordering takes the direct-move time of the same poses from the first panel's to the one in the second panel's title.",
-                    &fig6,
-                )?],
-            },
-            Section {
-                heading: "The measurement path (Fig. 7)".into(),
-                blocks: vec![Block::figure(
-                    "fig-path",
-                    "MAP path of the program (joint-space moves sampled), measurement and support poses, corners with a blend; top row: the whole cell with the bar-free transits and the robot as a stick figure (base, DH frame origins, flange, MAP) at a few poses of the tour; bottom row: the measurement itself.",
-                    &fig7,
-                )?],
-            },
-            Section {
-                heading: "Stages".into(),
-                blocks: vec![Block::table(&["stage", "count"], counts)],
-            },
-            Section {
-                heading: "Safety (as verified on the program text)".into(),
-                blocks: vec![
-                    Block::table(&["check", "value"], safety),
-                    Block::text("Body pairs excluded from the collision check, with the reason:"),
-                    Block::table(&["body", "body", "reason"], excluded),
-                ],
-            },
-            Section {
-                heading: "Identifiability (Section 2.1.2)".into(),
-                blocks: vec![Block::table(&["parameter", "status"], ident)],
-            },
-        ],
-    })
+    ]
 }
 
 fn xyz(v: &[f64; 3]) -> String {
