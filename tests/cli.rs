@@ -12,6 +12,9 @@ const SUBCOMMANDS: &[&str] = &[
     "ldbb",
     "ldbb-circle",
     "simulate-ldbb",
+    "dialects",
+    "calibrate",
+    "place",
     "compensate",
     "completions",
     "man",
@@ -52,18 +55,25 @@ fn manual_pages_for_the_compiler_and_each_subcommand() {
     assert_eq!(r.code, 0, "{}", r.stderr);
     assert!(r.stdout.contains(".TH edbbgen 1"));
     assert!(r.stdout.contains("fixture"));
-    for sub in [
-        "model",
-        "verify",
-        "simulate",
-        "diagnose",
-        "circle",
-        "ldbb",
-        "ldbb-circle",
-        "simulate-ldbb",
-        "compensate",
-    ] {
+    for page in [&r.stdout] {
+        assert!(page.contains(".SH EXAMPLES"), "compiler: EXAMPLES");
+        assert!(
+            page.contains(".SH \"EXIT STATUS\""),
+            "compiler: EXIT STATUS"
+        );
+    }
+    for sub in SUBCOMMANDS {
         let r = edbbgen(["man", sub]);
+        let page = r.stdout.replace("\\-", "-");
+        let examples = page.split(".SH EXAMPLES").nth(1).unwrap_or("");
+        assert!(
+            examples.contains(&format!("edbbgen {sub}")),
+            "{sub}: the man page's EXAMPLES run the subcommand"
+        );
+        assert!(
+            r.stdout.contains(".SH \"EXIT STATUS\"") && r.stdout.contains("bad input or usage"),
+            "{sub}: EXIT STATUS"
+        );
         assert_eq!(r.code, 0, "{sub}: {}", r.stderr);
         assert!(
             r.stdout.contains(&format!(".TH edbbgen-{sub} 1")),
@@ -91,6 +101,52 @@ fn every_subcommand_takes_q() {
         let r = edbbgen([sub, "--help"]);
         assert_eq!(r.code, 0, "{sub}");
         assert!(r.stdout.contains("-q, --quiet"), "{sub} lacks -q");
+        let examples = r.stdout.split("Examples:\n").nth(1).unwrap_or("");
+        assert!(
+            examples.contains(&format!("  edbbgen {sub}")),
+            "{sub}: --help shows an example of the subcommand"
+        );
         assert!(help.contains(sub), "top-level help lists {sub}");
     }
+}
+
+#[test]
+fn q_leaves_warnings_and_errors_only_and_a_json_flag_takes_a_path() {
+    let dir = tempdir();
+    let p = |f: &str| dir.path().join(f).display().to_string();
+    let nj = nj130_dh().display().to_string();
+    let nj = nj.as_str();
+    // The summary is stdout's only content; -q silences it, the file is still written.
+    let r = edbbgen(["circle", nj, "--fixture", "258,1468,708", "-o", &p("c.nc")]);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    assert!(r.stdout.contains("circle test"), "{}", r.stdout);
+    std::fs::remove_file(p("c.nc")).unwrap();
+    let r = edbbgen([
+        "circle",
+        nj,
+        "--fixture",
+        "258,1468,708",
+        "-o",
+        &p("c.nc"),
+        "-q",
+    ]);
+    assert_eq!((r.code, r.stdout.as_str()), (0, ""), "{}", r.stderr);
+    assert!(std::fs::read_to_string(p("c.nc")).unwrap().contains("G1 "));
+    assert_eq!(edbbgen(["dialects", "-q"]).stdout, "");
+    // --json alone and --json - print the report on stdout in place of the list; a path
+    // writes the file and the list is printed as usual (not with -q).
+    let alone = edbbgen(["dialects", "--json"]).stdout;
+    let dash = edbbgen(["dialects", "--json", "-"]).stdout;
+    assert_eq!(alone, dash);
+    let doc: serde_json::Value = serde_json::from_str(&alone).expect("JSON on stdout");
+    assert_eq!(doc["schema"], "edbbgen.dialects/1");
+    let r = edbbgen(["dialects", "--json", &p("d.json"), "-q"]);
+    assert_eq!((r.code, r.stdout.as_str()), (0, ""), "{}", r.stderr);
+    assert_eq!(std::fs::read_to_string(p("d.json")).unwrap(), alone);
+    let r = edbbgen(["dialects", "--json", &p("d.json")]);
+    assert!(r.stdout.contains("approximates"), "{}", r.stdout);
+    // A report into a folder that does not exist: exit 2 before any work.
+    let r = edbbgen(["dialects", "--json", &p("no/d.json")]);
+    assert_eq!(r.code, 2);
+    assert!(r.stderr.contains("does not exist"), "{}", r.stderr);
 }

@@ -185,7 +185,7 @@ fn measures_every_selected_pose_in_one_round(name: &str, mut args: Vec<String>) 
     args.extend([
         "-o".into(),
         out.display().to_string(),
-        "--report".into(),
+        "--json".into(),
         report.display().to_string(),
         "-q".into(),
     ]);

@@ -80,7 +80,7 @@ fn rapid_couples_j3_to_j2_on_a_parallel_arm_robot_and_says_so() {
         "-q".into(),
         "-o".into(),
         rapid.display().to_string(),
-        "--report".into(),
+        "--json".into(),
         report.display().to_string(),
     ]);
     assert_eq!(r_rapid.code, 0, "{}", r_rapid.stderr);

@@ -60,7 +60,7 @@ fn run_all(dir: &Path, threads: &str) -> BTreeMap<String, Vec<u8>> {
             fix,
             "-o",
             "nj130.nc",
-            "--report",
+            "--json",
             "report.json",
             "--html",
             "report.html",

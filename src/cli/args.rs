@@ -1,8 +1,22 @@
 //! Flags as clap parses them, close to argv; [`super::run`] resolves them once into checked,
 //! SI-unit options.
 
+use super::help;
 use clap::{Args, Parser, Subcommand};
 use std::path::PathBuf;
+
+/// The compile stages `--emit` prints as JSON.
+pub const EMIT_STAGES: [&str; 9] = [
+    "model",
+    "identifiability",
+    "sample",
+    "pool",
+    "selection",
+    "path",
+    "plan",
+    "program",
+    "report",
+];
 
 #[derive(Parser, Debug)]
 #[command(
@@ -11,7 +25,8 @@ use std::path::PathBuf;
     about = "Compiles error-sensitive Extended Double Ball Bar (EDBB) measurement programs for 6-axis robots",
     args_conflicts_with_subcommands = true,
     subcommand_negates_reqs = true,
-    allow_negative_numbers = true
+    allow_negative_numbers = true,
+    after_help = help::COMPILE
 )]
 pub struct Cli {
     #[command(subcommand)]
@@ -23,59 +38,64 @@ pub struct Cli {
 #[derive(Subcommand, Debug)]
 pub enum Command {
     /// Identifiability of the 30 model parameters and observability of a rich pose set.
-    #[command(allow_negative_numbers = true)]
+    #[command(allow_negative_numbers = true, after_help = help::MODEL)]
     Model(ModelArgs),
     /// Re-read a program and re-check it: poses, moves and blends against every limit.
-    #[command(allow_negative_numbers = true)]
+    #[command(allow_negative_numbers = true, after_help = help::VERIFY)]
     Verify(VerifyArgs),
     /// Digital twin: run a program on a virtual robot with the errors of TRUTH.toml and write
     /// what the EDBB and the encoders would record (CSV).
-    #[command(allow_negative_numbers = true)]
+    #[command(allow_negative_numbers = true, after_help = help::SIMULATE)]
     Simulate(SimulateArgs),
     /// Compare measured EDBB data with the model: calibrate, name the missing effect, report.
-    #[command(allow_negative_numbers = true)]
+    #[command(allow_negative_numbers = true, after_help = help::DIAGNOSE)]
     Diagnose(DiagnoseArgs),
     /// The extended circle test after ISO 230-4 as a program (the baseline for comparison).
-    #[command(allow_negative_numbers = true)]
+    #[command(allow_negative_numbers = true, after_help = help::CIRCLE)]
     Circle(CircleArgs),
     /// Loaded double ball bar: compliance along the bar, the centring sine, the kinematic
     /// remainder and joint stiffness from loaded circle data (LOADED.csv).
-    #[command(allow_negative_numbers = true)]
+    #[command(allow_negative_numbers = true, after_help = help::LDBB)]
     Ldbb(LdbbArgs),
     /// The LDBB loaded circle test as a program (every load, lead-in, measured circles,
     /// lead-out), checked by verify.
-    #[command(allow_negative_numbers = true)]
+    #[command(allow_negative_numbers = true, after_help = help::LDBB_CIRCLE)]
     LdbbCircle(LdbbCircleArgs),
     /// LDBB digital twin: loaded circle data (and a laser-tracker reference) from a truth.
-    #[command(allow_negative_numbers = true)]
+    #[command(allow_negative_numbers = true, after_help = help::SIMULATE_LDBB)]
     SimulateLdbb(SimulateLdbbArgs),
     /// List the bundled controller dialects (templates) and what each approximates.
+    #[command(after_help = help::DIALECTS)]
     Dialects(DialectsArgs),
     /// Calibrate: from measured EDBB runs to a calibrated robot file, with the parameters the
     /// data determine, their uncertainties and the predicted MAP position accuracy.
-    #[command(allow_negative_numbers = true)]
+    #[command(allow_negative_numbers = true, after_help = help::CALIBRATE)]
     Calibrate(CalibrateArgs),
     /// Where to put the fixture: candidate positions scored by the MAP position uncertainty a
     /// calibration from a program compiled there would reach; the best campaign of K positions.
-    #[command(allow_negative_numbers = true)]
+    #[command(allow_negative_numbers = true, after_help = help::PLACE)]
     Place(Box<PlaceArgs>),
     /// Apply a calibration: compensated joint and Cartesian targets (CSV) or a compensated
     /// joint-move program for any controller, the mastering offsets, and the accuracy each
     /// route gives over the joint space.
-    #[command(allow_negative_numbers = true)]
+    #[command(allow_negative_numbers = true, after_help = help::COMPENSATE)]
     Compensate(CompensateArgs),
     /// Print a shell completion script (bash, zsh, fish, elvish, powershell) on stdout.
+    #[command(after_help = help::COMPLETIONS)]
     Completions(CompletionsArgs),
     /// Print the manual page (roff, `man -l -` reads it) on stdout.
+    #[command(after_help = help::MAN)]
     Man(ManArgs),
 }
 
 #[derive(Args, Debug)]
 pub struct DialectsArgs {
-    /// Print the list as JSON (schema edbbgen.dialects/1).
-    #[arg(long)]
-    pub json: bool,
-    /// Accepted like on every subcommand; this one prints no progress.
+    /// Write the report as JSON (schema edbbgen.dialects/1) to FILE; `-`, or the flag alone, prints it
+    /// on stdout in place of the summary.
+    #[arg(long, value_name = "FILE", num_args = 0..=1, default_missing_value = "-")]
+    pub json: Option<PathBuf>,
+    /// Quiet: no progress and no summary; warnings and errors only (on stderr). Output asked for
+    /// by a flag (a file, `--emit`, `--json -`) is still written.
     #[arg(short, long)]
     pub quiet: bool,
 }
@@ -85,7 +105,8 @@ pub struct CompletionsArgs {
     /// The shell to complete for.
     #[arg(value_name = "SHELL")]
     pub shell: clap_complete::Shell,
-    /// Accepted like on every subcommand; this one prints no progress.
+    /// Quiet: no progress and no summary; warnings and errors only (on stderr). Output asked for
+    /// by a flag (a file, `--emit`, `--json -`) is still written.
     #[arg(short, long)]
     pub quiet: bool,
 }
@@ -95,7 +116,8 @@ pub struct ManArgs {
     /// A subcommand's page (`edbbgen-verify(1)`, ...) instead of the compiler's.
     #[arg(value_name = "SUBCOMMAND")]
     pub subcommand: Option<String>,
-    /// Accepted like on every subcommand; this one prints no progress.
+    /// Quiet: no progress and no summary; warnings and errors only (on stderr). Output asked for
+    /// by a flag (a file, `--emit`, `--json -`) is still written.
     #[arg(short, long)]
     pub quiet: bool,
 }
@@ -134,7 +156,8 @@ pub struct CellArgs {
     /// Seed of every random choice (the pool subset, the model's pose set).
     #[arg(long, value_name = "N", default_value_t = crate::pipeline::DEFAULT_SEED)]
     pub seed: u64,
-    /// No progress bars.
+    /// Quiet: no progress and no summary; warnings and errors only (on stderr). Output asked for
+    /// by a flag (a file, `--emit`, `--json -`) is still written.
     #[arg(short, long)]
     pub quiet: bool,
 }
@@ -198,11 +221,14 @@ pub struct CompileArgs {
     /// unified diff when they differ.
     #[arg(long)]
     pub check: bool,
-    /// Also print a stage's result as JSON on stdout: model, sample, pool, selection, path, program.
-    #[arg(long, value_name = "STAGE")]
+    /// Also print a stage's result as JSON on stdout.
+    #[arg(long, value_name = "STAGE", value_parser = EMIT_STAGES)]
     pub emit: Option<String>,
     /// Write the counts of every stage as JSON (schema edbbgen.report/1).
     #[arg(long, value_name = "REPORT.json")]
+    pub json: Option<PathBuf>,
+    /// The former spelling of --json (still read, with a warning).
+    #[arg(long, value_name = "REPORT.json", hide = true, conflicts_with = "json")]
     pub report: Option<PathBuf>,
     /// Write a self-contained HTML report (figures of the pool, pose count, trajectories and
     /// path; the stage counts, safety and identifiability tables).
@@ -230,9 +256,10 @@ pub struct VerifyArgs {
     pub dialect: Option<String>,
     #[command(flatten)]
     pub cell: CellArgs,
-    /// Print the summary as JSON.
-    #[arg(long)]
-    pub json: bool,
+    /// Write the report as JSON (schema edbbgen.verify/1, or edbbgen.verify-trace/1 with --trace) to FILE; `-`, or the flag alone, prints it
+    /// on stdout in place of the summary.
+    #[arg(long, value_name = "FILE", num_args = 0..=1, default_missing_value = "-")]
+    pub json: Option<PathBuf>,
     /// A recorded run of the program (t_s,q1_deg,...,q6_deg in the controller's axis values):
     /// check the executed path, how close it passed each measurement pose, and its time.
     #[arg(long, value_name = "TRACE.csv")]
@@ -255,9 +282,10 @@ pub struct ModelArgs {
     /// The bar's noise per reading, um: what the predicted calibration uncertainty assumes.
     #[arg(long, value_name = "UM", default_value = "1.0")]
     pub bar_noise: String,
-    /// Print the report as JSON.
-    #[arg(long)]
-    pub json: bool,
+    /// Write the report as JSON (schema edbbgen.model/1) to FILE; `-`, or the flag alone, prints it
+    /// on stdout in place of the summary.
+    #[arg(long, value_name = "FILE", num_args = 0..=1, default_missing_value = "-")]
+    pub json: Option<PathBuf>,
 }
 
 #[derive(Args, Debug)]
@@ -287,9 +315,12 @@ pub struct SimulateArgs {
     /// (the twin needs nothing else from it).
     #[arg(long, value_name = "CELL.toml")]
     pub cell: Option<PathBuf>,
-    /// Bar sample rate, Hz.
+    /// The bar's sample rate, Hz.
     #[arg(long, value_name = "HZ", default_value = "50")]
-    pub rate: String,
+    pub bar_rate: String,
+    /// The former spelling of --bar-rate (still read, with a warning).
+    #[arg(long, value_name = "HZ", hide = true)]
+    pub rate: Option<String>,
     /// Noise seed.
     #[arg(long, value_name = "N", default_value_t = 1)]
     pub seed: u64,
@@ -354,7 +385,8 @@ pub struct SimulateArgs {
     /// The bar logs nothing while unmounted (default: it reads what a handled bar reads).
     #[arg(long)]
     pub no_handling: bool,
-    /// No progress output.
+    /// Quiet: no progress and no summary; warnings and errors only (on stderr). Output asked for
+    /// by a flag (a file, `--emit`, `--json -`) is still written.
     #[arg(short, long)]
     pub quiet: bool,
 }
@@ -402,7 +434,8 @@ pub struct DiagnoseArgs {
     /// poses of static readings, the high-frequency part of a continuous recording].
     #[arg(long, value_name = "UM", value_parser = positive_um)]
     pub noise: Option<f64>,
-    /// No progress output (diagnose draws none; accepted like on every subcommand).
+    /// Quiet: no progress and no summary; warnings and errors only (on stderr). Output asked for
+    /// by a flag (a file, `--emit`, `--json -`) is still written.
     #[arg(short, long)]
     pub quiet: bool,
 }
@@ -427,7 +460,8 @@ pub struct CircleArgs {
     /// MAP speed along the circle, mm/s.
     #[arg(long, value_name = "MM_S", default_value = "50")]
     pub speed: String,
-    /// No progress output.
+    /// Quiet: no progress and no summary; warnings and errors only (on stderr). Output asked for
+    /// by a flag (a file, `--emit`, `--json -`) is still written.
     #[arg(short, long)]
     pub quiet: bool,
 }
@@ -469,7 +503,8 @@ pub struct LdbbArgs {
     /// URDF: directory searched for package:// paths (repeatable).
     #[arg(long = "package-path", value_name = "DIR")]
     pub package_path: Vec<PathBuf>,
-    /// No progress output (the analysis draws none; accepted like on every subcommand).
+    /// Quiet: no progress and no summary; warnings and errors only (on stderr). Output asked for
+    /// by a flag (a file, `--emit`, `--json -`) is still written.
     #[arg(short, long)]
     pub quiet: bool,
 }
@@ -513,7 +548,8 @@ pub struct LdbbCircleArgs {
     /// URDF: directory searched for package:// paths (repeatable).
     #[arg(long = "package-path", value_name = "DIR")]
     pub package_path: Vec<PathBuf>,
-    /// No progress output.
+    /// Quiet: no progress and no summary; warnings and errors only (on stderr). Output asked for
+    /// by a flag (a file, `--emit`, `--json -`) is still written.
     #[arg(short, long)]
     pub quiet: bool,
 }
@@ -542,7 +578,8 @@ pub struct SimulateLdbbArgs {
     /// URDF: directory searched for package:// paths (repeatable).
     #[arg(long = "package-path", value_name = "DIR")]
     pub package_path: Vec<PathBuf>,
-    /// No progress output.
+    /// Quiet: no progress and no summary; warnings and errors only (on stderr). Output asked for
+    /// by a flag (a file, `--emit`, `--json -`) is still written.
     #[arg(short, long)]
     pub quiet: bool,
 }
@@ -640,7 +677,8 @@ pub struct CalibrateArgs {
     /// URDF: directory searched for package:// paths (repeatable).
     #[arg(long = "package-path", value_name = "DIR")]
     pub package_path: Vec<PathBuf>,
-    /// No progress output (calibrate draws none; accepted like on every subcommand).
+    /// Quiet: no progress and no summary; warnings and errors only (on stderr). Output asked for
+    /// by a flag (a file, `--emit`, `--json -`) is still written.
     #[arg(short, long)]
     pub quiet: bool,
 }
@@ -719,7 +757,8 @@ pub struct CompensateArgs {
     /// URDF: directory searched for package:// paths (repeatable).
     #[arg(long = "package-path", value_name = "DIR")]
     pub package_path: Vec<PathBuf>,
-    /// No progress output (compensate draws none; accepted like on every subcommand).
+    /// Quiet: no progress and no summary; warnings and errors only (on stderr). Output asked for
+    /// by a flag (a file, `--emit`, `--json -`) is still written.
     #[arg(short, long)]
     pub quiet: bool,
 }

@@ -112,7 +112,7 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
         if let Some(p) = &a.json {
             write_all_atomic(&[(p.as_path(), json.as_str())])?;
         }
-        print!("{}", cal.summary);
+        say_raw!(a.quiet, "{}", cal.summary);
         eprintln!("calibrate: {}", cal.report.verdict);
         return Ok(1);
     }
@@ -141,13 +141,17 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
     write_all_atomic(&files)?;
     for (k, read) in c.from_logs.iter().enumerate() {
         for l in read.iter().flat_map(|r| &r.summary) {
-            println!("run {}: {l}", k + 1);
+            say!(a.quiet, "run {}: {l}", k + 1);
         }
     }
-    print!("{}", cal.summary);
-    println!("wrote {}", a.output.display());
+    say_raw!(a.quiet, "{}", cal.summary);
+    say!(a.quiet, "wrote {}", a.output.display());
     if let Some(p) = &sidecar {
-        println!("wrote {} (the effects the URDF names)", p.display());
+        say!(
+            a.quiet,
+            "wrote {} (the effects the URDF names)",
+            p.display()
+        );
     }
     // The set-up only, with the nominal geometry: a result, told apart from a calibration.
     Ok(if cal.setup_only() { 3 } else { 0 })

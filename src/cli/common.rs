@@ -116,7 +116,6 @@ pub(super) fn resolve_cell(a: &CellArgs) -> Result<CellSpec, Error> {
     Ok(spec)
 }
 
-/// `--margin MM` and `--joint-margin DEG` over the cell's values, range-checked.
 /// `--bar-noise`: the bar's noise per reading (µm), positive.
 pub(super) fn bar_noise(s: &str) -> Result<f64, Error> {
     let v = scalar("--bar-noise", s)?;
@@ -135,6 +134,7 @@ pub(super) fn bar_rate(s: &str) -> Result<f64, Error> {
     Ok(v)
 }
 
+/// `--margin MM` and `--joint-margin DEG` over the cell's values, range-checked.
 pub(super) fn set_margins(
     spec: &mut CellSpec,
     margin: Option<&str>,
@@ -243,6 +243,21 @@ pub(super) fn read_input(
             other => other.to_string(),
         },
     })
+}
+
+/// Where a `--json [FILE]` report goes: `-` (the flag alone) is stdout, in place of the summary.
+pub(super) fn is_stdout(dest: &Path) -> bool {
+    dest.as_os_str() == "-"
+}
+
+/// Writes a JSON report to its destination: stdout for `-`, else the file (atomically).
+pub(super) fn write_json(dest: &Path, json: &str) -> Result<(), Error> {
+    if is_stdout(dest) {
+        println!("{json}");
+        Ok(())
+    } else {
+        write_atomic(dest, &format!("{json}\n"))
+    }
 }
 
 /// Refuses, before any work, an output whose directory does not exist or is not a directory:

@@ -459,9 +459,9 @@ fn write_outputs(
         files.push((p.as_path(), h.as_str()));
     }
     write_all_atomic(&files)?;
-    print!("{}", compensate::summary::text(report));
+    say_raw!(a.quiet, "{}", compensate::summary::text(report));
     if let Some(o) = &a.output {
-        println!("wrote {}", o.display());
+        say!(a.quiet, "wrote {}", o.display());
     }
     Ok(0)
 }

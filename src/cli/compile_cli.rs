@@ -43,19 +43,15 @@ pub fn run(a: &CompileArgs) -> Result<i32, Error> {
         .map_err(|e| usage(e.to_string()))?
         .dialect;
     let program_name = program_name(output, dialect)?;
+    if a.report.is_some() {
+        eprintln!("edbbgen: warning: --report is now spelled --json (like every subcommand's report); --report will be removed");
+    }
+    let report = a.json.as_deref().or(a.report.as_deref());
     check_outputs(&[
         (!a.check).then_some(output.as_path()),
-        a.report.as_deref(),
+        report,
         a.html.as_deref(),
     ])?;
-    if let Some(stage) = &a.emit {
-        if !EMIT_STAGES.contains(&stage.as_str()) {
-            return Err(usage(format!(
-                "--emit: unknown stage '{stage}' (one of: {})",
-                EMIT_STAGES.join(", ")
-            )));
-        }
-    }
     let step = steps(&a.step)?;
     let robot = load_robot(robot_path, &a.cell, &spec)?;
     controller_map(&spec, a.cell.cell.as_deref(), dialect, &robot)?;
@@ -133,7 +129,7 @@ pub fn run(a: &CompileArgs) -> Result<i32, Error> {
     if let Some(stage) = &a.emit {
         println!("{}", emit_stage(&out, stage));
     }
-    if let Some(r) = &a.report {
+    if let Some(r) = report {
         write_atomic(
             r,
             &(serde_json::to_string_pretty(&out.report).unwrap_or_default() + "\n"),
@@ -174,7 +170,8 @@ pub fn run(a: &CompileArgs) -> Result<i32, Error> {
     if a.emit.is_none() {
         let h = &out.program.header;
         let v = &out.verified;
-        println!(
+        say!(
+            a.cell.quiet,
             "{}: {} poses + {} support ({} identifiable parameters, cond {}), estimated {} s as programmed (support poses and blends included); ordering: {} s in tour order, {} s unsorted (the measurement poses alone, direct moves); verified: min clearance {} mm ({} / {}), bar {}..{} mm; predicted MAP position uncertainty after calibration {} um RMS over the joint space ({} um bar noise at {} Hz)",
             output.display(),
             h.poses,
@@ -194,7 +191,8 @@ pub fn run(a: &CompileArgs) -> Result<i32, Error> {
             fmt_fixed(h.bar_rate_hz, 0),
         );
         if h.dwell_s > 0.0 {
-            println!(
+            say!(
+                a.cell.quiet,
                 "stop-and-measure: exact stop and {} s dwell at each of the {} measurement poses; predicted {} um RMS over the joint space from the plateau means ({} samples each), {} um from the same run recorded with a synchronous joint log",
                 fmt_fixed(h.dwell_s, 2),
                 h.measure_mm.len(),
@@ -242,18 +240,6 @@ pub(super) fn parse_focus(s: &str) -> Result<Vec<usize>, Error> {
     }
     Ok(out)
 }
-
-pub(super) const EMIT_STAGES: &[&str] = &[
-    "model",
-    "identifiability",
-    "sample",
-    "pool",
-    "selection",
-    "path",
-    "plan",
-    "program",
-    "report",
-];
 
 pub(super) fn emit_stage(c: &pipeline::Compiled, stage: &str) -> String {
     let v = match stage {

@@ -173,7 +173,7 @@ pub fn ldbb(a: &LdbbArgs) -> Result<i32, Error> {
     for w in &analysis.warnings {
         eprintln!("edbbgen: warning: {w}");
     }
-    print!("{}", ldbb::summary(&analysis));
+    say_raw!(a.quiet, "{}", ldbb::summary(&analysis));
     Ok(0)
 }
 
@@ -237,7 +237,8 @@ pub fn circle(a: &LdbbCircleArgs) -> Result<i32, Error> {
     };
     write_atomic(&a.output, &out.text)?;
     let v = &out.verified;
-    println!(
+    say!(
+        a.quiet,
         "{}: LDBB loaded circle test, {} loads x {} circles, {} moves, {} s of motion; verified: min clearance {} mm ({} / {}), bar {}..{} mm, path within {} um of the circle",
         a.output.display(),
         setup.loads.len(),
@@ -268,7 +269,8 @@ pub fn simulate(a: &SimulateLdbbArgs) -> Result<i32, Error> {
     if let (Some(p), Some(lt)) = (&a.reference, &lt) {
         write_atomic(p, lt)?;
     }
-    println!(
+    say!(
+        a.quiet,
         "{}: {} rows, {} loads x {} circles of {} samples",
         a.output.display(),
         s.loaded.samples.len(),

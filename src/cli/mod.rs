@@ -3,11 +3,31 @@
 //! file, then rename) and prints results; `common`, `progress` and `logruns` hold what they
 //! share, and no subcommand's file imports another's. Progress bars live here and only here.
 
+/// Prints a summary on stdout (like `println!`) unless `-q` asked for quiet; warnings and
+/// errors go to stderr regardless, and output a flag asked for is printed with `println!`.
+macro_rules! say {
+    ($quiet:expr, $($arg:tt)*) => {
+        if !$quiet {
+            println!($($arg)*);
+        }
+    };
+}
+
+/// [`say!`] without the newline (`print!`).
+macro_rules! say_raw {
+    ($quiet:expr, $($arg:tt)*) => {
+        if !$quiet {
+            print!($($arg)*);
+        }
+    };
+}
+
 pub mod args;
 mod calibrate_cli;
 mod common;
 mod compensate_cli;
 mod compile_cli;
+mod help;
 mod ldbb_cli;
 mod logruns;
 mod model_cli;
@@ -104,9 +124,7 @@ pub fn run(argv: Vec<std::ffi::OsString>) -> Result<i32, Error> {
                     .name(format!("edbbgen-{name}"))
                     .version(env!("CARGO_PKG_VERSION"));
             }
-            let mut out = Vec::new();
-            clap_mangen::Man::new(cmd)
-                .render(&mut out)
+            let out = man_page(cmd, a.subcommand.as_deref())
                 .map_err(|e| usage(format!("man page: {e}")))?;
             // A closed pipe (`| head`) is the reader's choice, not an error.
             let _ = std::io::stdout().write_all(&out);
@@ -116,11 +134,55 @@ pub fn run(argv: Vec<std::ffi::OsString>) -> Result<i32, Error> {
     }
 }
 
+/// The man page of the compiler or a subcommand: clap_mangen's sections, with EXAMPLES and
+/// EXIT STATUS before VERSION (the examples in place of clap's EXTRA section).
+fn man_page(cmd: clap::Command, subcommand: Option<&str>) -> std::io::Result<Vec<u8>> {
+    let examples = match subcommand {
+        None => help::COMPILE,
+        Some(name) => help::examples(Some(name)).unwrap_or(""),
+    };
+    let has_subcommands = cmd.get_subcommands().next().is_some();
+    let man = clap_mangen::Man::new(cmd);
+    let mut out = Vec::new();
+    man.render_title(&mut out)?;
+    man.render_name_section(&mut out)?;
+    man.render_synopsis_section(&mut out)?;
+    man.render_description_section(&mut out)?;
+    man.render_options_section(&mut out)?;
+    if has_subcommands {
+        man.render_subcommands_section(&mut out)?;
+    }
+    let mut roff = roff::Roff::new();
+    roff.control("SH", ["EXAMPLES"]);
+    for line in examples.lines().skip(1) {
+        let line = line.trim_start();
+        if let Some(comment) = line.strip_prefix("# ") {
+            roff.control("PP", []).text([roff::roman(comment)]);
+        } else if !line.is_empty() {
+            roff.control("IP", [])
+                .control("EX", [])
+                .text([roff::roman(line)])
+                .control("EE", []);
+        }
+    }
+    roff.control("SH", ["EXIT STATUS"]);
+    for status in help::EXIT_STATUS.lines() {
+        let (code, text) = status.split_once("  ").unwrap_or((status, ""));
+        roff.control("TP", [])
+            .text([roff::bold(code)])
+            .text([roff::roman(text)]);
+    }
+    roff.to_writer(&mut out)?;
+    man.render_version_section(&mut out)?;
+    Ok(out)
+}
+
 // ---- dialects -----------------------------------------------------------------------------
 
 fn run_dialects(a: &DialectsArgs) -> Result<i32, Error> {
     let all = crate::dialect::all();
-    if a.json {
+    if let Some(dest) = &a.json {
+        common::check_outputs(&[Some(dest.as_path())])?;
         let list: Vec<serde_json::Value> = all
             .iter()
             .map(|d| {
@@ -140,8 +202,13 @@ fn run_dialects(a: &DialectsArgs) -> Result<i32, Error> {
             })
             .collect();
         let doc = serde_json::json!({"schema": "edbbgen.dialects/1", "dialects": list});
-        println!("{}", serde_json::to_string_pretty(&doc).unwrap_or_default());
-        return Ok(0);
+        common::write_json(
+            dest,
+            &serde_json::to_string_pretty(&doc).unwrap_or_default(),
+        )?;
+        if common::is_stdout(dest) {
+            return Ok(0);
+        }
     }
     for d in all {
         let coupling = match d.j3_coupling {
@@ -151,7 +218,8 @@ fn run_dialects(a: &DialectsArgs) -> Result<i32, Error> {
                 "J3 measured from the horizontal (coupling from the robot's joint axes)".to_string()
             }
         };
-        println!(
+        say!(
+            a.quiet,
             "{:<10} .{:<8} {}; axes {} in {}; {}",
             d.name,
             d.extensions[0],
@@ -161,7 +229,7 @@ fn run_dialects(a: &DialectsArgs) -> Result<i32, Error> {
             coupling
         );
         for ap in &d.approximations {
-            println!("{:<20}approximates: {ap}", "");
+            say!(a.quiet, "{:<20}approximates: {ap}", "");
         }
     }
     Ok(0)

@@ -2,7 +2,9 @@
 //! observability and the uncertainty one reading per pose would give → text or JSON.
 
 use super::args::ModelArgs;
-use super::common::{bar_noise, load_robot, resolve_cell, resolve_fixture};
+use super::common::{
+    bar_noise, check_outputs, is_stdout, load_robot, resolve_cell, resolve_fixture, write_json,
+};
 use super::{usage, Error};
 use crate::model::{self, IdentifyOptions, MeasurementModel, Status};
 use crate::pipeline;
@@ -18,6 +20,7 @@ pub fn run(a: &ModelArgs) -> Result<i32, Error> {
     if a.samples < 60 {
         return Err(usage("--samples: must be at least 60"));
     }
+    check_outputs(&[a.json.as_deref()])?;
     let robot = load_robot(&a.robot, &a.cell, &spec)?;
     let (map, mut warnings) = pipeline::resolve_map(&robot, spec.map);
     // Identifiability is geometry: the shell and the floor decide which poses count, not cones.
@@ -67,7 +70,7 @@ pub fn run(a: &ModelArgs) -> Result<i32, Error> {
             .map(|p| serde_json::to_value(p).unwrap_or_default())
             .collect()
     };
-    if a.json {
+    if let Some(dest) = &a.json {
         let report = serde_json::json!({
             "schema": "edbbgen.model/1",
             "robot": robot.name,
@@ -98,16 +101,19 @@ pub fn run(a: &ModelArgs) -> Result<i32, Error> {
             "map_on_flange_axis": model::map_offset_from_joint6_axis(&model) < model::AXIS_TOLERANCE,
             "warnings": warnings,
         });
-        println!(
-            "{}",
-            serde_json::to_string_pretty(&report).unwrap_or_default()
-        );
-    } else {
-        print!(
+        write_json(
+            dest,
+            &serde_json::to_string_pretty(&report).unwrap_or_default(),
+        )?;
+    }
+    if a.json.as_deref().is_none_or(|d| !is_stdout(d)) {
+        say_raw!(
+            a.cell.quiet,
             "{}",
             model_text(&robot, &cell, &known, &free, &obs, rows.len())
         );
-        println!(
+        say!(
+            a.cell.quiet,
             "predicted MAP position uncertainty after calibrating from these poses (one reading each, {} um bar noise): {} um RMS, {} um p95 over the joint space",
             fmt_fixed(bar_noise, 2),
             fmt_fixed(predicted.rms * 1e6, 2),

@@ -271,12 +271,13 @@ pub fn place(a: &PlaceArgs) -> Result<i32, Error> {
     }
     write_all_atomic(&files)?;
 
-    print!("{}", place::report::text(&rep, a.show));
+    say_raw!(a.cell.quiet, "{}", place::report::text(&rep, a.show));
     for (p, _) in &cells {
-        println!("wrote {}", p.display());
+        say!(a.cell.quiet, "wrote {}", p.display());
     }
     if let Some((first, _)) = cells.first() {
-        println!(
+        say!(
+            a.cell.quiet,
             "next: edbbgen {} --cell {} -o program.nc",
             a.robot.display(),
             first.display()

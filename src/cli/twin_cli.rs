@@ -29,9 +29,16 @@ fn tool_or_robot(flag: Option<&str>, robot: &Robot) -> Result<Vector3<f64>, Erro
 }
 
 pub fn simulate(a: &SimulateArgs) -> Result<i32, Error> {
-    let rate = scalar("--rate", &a.rate)?;
+    let (flag, given) = match &a.rate {
+        Some(r) => {
+            eprintln!("edbbgen: warning: --rate is now spelled --bar-rate (like the compiler's); --rate will be removed");
+            ("--rate", r)
+        }
+        None => ("--bar-rate", &a.bar_rate),
+    };
+    let rate = scalar(flag, given)?;
     if !(1.0..=10_000.0).contains(&rate) {
-        return Err(usage(format!("--rate: {rate} Hz is outside 1..10000 Hz")));
+        return Err(usage(format!("{flag}: {rate} Hz is outside 1..10000 Hz")));
     }
     let text = read(&a.program, "program", crate::files::Kind::Program)?;
     let spec = match &a.cell {
@@ -112,7 +119,8 @@ pub fn simulate(a: &SimulateArgs) -> Result<i32, Error> {
             files.push((p.as_path(), j.as_str()));
         }
         write_all_atomic(&files)?;
-        println!(
+        say!(
+            a.quiet,
             "{}: {} rows on the bar's clock ({} Hz, offset {} s, drift {} ppm), {} plateaus lost or cut, {} controller stops; {}: the {} mounted samples with the true joints{}",
             bar_path.display(),
             logs.bar.len(),
@@ -139,7 +147,8 @@ pub fn simulate(a: &SimulateArgs) -> Result<i32, Error> {
     let m = twin::simulate(&robot, &model, &parsed, &truth, &opts)
         .map_err(|e| file_err(&a.program, e))?;
     write_atomic(&a.output, &m.to_csv())?;
-    println!(
+    say!(
+        a.quiet,
         "{}: {} rows over {:.1} s at {rate} Hz",
         a.output.display(),
         m.len(),
@@ -354,9 +363,9 @@ pub fn diagnose(a: &DiagnoseArgs) -> Result<i32, Error> {
         write_atomic(p, html)?;
     }
     for l in &lines {
-        println!("{l}");
+        say!(a.quiet, "{l}");
     }
-    print!("{}", d.summary);
+    say_raw!(a.quiet, "{}", d.summary);
     Ok(0)
 }
 
@@ -377,7 +386,8 @@ pub fn circle(a: &CircleArgs) -> Result<i32, Error> {
     };
     let text = twin::circle::program(&robot, &model, &opts).map_err(|e| usage(e.to_string()))?;
     write_atomic(&a.output, &text)?;
-    println!(
+    say!(
+        a.quiet,
         "{}: circle test, {} moves",
         a.output.display(),
         text.matches("\nG1 ").count()

@@ -3,7 +3,8 @@
 
 use super::args::VerifyArgs;
 use super::common::{
-    controller_map, load_robot, program_dialect, read_input, resolve_cell, resolve_fixture, xyz_mm,
+    check_outputs, controller_map, is_stdout, load_robot, program_dialect, read_input,
+    resolve_cell, resolve_fixture, write_json, xyz_mm,
 };
 use super::Error;
 use crate::model::MeasurementModel;
@@ -31,6 +32,7 @@ pub(super) struct VerifyReport<'a> {
 
 pub fn run(a: &VerifyArgs) -> Result<i32, Error> {
     let mut spec = resolve_cell(&a.cell)?;
+    check_outputs(&[a.json.as_deref()])?;
     let text = read_input(&a.program, "program", crate::files::Kind::Program)?;
     let dialect = program_dialect(a.dialect.as_deref(), &a.program, &text)?;
     let robot = load_robot(&a.robot, &a.cell, &spec)?;
@@ -71,7 +73,7 @@ pub fn run(a: &VerifyArgs) -> Result<i32, Error> {
     match crate::verify::check(&ck, &robot, &parsed, dialect) {
         Ok(s) => {
             let notes: Vec<String> = robot.notes.iter().chain(&limit_notes).cloned().collect();
-            if a.json {
+            if let Some(dest) = &a.json {
                 let report = VerifyReport {
                     schema: "edbbgen.verify/1",
                     summary: &s,
@@ -81,15 +83,17 @@ pub fn run(a: &VerifyArgs) -> Result<i32, Error> {
                     notes: &notes,
                     limits: &limits,
                 };
-                println!(
-                    "{}",
-                    serde_json::to_string_pretty(&report).unwrap_or_default()
-                );
-            } else {
+                write_json(
+                    dest,
+                    &serde_json::to_string_pretty(&report).unwrap_or_default(),
+                )?;
+            }
+            if a.json.as_deref().is_none_or(|d| !is_stdout(d)) {
                 for n in &notes {
                     eprintln!("edbbgen: warning: {n}");
                 }
-                println!(
+                say!(
+                    a.cell.quiet,
                     "{}: ok: {} poses, {} support poses, {} moves, {} blends, {}{} s; min clearance {} mm ({} / {}); bar {}..{} mm; max cone angles {} deg (socket), {} deg (cup); {} bodies, {} pairs checked, {} excluded (--json lists them)",
                     a.program.display(),
                     s.poses,
@@ -150,7 +154,7 @@ pub(super) fn verify_trace(
     };
     match crate::verify::trace::check(ck, &executed, &trace, summary.duration) {
         Ok(r) => {
-            if a.json {
+            if let Some(dest) = &a.json {
                 #[derive(serde::Serialize)]
                 struct Out<'a> {
                     schema: &'static str,
@@ -162,13 +166,18 @@ pub(super) fn verify_trace(
                     program: &summary,
                     trace: &r,
                 };
-                println!("{}", serde_json::to_string_pretty(&out).unwrap_or_default());
-            } else {
+                write_json(
+                    dest,
+                    &serde_json::to_string_pretty(&out).unwrap_or_default(),
+                )?;
+            }
+            if a.json.as_deref().is_none_or(|d| !is_stdout(d)) {
                 let worst = r
                     .poses
                     .iter()
                     .max_by(|x, y| x.miss_mm.total_cmp(&y.miss_mm));
-                println!(
+                say!(
+                    a.cell.quiet,
                     "{}: ok: {} samples; {} measurement poses passed within {} mm at the MAP{}; executed {} s, estimated {} s; bar {}..{} mm; max cone angles {} deg (socket), {} deg (cup)",
                     path.display(),
                     r.samples,

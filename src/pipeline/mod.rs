@@ -385,7 +385,7 @@ pub fn rich_rows(
     }
 }
 
-/// Counts at every stage (`--report`).
+/// Counts at every stage (`--json`).
 #[derive(Clone, Debug, Serialize)]
 pub struct Report {
     pub schema: &'static str,

@@ -41,7 +41,7 @@ pub struct Sections {
     pub report: SectionsReport,
 }
 
-/// What the sections stage found (`--report` key `sections`).
+/// What the sections stage found (`--json` key `sections`).
 #[derive(Clone, Debug, Default, PartialEq, Serialize)]
 pub struct SectionsReport {
     /// Connected groups among the admitted poses.

@@ -1,6 +1,6 @@
 //! The compiler's report page: in = the robot and [`Compiled`] (every stage's result); out = a
 //! [`Page`] with the paper's Figs. 4-7 and the stage counts, safety figures, identifiability and
-//! warnings of the JSON report (`--report`).
+//! warnings of the JSON report (`--json`).
 
 use super::{Block, Page, ReportError, Section};
 use crate::ir::Header;
