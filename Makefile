@@ -115,7 +115,7 @@ pose-selection:
 calibration:
 	$(CARGO) run --release --locked --example calibration
 
-# Measuring without a synchronous joint log (issue 23): 10 simulated NJ-130s, the
+# Measuring without a synchronous joint log: 10 simulated NJ-130s, the
 # stop-and-measure program from the bar's own log and the continuous one with a joint log,
 # each against its synchronous reference.
 stop-and-measure:

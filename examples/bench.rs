@@ -136,7 +136,7 @@ fn timed(args: &[&str], reps: usize) -> Option<(f64, f64)> {
 const UR10_FIXTURE: &str = "700,300,300";
 const UR10_TOOL: &str = "120,30,60";
 
-/// The UR5 bench case (issue 34): its real collision meshes (`../shared/robots/ur5`, used in
+/// The UR5 bench case: its real collision meshes (`../shared/robots/ur5`, used in
 /// place, not in the repository), a fixture 450 mm in front of the base and a tool off the
 /// flange axis.
 const UR5_FIXTURE: &str = "450,200,200";

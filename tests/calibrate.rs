@@ -1,4 +1,4 @@
-//! Calibration (issue 9): from simulated bar data of a known robot to a calibrated robot file,
+//! Calibration: from simulated bar data of a known robot to a calibrated robot file,
 //! checked where it matters — the written file, read back by the loader and by an independent
 //! URDF forward kinematics, against the true robot's MAP positions over the whole joint space
 //! after a best rigid registration (any external validation registers frames first).
@@ -279,7 +279,7 @@ fn calibrated_files_reproduce_the_true_robot_within_5_um_with_every_effect() {
             );
             // Without the effect the geometry absorbs it: worse, and the report says so; where
             // the held-out readings show the calibrated robot no better than nominal, it is not
-            // written at all (issue 22) and the verdict points to --effects auto. A thermal
+            // written at all and the verdict points to --effects auto. A thermal
             // drift with a temperature log is mostly a uniform scale the geometry absorbs
             // whole, so the residual need not show it: the logged temperature change says it.
             let warned = |needle: &str| {
@@ -377,7 +377,7 @@ fn a_cyclic_error_of_a_joint_short_of_a_turn_goes_into_its_zero_with_an_honest_u
 
 #[test]
 #[ignore = "slow tier: `make test` runs it"]
-fn issue_34_the_quick_start_fits_joint_1_with_the_orders_its_range_determines_and_predicts_honestly(
+fn the_quick_start_fits_joint_1_with_the_orders_its_range_determines_and_predicts_honestly(
 ) {
     // The README's quick start: the NJ-130 cell program measures joint 1 over about -110..100°
     // of its ±180°. With six harmonic orders fitted there the robot file carried a cyclic error
@@ -686,7 +686,7 @@ fn a_campaign_at_three_fixtures_calibrates_and_estimates_its_fixtures() {
         undetermined.contains("\"d1\"") && undetermined.contains("\"theta1\""),
         "{undetermined}"
     );
-    // Estimating is the default now (issue 22): without --fixture-free, the same.
+    // Estimating is the default: without --fixture-free, the same.
     let (_, default, _) = run(&[], "default");
     assert_eq!(default["determined"], free["determined"]);
 }

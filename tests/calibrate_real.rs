@@ -1,4 +1,4 @@
-//! Calibration that survives real data (issue 22), tested on data from a simulator the
+//! Calibration that survives real data, tested on data from a simulator the
 //! library did not write (`othersim`: its own kinematics, trajectories and physics of every
 //! effect): the fixture off by 50-80 µm and the tool point off, every effect of the library,
 //! a fixture slipping mid-run, outliers; and a static draw-wire campaign on an ABB IRB 120 with
@@ -568,7 +568,7 @@ fn static_draw_wire_data_reach_the_joint_resolution_floor_without_a_given_tool_o
     assert!(err < 2.0 * pred && pred < 2.5 * err, "{err} vs {pred}");
 }
 
-/// Draw-wire data as issue 31 accepts them, made by this module's own generator: the anchor
+/// Draw-wire data as a real set-up gives them, made by this module's own generator: the anchor
 /// 80 mm from where it is said to be, the wire attached 75 mm out from the flange centre along
 /// one of the flange's axes (none given: `--tool 0,0,0`), the wire's zero unknown and jumping
 /// twice, the joints logged to 0.1°, 0.2 mm reading noise. Default options otherwise.
@@ -840,7 +840,7 @@ fn a_robot_no_better_than_nominal_held_out_is_delivered_with_its_set_up_and_exit
     assert!(err < 5.0, "{err} um");
 }
 
-/// A stop-and-measure campaign as issue 23 hands it over: one reading per pose with real times
+/// A stop-and-measure campaign as a cell hands it over: one reading per pose with real times
 /// (plateau midpoints), a standard error and a sample count each.
 fn plateaus(case: &Case, every: usize) -> Measured {
     let r = &case.recording;

@@ -1,4 +1,4 @@
-//! Applying a calibration (issue 24): the numerical inverse kinematics against closed forms
+//! Applying a calibration: the numerical inverse kinematics against closed forms
 //! written here (a spherical-wrist arm — the NJ-130's table — and a UR-type offset wrist), the
 //! compensation against the calibrated arm's closed form, the targets file and compensated
 //! programs in every dialect (golden, read back, verified in their cells), and, on twin robots

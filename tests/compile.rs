@@ -176,7 +176,7 @@ fn options_change_the_input_hash() {
     assert_ne!(hash(&a), hash(&b));
 }
 
-/// Compiles `args` (a robot and its set-up) and checks the issue 34 promise: one
+/// Compiles `args` (a robot and its set-up) and checks the promise: one
 /// select/order/plan round (no selected pose replaced: a round repeats only to replace poses
 /// the planner dropped), no pose dropped, and the program measures exactly the poses selected.
 fn measures_every_selected_pose_in_one_round(name: &str, mut args: Vec<String>) {
@@ -215,26 +215,25 @@ fn ur5(fixture: &str, tool: &str) -> Vec<String> {
     ]
 }
 
-/// Issue 34: the UR5 with its real collision meshes at fixture (450, 200, 200) mm, tool
-/// (60, 30, 120) mm used to need four select/order/plan rounds, replace 18 selected poses and
-/// still drop 14 (every move to them left the cup cone, behind a pose the bounded support
-/// search could not leave): 23 poses emitted of the selection. Now one round measures every
-/// pose selected.
+/// The UR5 with its real collision meshes at fixture (450, 200, 200) mm, tool (60, 30, 120)
+/// mm: a hard case for selecting reachable poses (moves to many candidates would leave the cup
+/// cone, behind poses a bounded support search cannot leave). One round measures every pose
+/// selected.
 #[test]
-fn issue_34_the_ur5_with_real_meshes_measures_every_selected_pose_in_one_round() {
+fn the_ur5_with_real_meshes_measures_every_selected_pose_in_one_round() {
     measures_every_selected_pose_in_one_round(
         "UR5, fixture 450,200,200",
         ur5("450,200,200", "60,30,120"),
     );
 }
 
-/// Issue 34, the other cases that used to lose poses: the UR5 at fixture (500, 0, 400) lost
-/// its last section whole (the transit's wrist would turn 310° through the forearm), at
+/// Other hard cases for reachable selection: the UR5 at fixture (500, 0, 400) can lose its
+/// last section whole (the transit's wrist would turn 310° through the forearm), at
 /// (400, 400, 300) a 3-pose section (its wrist turns 180° either way and the nearer way
-/// grazes the forearm); the KUKA KR 120's test cell dropped two poses.
+/// grazes the forearm); the KUKA KR 120's test cell two poses.
 #[test]
 #[ignore = "slow tier: `make test` runs it"]
-fn issue_34_real_robots_compile_in_one_round_and_measure_every_selected_pose() {
+fn real_robots_compile_in_one_round_and_measure_every_selected_pose() {
     let kr120 = shared_robot("kuka_kr120_r2500pro").display().to_string();
     let kr120_cell = root().join("tests/cells/kuka_kr120_r2500pro.toml");
     for (name, args) in [

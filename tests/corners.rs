@@ -1,4 +1,4 @@
-//! Issue 21: for every dialect, `verify` checks the corner region its controller may execute by
+//! For every dialect, `verify` checks the corner region its controller may execute by
 //! the vendor's documentation, not edbbgen's old convention (the blend distance at the MAP,
 //! a joint-space Bézier from where the MAP first comes within it). Each test builds by hand a
 //! corner on the NJ-130 cell — two moves of 160 or 240 mm at the MAP, at right angles across the
@@ -230,7 +230,7 @@ fn fanuc_cnt_corner_is_refused() {
     hand_made_corner_fails("fanuc");
 }
 
-// ---- the corrected models (issue 21's review against the vendors' manuals) ----------------
+// ---- the corrected models (reviewed against the vendors' manuals) ----------------
 //
 // Each test below builds by hand a corner with the value the previous model of the dialect
 // accepted, and an obstacle where the corrected model's region reaches: the previous model's

@@ -1,4 +1,4 @@
-//! Issue 21, defect 2: the J2/J3 coupling of a parallel-arm robot. ROS-Industrial drives the
+//! The J2/J3 coupling of a parallel-arm robot. ROS-Industrial drives the
 //! ABB IRB 2400 with J23_coupled = true (its abb_driver sends ABB axis 3 = q3 + q2): on a
 //! parallel-arm robot the controller's axis 3 is the forearm angle from the horizontal. The
 //! `rapid` dialect writes that coupling for such a robot unless the cell states one; every

@@ -1,4 +1,4 @@
-//! What a user gets from a calibration (issue 30), on robots of the second generator
+//! What a user gets from a calibration, on robots of the second generator
 //! (`othersim`: its own kinematics, trajectories and physics), each with one effect beyond its
 //! geometry: the program `edbbgen` compiles for the bundled NJ-130 cell, run five times by the
 //! simulator's own trajectories; `edbbgen calibrate` with default options, `edbbgen compensate`

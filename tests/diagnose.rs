@@ -1,4 +1,4 @@
-//! Digital twin + diagnosis (issue 4): hidden-effect tests. Data come from `twin::simulate` on
+//! Digital twin + diagnosis: hidden-effect tests. Data come from `twin::simulate` on
 //! random robots (random geometric errors) with one hidden effect; `diagnose::run` is not told
 //! which. Library calls for speed; a few CLI-level checks at the end.
 

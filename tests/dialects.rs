@@ -1,4 +1,4 @@
-//! Controller dialects (issue 11): every bundled dialect for every shipped cell — the NJ-130's
+//! Controller dialects: every bundled dialect for every shipped cell — the NJ-130's
 //! and the shared robots' test cells — compiled once per cell (coarse grid) and written in each
 //! dialect from that one plan. For each program: an insta snapshot (`<dialect>@<cell>`), the
 //! read-back through the dialect's reader (same joint values to the printed precision, same
@@ -186,7 +186,7 @@ fn planned_events(p: &Program) -> Vec<String> {
     ev
 }
 
-/// `--dwell` in every dialect (issue 23): golden (`<dialect>@nj130_dwell`), read back with
+/// `--dwell` in every dialect: golden (`<dialect>@nj130_dwell`), read back with
 /// its dwells after exact stops, the header's list of measurement poses read back by every
 /// reader, the language's structure, verify on the written file, `rs274` on the ngc program.
 #[test]
@@ -866,7 +866,7 @@ fn the_dialects_subcommand_lists_every_bundled_dialect() {
 }
 
 /// The digital twin runs every shipped cell's program, in every dialect, in the time its header
-/// states (issue 25): the twin times the moves by the model the compiler states its times with
+/// states: the twin times the moves by the model the compiler states its times with
 /// (`timing::moves`, each dialect's time words and blend acceleration), and its motion stays
 /// physical: no joint above its maximum speed, measured on the trajectory's positions by finite
 /// differences over 1 ms (independent of its velocity function; a bounded difference quotient
@@ -981,7 +981,7 @@ fn direct_times(robot: &edbbgen::robot::Robot, c: &edbbgen::pipeline::Compiled) 
     )
 }
 
-/// Checks one compiled program's ordering figures (issue 25): the header's direct-move times
+/// Checks one compiled program's ordering figures: the header's direct-move times
 /// are the ones recomputed from its poses (to the 0.1 s the header prints, the tour on the
 /// printed 0.001° grid), and the tour is no slower than pool order by the same direct moves —
 /// a property the tour must have whatever the safe planner adds after it. Returns (program,

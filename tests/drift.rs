@@ -1,4 +1,4 @@
-//! Drift since the last calibration (issue 24): how often the comparison cries wolf on a repeat
+//! Drift since the last calibration: how often the comparison cries wolf on a repeat
 //! measurement of an unchanged robot and how often it finds a 0.01° zero shift of a single
 //! joint, on cheap synthetic readings through the very code `calibrate --baseline` runs
 //! (`compensate::drift::calibrate_against`); then end to end on the twin: a full program for the

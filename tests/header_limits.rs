@@ -1,4 +1,4 @@
-//! Issue 21, defect 3: `verify PROGRAM` checks every limit the program header states (bar
+//! `verify PROGRAM` checks every limit the program header states (bar
 //! range, safety margin, joint margin, corner blend) unless a flag or the cell states it, in
 //! every dialect; an explicit flag still wins, and a header looser than it is reported.
 

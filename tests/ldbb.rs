@@ -1,4 +1,4 @@
-//! The loaded double ball bar (issue 10): `simulate-ldbb`, `ldbb` and `ldbb-circle` as users
+//! The loaded double ball bar: `simulate-ldbb`, `ldbb` and `ldbb-circle` as users
 //! call them. The analysis is checked against the truth of edbbgen's own simulator and, so
 //! that it does not merely invert that simulator, against data made here by an independent
 //! forward model: its own URDF kinematics (urdf-rs), its own IK, perturbed URDF joint origins

@@ -440,7 +440,7 @@ fn all_blended(text: &str) -> String {
         .replace("\nG0 ", "\nG61\nG0 ")
 }
 
-/// Issue 21: every shipped cell's `ngc` program runs on LinuxCNC's own planner and motion
+/// Every shipped cell's `ngc` program runs on LinuxCNC's own planner and motion
 /// controller at the program's stated accelerations; the recorded trace passes `verify
 /// --trace` (the executed path against the cell, the bar range and cones while the bar is in
 /// place), every measurement pose is passed within the stated blend distance at the MAP, and
@@ -483,7 +483,7 @@ fn linuxcnc_executes_every_shipped_cells_program_as_verified_and_in_the_estimate
                         "{label}: estimated {estimate:.2} s, LinuxCNC {executed:.2} s ({:.1} % off)",
                         100.0 * err
                     );
-                    // The digital twin runs the program by the same timing model (issue 25):
+                    // The digital twin runs the program by the same timing model:
                     // against LinuxCNC's own planner, to the same bound as the estimate.
                     let twin = edbbgen::twin::Trajectory::from_program(
                         &c.robot,

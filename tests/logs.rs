@@ -1,4 +1,4 @@
-//! Measuring on any controller (issue 23): stop-and-measure programs read back from the bar's
+//! Measuring on any controller: stop-and-measure programs read back from the bar's
 //! own log, continuous runs synchronised with a controller's joint log, and bad logs.
 //!
 //! The runs are the twin's ([`edbbgen::twin::logsim`]): its own clocks, pauses, holds, gaps

@@ -1,4 +1,4 @@
-//! Passive links (issue 8): links that hang off the chain through mimic joints are bodies like
+//! Passive links: links that hang off the chain through mimic joints are bodies like
 //! any other. Checked independently of edbbgen's loader and collision model: the URDF is parsed
 //! here with urdf-rs, its kinematics (mimic joints included) are computed here, and clearances
 //! are measured on the original triangle meshes with parry's TriMesh (not on edbbgen's convex

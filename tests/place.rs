@@ -1,4 +1,4 @@
-//! `edbbgen place` (issue 15): where the fixture goes, by what a calibration from a program
+//! `edbbgen place`: where the fixture goes, by what a calibration from a program
 //! compiled there would reach. Checked against what is independently known: the geometry of
 //! the joint-1 axis, the reach of the arm, and — for a campaign — what `calibrate` makes of
 //! simulated data of the very programs the written cell files compile.

@@ -1,4 +1,4 @@
-//! Safe programs (issue 3): every shipped cell compiles to a program that `verify` passes;
+//! Safe programs: every shipped cell compiles to a program that `verify` passes;
 //! hand-made unsafe programs fail `verify` naming the violation; support poses are inserted
 //! where a plain joint move fails; random cells never yield a panic or an unsafe file.
 

@@ -1,4 +1,4 @@
-//! Issue 21, defect 1: the planner never commands a zero-length move. At some fixtures a
+//! The planner never commands a zero-length move. At some fixtures a
 //! deferred measurement pose was inserted next to a support pose equal to it (the roadmap's
 //! support chains run through the pool, measurement poses included): a 0.000 s move that
 //! `ngc`/`sinumerik` refused with a misleading "F0 must be positive" and `rapid`, `krl`,

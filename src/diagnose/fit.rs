@@ -2069,8 +2069,8 @@ mod tests {
     #[test]
     fn a_problems_harmonics_reach_past_the_fits_orders_for_the_prediction_bound() {
         // calibrate's effect-model spread compares a cyclic error of orders 1..H with orders
-        // up to H + 2 for every H the fit can choose, MAX_HARMONIC included (it used to skip
-        // that bound there, so six fitted orders had none).
+        // up to H + 2 for every H the fit can choose, MAX_HARMONIC included (without that
+        // bound six fitted orders would have none).
         let q = swept(0, &[(-110.0, 100.0)]);
         let means = harmonic_means(&q);
         assert_eq!(means[0].len(), MAX_HARMONIC + 2);

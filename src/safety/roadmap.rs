@@ -579,7 +579,7 @@ mod tests {
     /// Pairs of poses tried by the route test below.
     const PAIRS: usize = 16;
 
-    /// The UR5 with its real meshes (issue 34): pairs of poses of its largest section whose
+    /// The UR5 with its real meshes: pairs of poses of its largest section whose
     /// direct move fails are joined by `route` (all but at most 2 of [`PAIRS`]), through pool
     /// poses, by moves that a checker without the planner's memory passes one by one.
     #[test]

@@ -1,4 +1,4 @@
-//! The logs a real cell leaves (issue 23): in = a program's trajectory, the true robot and
+//! The logs a real cell leaves: in = a program's trajectory, the true robot and
 //! [`LogOptions`] (the clocks, the operator, the log's flaws); out = the bar's own log and the
 //! controller's joint log, each on its own clock, the synchronous recording of the same bar
 //! samples (the reference a perfectly synchronised system would give), and the truth the
