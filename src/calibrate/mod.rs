@@ -531,6 +531,8 @@ pub struct Calibration {
     pub ranges: Vec<std::ops::Range<usize>>,
     /// Time of every row (each run from its own start; the row order for untimed runs).
     pub t: Vec<f64>,
+    /// Per run: true when its `t` holds real times.
+    pub timed: Vec<bool>,
     pub residual_nominal: Vec<f64>,
     pub residual: Vec<f64>,
     /// Per-pose predicted position uncertainty over the workspace (µm), for plots.
@@ -870,6 +872,7 @@ fn assemble(
         determined: f.free,
         ranges: problem.ranges.clone(),
         t: problem.m.t.clone(),
+        timed: problem.forms.iter().map(|f| f.timed()).collect(),
         residual_nominal,
         residual,
         workspace_std_um: space_std,

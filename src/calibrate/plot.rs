@@ -3,13 +3,13 @@
 //! uncertainty over the joint space.
 
 use super::Calibration;
-use crate::plot::{break_gaps, envelope, Figure, Panel, PlotError, Series};
+use crate::plot::{break_gaps, envelope, run_axis, Figure, Panel, PlotError, Series};
 use crate::units::fmt_fixed;
 
 /// Pixel columns of a panel: long runs are reduced to a min/max envelope at this width.
 const COLUMNS: usize = 900;
 
-/// Measured − model (µm) over time, per run: with the nominal model and the calibrated one.
+/// Measured − model (µm) over time (the reading number for untimed static runs), per run: with the nominal model and the calibrated one.
 pub fn residuals(c: &Calibration) -> Figure {
     let mut panels = Vec::new();
     for (k, range) in c.ranges.iter().enumerate() {
@@ -22,7 +22,8 @@ pub fn residuals(c: &Calibration) -> Figure {
         .enumerate()
         {
             let r = &r[range.clone()];
-            let pts: Vec<(f64, f64)> = c.t[range.clone()]
+            let (x, x_label) = run_axis(&c.t[range.clone()], c.timed[k]);
+            let pts: Vec<(f64, f64)> = x
                 .iter()
                 .zip(r)
                 .map(|(t, v)| (*t, v * 1e6))
@@ -35,7 +36,7 @@ pub fn residuals(c: &Calibration) -> Figure {
                     run.measured,
                     fmt_fixed(rms * 1e6, 3)
                 ),
-                x_label: "t [s]".into(),
+                x_label: x_label.into(),
                 y_label: "measured − model [µm]".into(),
                 series: vec![Series::line(
                     "",

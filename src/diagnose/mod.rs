@@ -180,7 +180,10 @@ pub struct CandidateReport {
 #[derive(Clone, Debug)]
 pub struct Diagnosis {
     pub report: Report,
+    /// Time of every row, s; for untimed static readings the order taken (0, 1, ...).
     pub t: Vec<f64>,
+    /// True when `t` holds real times.
+    pub timed: bool,
     /// (stage label, residual in metres per row).
     pub stages: Vec<(String, Vec<f64>)>,
     pub summary: String,
@@ -1339,6 +1342,7 @@ fn conclude(
         diagnosis: Diagnosis {
             report,
             t: m.t.clone(),
+            timed: problem.timed(),
             stages: log.stages,
             summary,
         },

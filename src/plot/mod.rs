@@ -359,6 +359,16 @@ fn tick(v: f64) -> String {
     }
 }
 
+/// The x axis of a residual or a length over a run: its times (s), or for untimed static
+/// readings, whose `t` is the order taken (0, 1, ...), the reading number from 1.
+pub fn run_axis(t: &[f64], timed: bool) -> (Vec<f64>, &'static str) {
+    if timed {
+        (t.to_vec(), "t [s]")
+    } else {
+        (t.iter().map(|k| k + 1.0).collect(), "reading")
+    }
+}
+
 /// Inserts a break (a NaN point) wherever consecutive x values are more than `factor` times the
 /// median x step apart, so that a recording with pauses (sections of a program, the bar
 /// remounted) is not drawn as a straight line across the pause.
