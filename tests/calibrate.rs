@@ -377,8 +377,7 @@ fn a_cyclic_error_of_a_joint_short_of_a_turn_goes_into_its_zero_with_an_honest_u
 
 #[test]
 #[ignore = "slow tier: `make test` runs it"]
-fn the_quick_start_fits_joint_1_with_the_orders_its_range_determines_and_predicts_honestly(
-) {
+fn the_quick_start_fits_joint_1_with_the_orders_its_range_determines_and_predicts_honestly() {
     // The README's quick start: the NJ-130 cell program measures joint 1 over about -110..100°
     // of its ±180°. With six harmonic orders fitted there the robot file carried a cyclic error
     // of 684 um RMS over the joint space and the prediction was

@@ -48,7 +48,7 @@ pub fn lines(
         ));
     }
     h.push(format!(
-        "residual RMS {} um nominal -> {} um calibrated; bar noise {} um (lag-1 autocorrelation {})",
+        "residual RMS {} µm nominal -> {} µm calibrated; bar noise {} µm (lag-1 autocorrelation {})",
         fmt_fixed(r.rms_before_um, 3),
         fmt_fixed(r.rms_after_um, 3),
         fmt_fixed(r.noise_um, 3),
@@ -60,7 +60,7 @@ pub fn lines(
         r.determined.join(", ")
     ));
     h.push(format!(
-        "validation, held out: {} um RMS nominal -> {} um calibrated ({} rows)",
+        "validation, held out: {} µm RMS nominal -> {} µm calibrated ({} rows)",
         fmt_fixed(r.validation.heldout_rms_um.nominal, 3),
         fmt_fixed(r.validation.heldout_rms_um.calibrated, 3),
         r.validation.rows
@@ -80,7 +80,7 @@ pub fn lines(
     let p = &r.predicted_position_std_um;
     if !cal.setup_only() {
         h.push(format!(
-        "predicted MAP position uncertainty (1 sigma, after rigid registration): {} um RMS where measured, {} um RMS and {} um p95 over the joint space",
+        "predicted MAP position uncertainty (1 sigma, after rigid registration): {} µm RMS where measured, {} µm RMS and {} µm p95 over the joint space",
         fmt_fixed(p.measured_region_rms, 2),
         fmt_fixed(p.workspace_rms, 2),
         fmt_fixed(p.workspace_p95, 2)
@@ -92,7 +92,7 @@ pub fn lines(
             None => e.effect.to_string(),
         };
         h.push(format!(
-            "effect {name}: {} um RMS over the joint space ({}); {}",
+            "effect {name}: {} µm RMS over the joint space ({}); {}",
             fmt_fixed(e.workspace_rms_um, 2),
             e.at,
             if e.delivered {

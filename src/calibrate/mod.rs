@@ -798,7 +798,7 @@ fn assemble(
         let reason = verdict.trim_start_matches("not calibrated: ");
         verdict = match s.geometry_within_um {
             Some(x) => format!(
-                "geometry confirmed within {} um of nominal; set-up fitted (written with the nominal geometry): {reason}",
+                "geometry confirmed within {} µm of nominal; set-up fitted (written with the nominal geometry): {reason}",
                 fmt_fixed(x, 1)
             ),
             None => format!(
@@ -905,8 +905,8 @@ pub fn summary(r: &Report) -> String {
     use crate::diagnose::noise::NoiseSource as N;
     let noise = match r.noise_source {
         N::Unknown => "unknown".to_string(),
-        N::Neighbours => format!("<= {} um", fmt_fixed(r.noise_um, 3)),
-        _ => format!("{} um", fmt_fixed(r.noise_um, 3)),
+        N::Neighbours => format!("<= {} µm", fmt_fixed(r.noise_um, 3)),
+        _ => format!("{} µm", fmt_fixed(r.noise_um, 3)),
     };
     let how = match r.noise_source {
         N::Sequence | N::Unknown => String::new(),
@@ -926,7 +926,7 @@ pub fn summary(r: &Report) -> String {
         fmt_fixed(r.residual_lag1, 2)
     );
     s += &format!(
-        "nominal model: RMS {} um; calibrated: RMS {} um\n",
+        "nominal model: RMS {} µm; calibrated: RMS {} µm\n",
         fmt_fixed(r.rms_before_um, 3),
         fmt_fixed(r.rms_after_um, 3)
     );
@@ -958,7 +958,7 @@ pub fn summary(r: &Report) -> String {
             (false, _) => "NOT in the robot file",
         };
         s += &format!(
-            "  {name}: {} um RMS, {} um p95 over the joint space ({}); {carried}\n",
+            "  {name}: {} µm RMS, {} µm p95 over the joint space ({}); {carried}\n",
             fmt_fixed(e.workspace_rms_um, 2),
             fmt_fixed(e.workspace_p95_um, 2),
             e.at
@@ -1028,25 +1028,25 @@ pub fn summary(r: &Report) -> String {
     }
     let p = &r.predicted_position_std_um;
     s += &format!(
-        "predicted MAP position uncertainty (1 sigma, after rigid registration): {} um RMS where measured; {} um RMS, {} um p95 over the joint space\n",
+        "predicted MAP position uncertainty (1 sigma, after rigid registration): {} µm RMS where measured; {} µm RMS, {} µm p95 over the joint space\n",
         fmt_fixed(p.measured_region_rms, 2),
         fmt_fixed(p.workspace_rms, 2),
         fmt_fixed(p.workspace_p95, 2)
     );
     if r.delivered.content == "geometry only" {
         s += &format!(
-            "the robot file carries the geometry only: the prediction includes the effects left out (the model with them: {} um RMS over the joint space)\n",
+            "the robot file carries the geometry only: the prediction includes the effects left out (the model with them: {} µm RMS over the joint space)\n",
             fmt_fixed(p.model_workspace_rms, 2)
         );
     }
     s += &format!(
-        "validation (held out): {} um RMS nominal, {} um RMS calibrated\n",
+        "validation (held out): {} µm RMS nominal, {} µm RMS calibrated\n",
         fmt_fixed(r.validation.heldout_rms_um.nominal, 3),
         fmt_fixed(r.validation.heldout_rms_um.calibrated, 3)
     );
     if let Some(w) = &r.reading_weights {
         s += &format!(
-            "readings weighted by their own uncertainty: joints logged to {} deg; rounding {} um RMS, up to {} um per reading{}\n",
+            "readings weighted by their own uncertainty: joints logged to {} deg; rounding {} µm RMS, up to {} µm per reading{}\n",
             w.joint_resolution_deg
                 .first()
                 .map(|g| {
@@ -1058,14 +1058,14 @@ pub fn summary(r: &Report) -> String {
             fmt_fixed(w.rounding_rms_um, 1),
             fmt_fixed(w.rounding_max_um, 1),
             match w.instrument_noise_um {
-                Some(n) => format!(", instrument noise {} um", fmt_fixed(n, 1)),
+                Some(n) => format!(", instrument noise {} µm", fmt_fixed(n, 1)),
                 None => String::new(),
             }
         );
     }
     if let Some(set) = r.setup.as_ref().filter(|s| s.delivered) {
         s += &format!(
-            "set-up with the nominal geometry: tool point {} mm{}; held out {} um RMS\n",
+            "set-up with the nominal geometry: tool point {} mm{}; held out {} µm RMS\n",
             xyz_with_std(&set.tool_mm, &set.tool_std_mm),
             set.fixtures_mm
                 .iter()

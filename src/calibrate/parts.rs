@@ -71,7 +71,7 @@ pub(super) fn diagnostics(
     let structure = (noise.known() && rms_after > 1.25 * noise_hf) || f.rho > rho_limit;
     if !noise.known() {
         warnings.push(format!(
-            "the reading noise is {}: whether the residual (RMS {} um) holds more than noise is not decided",
+            "the reading noise is {}: whether the residual (RMS {} µm) holds more than noise is not decided",
             noise.source.describe(noise.within_deg),
             fmt_fixed(rms_after * 1e6, 3)
         ));
@@ -82,7 +82,7 @@ pub(super) fn diagnostics(
             _ => "",
         };
         warnings.push(format!(
-            "structure above the noise is left in the residual (RMS {} um against {} um of reading noise ({}), lag-1 autocorrelation {}): the model misses an effect, and the geometry absorbs part of it{hint}",
+            "structure above the noise is left in the residual (RMS {} µm against {} µm of reading noise ({}), lag-1 autocorrelation {}): the model misses an effect, and the geometry absorbs part of it{hint}",
             fmt_fixed(rms_after * 1e6, 3),
             fmt_fixed(noise_hf * 1e6, 3),
             noise.source.describe(noise.within_deg),
@@ -105,7 +105,7 @@ pub(super) fn diagnostics(
                 _ => "; fit the effects with --effects auto",
             };
             warnings.push(format!(
-                "the logged temperature changed by {} K during the runs: about {} um of thermal growth at the MAP's {} mm reach (steel, {} per K), which the model leaves to the geometry{hint}",
+                "the logged temperature changed by {} K during the runs: about {} µm of thermal growth at the MAP's {} mm reach (steel, {} per K), which the model leaves to the geometry{hint}",
                 fmt_fixed(dt, 2),
                 fmt_fixed(growth * 1e6, 1),
                 fmt_fixed(reach * 1e3, 0),
@@ -195,7 +195,7 @@ fn fixture_check(problem: &Problem, est: &Estimate, free: &[Param]) -> Option<St
     let n = problem.kept().max(1) as f64;
     (bic1 < bic0 - 10.0 && rss1 < 0.9 * rss0).then(|| {
         format!(
-            "the fixture position looks off: estimating it lowers the residual from {} um to {} um RMS; check --fixture, or leave out --fixture-known",
+            "the fixture position looks off: estimating it lowers the residual from {} µm to {} µm RMS; check --fixture, or leave out --fixture-known",
             fmt_fixed((rss0 / n).sqrt() * 1e6, 3),
             fmt_fixed((rss1 / n).sqrt() * 1e6, 3)
         )
@@ -246,7 +246,7 @@ fn extrapolated(problem: &Problem, est: &Estimate, u: &Uncertainty) -> Option<St
         })
         .collect();
     Some(format!(
-        "a cyclic error is extrapolated beyond the range measured ({}): harmonics of the next orders, as large as those fitted, that the data cannot exclude put {} um RMS into the prediction over the joint space ({} um where measured); measure the joint over more of its turn to bound them",
+        "a cyclic error is extrapolated beyond the range measured ({}): harmonics of the next orders, as large as those fitted, that the data cannot exclude put {} µm RMS into the prediction over the joint space ({} µm where measured); measure the joint over more of its turn to bound them",
         joints.join(", "),
         fmt_fixed(m.workspace_rms, 2),
         fmt_fixed(m.measured_region_rms, 2)
@@ -495,7 +495,7 @@ pub(super) fn verdict(
         (
             false,
             format!(
-                "not calibrated: held out, the calibrated robot predicts the readings no better than the nominal one ({} um against {} um RMS); the data show no deviation the geometry explains: check the set-up (--tool, --fixture, --length-offset){effects_hint} or measure over a wider range",
+                "not calibrated: held out, the calibrated robot predicts the readings no better than the nominal one ({} µm against {} µm RMS); the data show no deviation the geometry explains: check the set-up (--tool, --fixture, --length-offset){effects_hint} or measure over a wider range",
                 fmt_fixed(heldout_cal * 1e6, 3),
                 fmt_fixed(heldout_nom * 1e6, 3)
             ),
@@ -504,7 +504,7 @@ pub(super) fn verdict(
         (
             false,
             format!(
-                "not calibrated: its predicted position uncertainty over the joint space ({} um RMS, mostly from the parameters these data cannot determine) is not under half of what the priors say of the nominal robot ({} um); measure over a wider range of every joint",
+                "not calibrated: its predicted position uncertainty over the joint space ({} µm RMS, mostly from the parameters these data cannot determine) is not under half of what the priors say of the nominal robot ({} µm); measure over a wider range of every joint",
                 fmt_fixed(u.space_rms, 2),
                 fmt_fixed(u.nominal_prior_rms * 1e6, 2)
             ),
@@ -513,7 +513,7 @@ pub(super) fn verdict(
         (
             true,
             format!(
-                "calibrated: held out, the calibrated robot predicts the readings to {} um RMS against {} um for the nominal one",
+                "calibrated: held out, the calibrated robot predicts the readings to {} µm RMS against {} µm for the nominal one",
                 fmt_fixed(heldout_cal * 1e6, 3),
                 fmt_fixed(heldout_nom * 1e6, 3)
             ),
@@ -685,7 +685,7 @@ pub(super) fn delivered(
                 None => effect.name().to_string(),
             };
             not_delivered.push(format!(
-                "{name}: left out of the robot file (--geometry-only); {} um RMS over the joint space ({})",
+                "{name}: left out of the robot file (--geometry-only); {} µm RMS over the joint space ({})",
                 fmt_fixed(size.workspace_rms_um, 2),
                 size.at
             ));

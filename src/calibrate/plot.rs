@@ -23,11 +23,7 @@ pub fn residuals(c: &Calibration) -> Figure {
         {
             let r = &r[range.clone()];
             let (x, x_label) = run_axis(&c.t[range.clone()], c.timed[k]);
-            let pts: Vec<(f64, f64)> = x
-                .iter()
-                .zip(r)
-                .map(|(t, v)| (*t, v * 1e6))
-                .collect();
+            let pts: Vec<(f64, f64)> = x.iter().zip(r).map(|(t, v)| (*t, v * 1e6)).collect();
             let rms = (r.iter().map(|v| v * v).sum::<f64>() / r.len().max(1) as f64).sqrt();
             panels.push(Panel {
                 title: format!(

@@ -437,7 +437,7 @@ pub(super) fn confounding(
             None => e.name().to_string(),
         };
         format!(
-            "the data barely tell the {name} from the geometry: fitted together, the geometry's predicted uncertainty is {} um RMS over the joint space; were the effect known, it would be {} um. Measuring over a wider range of the joint separates them",
+            "the data barely tell the {name} from the geometry: fitted together, the geometry's predicted uncertainty is {} µm RMS over the joint space; were the effect known, it would be {} µm. Measuring over a wider range of the joint separates them",
             fmt_fixed(full * 1e6, 2),
             fmt_fixed(without * 1e6, 2)
         )

@@ -191,7 +191,7 @@ pub struct CompileArgs {
     /// slowest joint at its maximum speed, the paper's).
     #[arg(long, value_name = "COST", default_value = "trapezoid", value_parser = ["trapezoid", "eq7"])]
     pub tour_cost: String,
-    /// The bar's noise per reading, um: what the predicted calibration uncertainty assumes.
+    /// The bar's noise per reading, µm: what the predicted calibration uncertainty assumes.
     #[arg(long, value_name = "UM", default_value = "1.0")]
     pub bar_noise: String,
     /// The bar's sample rate, Hz: readings along every move made with the bar.
@@ -279,7 +279,7 @@ pub struct ModelArgs {
     /// Size of the random pose set the analysis uses.
     #[arg(long, value_name = "N", default_value_t = 400)]
     pub samples: usize,
-    /// The bar's noise per reading, um: what the predicted calibration uncertainty assumes.
+    /// The bar's noise per reading, µm: what the predicted calibration uncertainty assumes.
     #[arg(long, value_name = "UM", default_value = "1.0")]
     pub bar_noise: String,
     /// Write the report as JSON (schema edbbgen.model/1) to FILE; `-`, or the flag alone, prints it
@@ -379,7 +379,7 @@ pub struct SimulateArgs {
     /// Controller stops (0.5..3 s) in moves made with the bar: plateaus of no pose.
     #[arg(long, value_name = "N", default_value_t = 0)]
     pub holds: usize,
-    /// Poses (1-based) whose plateau a decaying 15 Hz vibration (10 um) disturbs.
+    /// Poses (1-based) whose plateau a decaying 15 Hz vibration (10 µm) disturbs.
     #[arg(long, value_name = "K,..")]
     pub vibration: Option<String>,
     /// The bar logs nothing while unmounted (default: it reads what a handled bar reads).
@@ -429,7 +429,7 @@ pub struct DiagnoseArgs {
     /// Write a self-contained HTML report here (Figs. 11-12, steps, parameters, verdict).
     #[arg(long, value_name = "REPORT.html")]
     pub html: Option<PathBuf>,
-    /// One reading's noise, um (the instrument's specification, or its spread at standstill):
+    /// One reading's noise, µm (the instrument's specification, or its spread at standstill):
     /// what the residual is judged against [default: from the data: repeated or neighbouring
     /// poses of static readings, the high-frequency part of a continuous recording].
     #[arg(long, value_name = "UM", value_parser = positive_um)]
@@ -661,7 +661,7 @@ pub struct CalibrateArgs {
     /// parameter's calibrated uncertainty is judged against [default: 1,0.05,10].
     #[arg(long, value_name = "MM,DEG[,SETUP_MM]", allow_hyphen_values = true)]
     pub prior: Option<String>,
-    /// One reading's noise, um (the instrument's specification, or its spread at standstill):
+    /// One reading's noise, µm (the instrument's specification, or its spread at standstill):
     /// what the residual is judged against [default: from the data: repeated or neighbouring
     /// poses of static readings, the high-frequency part of a continuous recording].
     #[arg(long, value_name = "UM", value_parser = positive_um)]
@@ -800,7 +800,7 @@ pub struct PlaceArgs {
     /// Pool size of the full estimate's compiles.
     #[arg(long, value_name = "N", default_value_t = crate::place::DEFAULT_FULL_CANDIDATES)]
     pub max_candidates: usize,
-    /// The bar's noise per reading, um.
+    /// The bar's noise per reading, µm.
     #[arg(long, value_name = "UM", default_value = "1.0")]
     pub bar_noise: String,
     /// The bar's sample rate, Hz.

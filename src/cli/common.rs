@@ -120,7 +120,7 @@ pub(super) fn resolve_cell(a: &CellArgs) -> Result<CellSpec, Error> {
 pub(super) fn bar_noise(s: &str) -> Result<f64, Error> {
     let v = scalar("--bar-noise", s)?;
     if v <= 0.0 {
-        return Err(usage(format!("--bar-noise: {v} um must be positive")));
+        return Err(usage(format!("--bar-noise: {v} µm must be positive")));
     }
     Ok(v)
 }

@@ -117,7 +117,7 @@ pub fn compensate(a: &CompensateArgs) -> Result<i32, Error> {
     if tcp.is_some() {
         if let (Some(tn), Some(tc)) = (nominal.tool, calibrated.tool) {
             notes.push(format!(
-                "the tool point is given (--tcp): the calibrated MAP's deviation from nominal ({} um), which the bar cannot tell from link 6's own, is not applied to it",
+                "the tool point is given (--tcp): the calibrated MAP's deviation from nominal ({} µm), which the bar cannot tell from link 6's own, is not applied to it",
                 fmt_fixed((tc - tn).norm() * 1e6, 1)
             ));
         }

@@ -59,24 +59,7 @@ pub fn run(a: &CompileArgs) -> Result<i32, Error> {
     let start = std::array::from_fn(|i| f64::clamp(start[i], lo[i], hi[i]));
     let bar_noise = bar_noise(&a.bar_noise)?;
     let bar_rate = bar_rate(&a.bar_rate)?;
-    let dwell = match &a.dwell {
-        Some(d) => {
-            // On the 0.01 s grid every dialect prints exactly (FANUC's WAIT resolves 0.01 s).
-            let d = (scalar("--dwell", d)? * 100.0).round() / 100.0;
-            if !(0.1..=60.0).contains(&d) {
-                return Err(usage(format!("--dwell: {d} s is outside 0.1..60 s")));
-            }
-            let n = crate::logs::plateau_core_samples(d, bar_rate);
-            if n < crate::logs::MIN_PLATEAU_SAMPLES {
-                return Err(usage(format!(
-                    "--dwell: {d} s at --bar-rate {bar_rate} Hz leaves {n} bar samples per pose, fewer than the {} a plateau needs: dwell longer",
-                    crate::logs::MIN_PLATEAU_SAMPLES
-                )));
-            }
-            Some(d)
-        }
-        None => None,
-    };
+    let dwell = a.dwell.as_deref().map(|d| dwell(d, bar_rate)).transpose()?;
     let focus = a.focus.as_deref().map(parse_focus).transpose()?;
     let opts = CompileOptions {
         focus,
@@ -114,18 +97,7 @@ pub fn run(a: &CompileArgs) -> Result<i32, Error> {
     for w in &out.warnings {
         eprintln!("edbbgen: warning: {w}");
     }
-    let ext = output
-        .extension()
-        .map(|e| e.to_string_lossy().to_ascii_lowercase());
-    if ext.as_ref().is_none_or(|e| !dialect.extensions.contains(e)) {
-        eprintln!(
-            "edbbgen: warning: {}: a {} program usually ends in .{}; verify and simulate then need --dialect {}",
-            output.display(),
-            dialect.name,
-            dialect.extensions[0],
-            dialect.name
-        );
-    }
+    warn_extension(output, dialect);
     if let Some(stage) = &a.emit {
         println!("{}", emit_stage(&out, stage));
     }
@@ -137,23 +109,7 @@ pub fn run(a: &CompileArgs) -> Result<i32, Error> {
     }
 
     if a.check {
-        let old = std::fs::read_to_string(output).unwrap_or_default();
-        if old == out.text {
-            eprintln!("edbbgen: {} is up to date", output.display());
-            return Ok(0);
-        }
-        if !output.exists() {
-            eprintln!("edbbgen: {} does not exist", output.display());
-        }
-        let name = output.display().to_string();
-        let diff = similar::TextDiff::from_lines(&old, &out.text);
-        print!(
-            "{}",
-            diff.unified_diff()
-                .context_radius(3)
-                .header(&format!("{name} (on disk)"), &format!("{name} (compiled)"))
-        );
-        return Ok(1);
+        return Ok(golden_check(output, &out.text));
     }
     // The page is rendered before anything is written, so a failure leaves no file at all.
     let html = match &a.html {
@@ -168,41 +124,101 @@ pub fn run(a: &CompileArgs) -> Result<i32, Error> {
     }
     write_all_atomic(&files)?;
     if a.emit.is_none() {
-        let h = &out.program.header;
-        let v = &out.verified;
-        say!(
-            a.cell.quiet,
-            "{}: {} poses + {} support ({} identifiable parameters, cond {}), estimated {} s as programmed (support poses and blends included); ordering: {} s in tour order, {} s unsorted (the measurement poses alone, direct moves); verified: min clearance {} mm ({} / {}), bar {}..{} mm; predicted MAP position uncertainty after calibration {} um RMS over the joint space ({} um bar noise at {} Hz)",
-            output.display(),
-            h.poses,
-            h.supports,
-            h.identifiable,
-            fmt_fixed(h.cond, 2),
-            fmt_fixed(h.time_s, 1),
-            fmt_fixed(h.time_direct_s, 1),
-            fmt_fixed(h.time_unsorted_s, 1),
-            fmt_fixed(to_mm(v.min_clearance.distance), 1),
-            v.min_clearance.a,
-            v.min_clearance.b,
-            fmt_fixed(to_mm(v.extremes.min_length), 1),
-            fmt_fixed(to_mm(v.extremes.max_length), 1),
-            fmt_fixed(h.predicted_std_um, 2),
-            fmt_fixed(h.bar_noise_um, 2),
-            fmt_fixed(h.bar_rate_hz, 0),
-        );
-        if h.dwell_s > 0.0 {
-            say!(
-                a.cell.quiet,
-                "stop-and-measure: exact stop and {} s dwell at each of the {} measurement poses; predicted {} um RMS over the joint space from the plateau means ({} samples each), {} um from the same run recorded with a synchronous joint log",
-                fmt_fixed(h.dwell_s, 2),
-                h.measure_mm.len(),
-                fmt_fixed(h.predicted_std_um, 2),
-                h.plateau_samples,
-                fmt_fixed(h.predicted_continuous_std_um, 2)
-            );
-        }
+        summary(a.cell.quiet, output, &out);
     }
     Ok(0)
+}
+
+/// `--check`: the compiled program against the file on disk; 0 when equal, else 1 with a
+/// unified diff on stdout.
+fn golden_check(output: &Path, text: &str) -> i32 {
+    let old = std::fs::read_to_string(output).unwrap_or_default();
+    if old == text {
+        eprintln!("edbbgen: {} is up to date", output.display());
+        return 0;
+    }
+    if !output.exists() {
+        eprintln!("edbbgen: {} does not exist", output.display());
+    }
+    let name = output.display().to_string();
+    let diff = similar::TextDiff::from_lines(old.as_str(), text);
+    print!(
+        "{}",
+        diff.unified_diff()
+            .context_radius(3)
+            .header(&format!("{name} (on disk)"), &format!("{name} (compiled)"))
+    );
+    1
+}
+
+/// The summary lines: the program, its timing, what `verify` found and what it buys.
+fn summary(quiet: bool, output: &Path, out: &pipeline::Compiled) {
+    let h = &out.program.header;
+    let v = &out.verified;
+    say!(
+        quiet,
+        "{}: {} poses + {} support ({} identifiable parameters, cond {}), estimated {} s as programmed (support poses and blends included); ordering: {} s in tour order, {} s unsorted (the measurement poses alone, direct moves); verified: min clearance {} mm ({} / {}), bar {}..{} mm; predicted MAP position uncertainty after calibration {} µm RMS over the joint space ({} µm bar noise at {} Hz)",
+        output.display(),
+        h.poses,
+        h.supports,
+        h.identifiable,
+        fmt_fixed(h.cond, 2),
+        fmt_fixed(h.time_s, 1),
+        fmt_fixed(h.time_direct_s, 1),
+        fmt_fixed(h.time_unsorted_s, 1),
+        fmt_fixed(to_mm(v.min_clearance.distance), 1),
+        v.min_clearance.a,
+        v.min_clearance.b,
+        fmt_fixed(to_mm(v.extremes.min_length), 1),
+        fmt_fixed(to_mm(v.extremes.max_length), 1),
+        fmt_fixed(h.predicted_std_um, 2),
+        fmt_fixed(h.bar_noise_um, 2),
+        fmt_fixed(h.bar_rate_hz, 0),
+    );
+    if h.dwell_s > 0.0 {
+        say!(
+            quiet,
+            "stop-and-measure: exact stop and {} s dwell at each of the {} measurement poses; predicted {} µm RMS over the joint space from the plateau means ({} samples each), {} µm from the same run recorded with a synchronous joint log",
+            fmt_fixed(h.dwell_s, 2),
+            h.measure_mm.len(),
+            fmt_fixed(h.predicted_std_um, 2),
+            h.plateau_samples,
+            fmt_fixed(h.predicted_continuous_std_um, 2)
+        );
+    }
+}
+
+/// A program whose extension is not its dialect's is read back only with `--dialect`: say so.
+fn warn_extension(output: &Path, dialect: &crate::dialect::Dialect) {
+    let ext = output
+        .extension()
+        .map(|e| e.to_string_lossy().to_ascii_lowercase());
+    if ext.as_ref().is_none_or(|e| !dialect.extensions.contains(e)) {
+        eprintln!(
+            "edbbgen: warning: {}: a {} program usually ends in .{}; verify and simulate then need --dialect {}",
+            output.display(),
+            dialect.name,
+            dialect.extensions[0],
+            dialect.name
+        );
+    }
+}
+
+/// `--dwell S`: on the 0.01 s grid every dialect prints exactly (FANUC's WAIT resolves 0.01 s),
+/// long enough for a plateau at the bar's rate.
+fn dwell(d: &str, bar_rate: f64) -> Result<f64, Error> {
+    let d = (scalar("--dwell", d)? * 100.0).round() / 100.0;
+    if !(0.1..=60.0).contains(&d) {
+        return Err(usage(format!("--dwell: {d} s is outside 0.1..60 s")));
+    }
+    let n = crate::logs::plateau_core_samples(d, bar_rate);
+    if n < crate::logs::MIN_PLATEAU_SAMPLES {
+        return Err(usage(format!(
+            "--dwell: {d} s at --bar-rate {bar_rate} Hz leaves {n} bar samples per pose, fewer than the {} a plateau needs: dwell longer",
+            crate::logs::MIN_PLATEAU_SAMPLES
+        )));
+    }
+    Ok(d)
 }
 
 /// `--focus`: a calibration report (its drift's moved parameters, then the joint zeros) or a

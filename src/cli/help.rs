@@ -81,7 +81,7 @@ pub const DIAGNOSE: &str = concat!(
     "  edbbgen diagnose ",
     nj130!(),
     " --fixture 258,1468,708 --measured measured.csv --json diagnose.json --html diagnose.html\n",
-    "  # Static readings of an instrument stated at 15 um\n",
+    "  # Static readings of an instrument stated at 15 µm\n",
     "  edbbgen diagnose ",
     nj130!(),
     " --fixture 258,1468,708 --measured measured.csv --noise 15\n",

@@ -239,7 +239,7 @@ pub fn circle(a: &LdbbCircleArgs) -> Result<i32, Error> {
     let v = &out.verified;
     say!(
         a.quiet,
-        "{}: LDBB loaded circle test, {} loads x {} circles, {} moves, {} s of motion; verified: min clearance {} mm ({} / {}), bar {}..{} mm, path within {} um of the circle",
+        "{}: LDBB loaded circle test, {} loads x {} circles, {} moves, {} s of motion; verified: min clearance {} mm ({} / {}), bar {}..{} mm, path within {} µm of the circle",
         a.output.display(),
         setup.loads.len(),
         setup.repeats,

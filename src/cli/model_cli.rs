@@ -114,7 +114,7 @@ pub fn run(a: &ModelArgs) -> Result<i32, Error> {
         );
         say!(
             a.cell.quiet,
-            "predicted MAP position uncertainty after calibrating from these poses (one reading each, {} um bar noise): {} um RMS, {} um p95 over the joint space",
+            "predicted MAP position uncertainty after calibrating from these poses (one reading each, {} µm bar noise): {} µm RMS, {} µm p95 over the joint space",
             fmt_fixed(bar_noise, 2),
             fmt_fixed(predicted.rms * 1e6, 2),
             fmt_fixed(predicted.p95 * 1e6, 2)

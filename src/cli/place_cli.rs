@@ -112,6 +112,95 @@ fn settings(
     out
 }
 
+/// `--prior MM,DEG`: what a parameter the data do not determine costs.
+fn prior(p: &str) -> Result<crate::calibrate::predict::Prior, Error> {
+    let mut prior = crate::calibrate::predict::Prior::default();
+    let v = numbers("--prior", p, Some(2))?;
+    if !(v[0] > 0.0 && v[1] > 0.0) {
+        return Err(usage(format!(
+            "--prior: '{p}' needs a positive length (mm) and angle (deg)"
+        )));
+    }
+    prior.length = v[0] * MM;
+    prior.angle = v[1] * DEG;
+    Ok(prior)
+}
+
+/// `--stand MM`: the radius of the fixture's stand, 0 to 500 mm.
+fn stand(v: &str) -> Result<f64, Error> {
+    let r = scalar("--stand", v)?;
+    if !(0.0..=500.0).contains(&r) {
+        return Err(usage(format!(
+            "--stand: {r} mm must be between 0 and 500 mm"
+        )));
+    }
+    Ok(r * MM)
+}
+
+/// `--write-cell`: a cell file per winning position (the user's cell with the fixture moved, a
+/// header saying where it came from and what it is predicted to buy).
+#[allow(clippy::too_many_arguments)]
+fn placed_cells(
+    a: &PlaceArgs,
+    target: &Path,
+    robot: &crate::robot::Robot,
+    placement: &place::Placement,
+    rep: &place::report::Report,
+    spec: &crate::cell::CellSpec,
+    pspec: &crate::cell::CellSpec,
+    cell_text: Option<&str>,
+    step: [f64; 6],
+) -> Result<Vec<(PathBuf, String)>, Error> {
+    let winners = placement.winners();
+    let mut cells: Vec<(PathBuf, String)> = Vec::new();
+    let sets = settings(a, pspec, pspec.stand_radius != spec.stand_radius);
+    let paths = cell_paths(target, winners.len());
+    for (k, (&w, path)) in winners.iter().zip(&paths).enumerate() {
+        let c = &placement.candidates[w];
+        let mut header = vec![format!(
+            "fixture placed by edbbgen {} for {} [{}] (sha256 {})",
+            env!("CARGO_PKG_VERSION"),
+            robot.name,
+            robot.source,
+            &robot.digest[..16.min(robot.digest.len())]
+        )];
+        header.push(format!(
+            "predicted MAP position uncertainty after calibrating from a program compiled here: {} µm RMS over the joint space (rank {} of {}; compile step {} deg, {} candidates)",
+            c.score_um.map_or_else(|| "-".into(), place::report::um),
+            c.rank.map_or_else(|| "-".into(), |r| r.to_string()),
+            placement.ranking.len(),
+            fmt_fixed(step[0] / DEG, 0),
+            a.max_candidates
+        ));
+        if let Some(cp) = &rep.campaign {
+            header.push(format!(
+                "run {} of a campaign of {}: together {} µm RMS ({} x better than the best single position)",
+                k + 1,
+                cp.count,
+                place::report::um(cp.predicted_um),
+                fmt_fixed(cp.gain_over_best_single, 2)
+            ));
+        }
+        header.push(format!(
+            "compile: edbbgen {} --cell {} -o program.nc",
+            robot.source,
+            path.file_name()
+                .map_or_else(String::new, |f| f.to_string_lossy().into_owned())
+        ));
+        let text =
+            cellfile::write(cell_text, &c.fixture, &sets, &header).map_err(|msg| Error::File {
+                path: a
+                    .cell
+                    .cell
+                    .as_ref()
+                    .map_or_else(|| path.display().to_string(), |p| p.display().to_string()),
+                msg,
+            })?;
+        cells.push((path.clone(), text));
+    }
+    Ok(cells)
+}
+
 pub fn place(a: &PlaceArgs) -> Result<i32, Error> {
     // Everything about the command line first.
     let spec = resolve_cell(&a.cell)?;
@@ -138,29 +227,13 @@ pub fn place(a: &PlaceArgs) -> Result<i32, Error> {
     let step = steps(&a.step)?;
     let bar_noise = bar_noise(&a.bar_noise)?;
     let bar_rate = bar_rate(&a.bar_rate)?;
-    let mut prior = crate::calibrate::predict::Prior::default();
-    if let Some(p) = &a.prior {
-        let v = numbers("--prior", p, Some(2))?;
-        if !(v[0] > 0.0 && v[1] > 0.0) {
-            return Err(usage(format!(
-                "--prior: '{p}' needs a positive length (mm) and angle (deg)"
-            )));
-        }
-        prior.length = v[0] * MM;
-        prior.angle = v[1] * DEG;
-    }
-    let stand = match &a.stand {
-        Some(v) => {
-            let r = scalar("--stand", v)?;
-            if !(0.0..=500.0).contains(&r) {
-                return Err(usage(format!(
-                    "--stand: {r} mm must be between 0 and 500 mm"
-                )));
-            }
-            Some(r * MM)
-        }
-        None => None,
-    };
+    let prior = a
+        .prior
+        .as_deref()
+        .map(prior)
+        .transpose()?
+        .unwrap_or_default();
+    let stand = a.stand.as_deref().map(stand).transpose()?;
     let cell_text = match &a.cell.cell {
         Some(p) => Some(read_input(p, "the cell", crate::files::Kind::Config)?),
         None => None,
@@ -209,56 +282,20 @@ pub fn place(a: &PlaceArgs) -> Result<i32, Error> {
         )?)?),
         None => None,
     };
-    let winners = placement.winners();
-    let mut cells: Vec<(PathBuf, String)> = Vec::new();
-    if let Some(target) = &a.write_cell {
-        let sets = settings(a, &pspec, pspec.stand_radius != spec.stand_radius);
-        let paths = cell_paths(target, winners.len());
-        for (k, (&w, path)) in winners.iter().zip(&paths).enumerate() {
-            let c = &placement.candidates[w];
-            let mut header = vec![format!(
-                "fixture placed by edbbgen {} for {} [{}] (sha256 {})",
-                env!("CARGO_PKG_VERSION"),
-                robot.name,
-                robot.source,
-                &robot.digest[..16.min(robot.digest.len())]
-            )];
-            header.push(format!(
-                "predicted MAP position uncertainty after calibrating from a program compiled here: {} um RMS over the joint space (rank {} of {}; compile step {} deg, {} candidates)",
-                c.score_um.map_or_else(|| "-".into(), place::report::um),
-                c.rank.map_or_else(|| "-".into(), |r| r.to_string()),
-                placement.ranking.len(),
-                fmt_fixed(step[0] / DEG, 0),
-                a.max_candidates
-            ));
-            if let Some(cp) = &rep.campaign {
-                header.push(format!(
-                    "run {} of a campaign of {}: together {} um RMS ({} x better than the best single position)",
-                    k + 1,
-                    cp.count,
-                    place::report::um(cp.predicted_um),
-                    fmt_fixed(cp.gain_over_best_single, 2)
-                ));
-            }
-            header.push(format!(
-                "compile: edbbgen {} --cell {} -o program.nc",
-                robot.source,
-                path.file_name()
-                    .map_or_else(String::new, |f| f.to_string_lossy().into_owned())
-            ));
-            let text = cellfile::write(cell_text.as_deref(), &c.fixture, &sets, &header).map_err(
-                |msg| Error::File {
-                    path: a
-                        .cell
-                        .cell
-                        .as_ref()
-                        .map_or_else(|| path.display().to_string(), |p| p.display().to_string()),
-                    msg,
-                },
-            )?;
-            cells.push((path.clone(), text));
-        }
-    }
+    let cells = match &a.write_cell {
+        Some(target) => placed_cells(
+            a,
+            target,
+            &robot,
+            &placement,
+            &rep,
+            &spec,
+            &pspec,
+            cell_text.as_deref(),
+            step,
+        )?,
+        None => Vec::new(),
+    };
     let mut files: Vec<(&Path, &str)> = Vec::new();
     if let Some(p) = &a.json {
         files.push((p.as_path(), json.as_str()));

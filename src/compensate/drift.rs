@@ -262,13 +262,13 @@ pub fn compare(
     raw.sort_by(f64::total_cmp);
 
     let spread = format!(
-        "the MAP moved {} um RMS, {} um p95 over the joint space",
+        "the MAP moved {} µm RMS, {} µm p95 over the joint space",
         fmt_fixed(map_change_um.rms, 1),
         fmt_fixed(map_change_um.p95, 1)
     );
     let verdict = if moved.is_empty() {
         format!(
-            "unchanged within {} um: no parameter moved beyond {} times its combined uncertainty; {spread}",
+            "unchanged within {} µm: no parameter moved beyond {} times its combined uncertainty; {spread}",
             fmt_fixed(map_change_um.p95, 1),
             fmt_fixed(THRESHOLD, 1)
         )
@@ -405,7 +405,7 @@ pub fn calibrate_against(
     if !cal.report.calibrated && robot_determined && h.calibrated >= h.nominal {
         cal.report.calibrated = true;
         cal.report.verdict = format!(
-            "calibrated: the baseline stands; held out, the refit predicts the readings to {} um RMS against {} um with the baseline robot",
+            "calibrated: the baseline stands; held out, the refit predicts the readings to {} µm RMS against {} µm with the baseline robot",
             fmt_fixed(h.calibrated, 3),
             fmt_fixed(h.nominal, 3)
         );
@@ -418,7 +418,7 @@ pub fn calibrate_against(
         );
     }
     cal.summary += &format!(
-        "since {}: residual with the baseline robot {} um; {}\n",
+        "since {}: residual with the baseline robot {} µm; {}\n",
         baseline_label,
         fmt_fixed(drift.rms_with_baseline_um, 3),
         drift.verdict

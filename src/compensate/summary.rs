@@ -11,7 +11,7 @@ pub fn text(r: &Report) -> String {
     let mut s = String::new();
     if let Some(t) = &r.targets {
         s += &format!(
-            "{}: compensated {} of {} targets ({}); the calibrated robot missed them by {} um RMS, {} um max; at the written joints {} um max\n",
+            "{}: compensated {} of {} targets ({}); the calibrated robot missed them by {} µm RMS, {} µm max; at the written joints {} µm max\n",
             t.file,
             t.compensated,
             t.rows,
@@ -48,7 +48,7 @@ pub fn text(r: &Report) -> String {
     }
     if let Some(p) = &r.program {
         s += &format!(
-            "{} ({}): {} moves compensated, axis values with {} decimals: TCP error at the printed values {} um RMS, {} um max{}\n",
+            "{} ({}): {} moves compensated, axis values with {} decimals: TCP error at the printed values {} µm RMS, {} µm max{}\n",
             p.file,
             p.dialect,
             p.moves,
@@ -91,7 +91,7 @@ pub fn text(r: &Report) -> String {
     }
     let acc = &r.accuracy;
     s += &format!(
-        "TCP accuracy over the joint space ({} random poses, registered): nothing applied {} um RMS, {} um p95; offsets only {} um RMS (model)",
+        "TCP accuracy over the joint space ({} random poses, registered): nothing applied {} µm RMS, {} µm p95; offsets only {} µm RMS (model)",
         acc.poses,
         fmt_fixed(acc.uncompensated_um.rms, 1),
         fmt_fixed(acc.uncompensated_um.p95, 1),
@@ -100,7 +100,7 @@ pub fn text(r: &Report) -> String {
     match (&acc.predicted_offsets_only_um, &acc.predicted_full_um) {
         (Some(o), Some(f)) => {
             s += &format!(
-                ", {} um RMS predicted; full compensation {} um RMS, {} um p95 predicted (the calibration's)\n",
+                ", {} µm RMS predicted; full compensation {} µm RMS, {} µm p95 predicted (the calibration's)\n",
                 fmt_fixed(o.rms, 1),
                 fmt_fixed(f.rms, 2),
                 fmt_fixed(f.p95, 2)

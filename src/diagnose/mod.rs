@@ -1355,9 +1355,9 @@ fn noise_phrase(r: &Report) -> String {
     let how = r.noise_source_text();
     match r.noise_source {
         N::Unknown => format!("reading noise {how}"),
-        N::Neighbours => format!("reading noise <= {} um ({how})", fmt_fixed(r.noise_um, 2)),
-        N::Sequence => format!("bar noise ~{} um", fmt_fixed(r.noise_um, 2)),
-        _ => format!("reading noise ~{} um ({how})", fmt_fixed(r.noise_um, 2)),
+        N::Neighbours => format!("reading noise <= {} µm ({how})", fmt_fixed(r.noise_um, 2)),
+        N::Sequence => format!("bar noise ~{} µm", fmt_fixed(r.noise_um, 2)),
+        _ => format!("reading noise ~{} µm ({how})", fmt_fixed(r.noise_um, 2)),
     }
 }
 
@@ -1396,10 +1396,10 @@ fn summary(r: &Report, timed: bool) -> String {
             noise_phrase(r)
         )
     };
-    s += &format!("nominal model: RMS {} um", fmt_fixed(r.rms_nominal_um, 2));
+    s += &format!("nominal model: RMS {} µm", fmt_fixed(r.rms_nominal_um, 2));
     if let Some(w) = &r.nominal_where {
         s += &format!(
-            ", largest at {} (peak {} um)",
+            ", largest at {} (peak {} µm)",
             span(w, timed),
             fmt_fixed(w.peak_um, 1)
         );
@@ -1411,7 +1411,7 @@ fn summary(r: &Report, timed: bool) -> String {
             None => st.effect.to_string(),
         };
         s += &format!(
-            "  + {name:<24} RMS {} um, held out {} um\n",
+            "  + {name:<24} RMS {} µm, held out {} µm\n",
             fmt_fixed(st.rms_after_um, 3),
             fmt_fixed(st.cv_rms_um, 3)
         );
@@ -1438,13 +1438,13 @@ fn summary(r: &Report, timed: bool) -> String {
         s.push('\n');
     } else if r.noise_source == noise::NoiseSource::Unknown {
         s += &format!(
-            "residual RMS {} um, lag-1 autocorrelation {}: whether it is at the noise level needs the noise\n",
+            "residual RMS {} µm, lag-1 autocorrelation {}: whether it is at the noise level needs the noise\n",
             fmt_fixed(r.rms_final_um, 3),
             fmt_fixed(r.lag1_final, 3)
         );
     } else {
         s += &format!(
-            "residual at the noise level: RMS {} um, lag-1 autocorrelation {}\n",
+            "residual at the noise level: RMS {} µm, lag-1 autocorrelation {}\n",
             fmt_fixed(r.rms_final_um, 3),
             fmt_fixed(r.lag1_final, 3)
         );

@@ -942,7 +942,7 @@ pub fn summary(a: &Analysis) -> String {
             (lo.min(*c), hi.max(*c))
         });
     let mut s = format!(
-        "{} rows: {} loads x {} repeats; compliance along the bar {:.4}..{:.4} um/N (RMS {:.4}); linearity spread {:.1} um\n",
+        "{} rows: {} loads x {} repeats; compliance along the bar {:.4}..{:.4} µm/N (RMS {:.4}); linearity spread {:.1} µm\n",
         r.rows,
         a.loads.len(),
         r.repeats,
@@ -953,7 +953,7 @@ pub fn summary(a: &Analysis) -> String {
     );
     let sf = &r.sine_fit;
     s += &format!(
-        "centring sine ({}): a {:.4} mm, b {:.4}, phi {:.2} deg; kinematic error RMS {:.2} um",
+        "centring sine ({}): a {:.4} mm, b {:.4}, phi {:.2} deg; kinematic error RMS {:.2} µm",
         match sf.model {
             SineModel::Linear => "linear, b = 1",
             SineModel::Nonlinear => "nonlinear, b free",
@@ -965,7 +965,7 @@ pub fn summary(a: &Analysis) -> String {
     );
     if let Some(rf) = &r.reference {
         s += &format!(
-            "; reference: mean |difference| {:.1} um",
+            "; reference: mean |difference| {:.1} µm",
             rf.mean_abs_difference_um
         );
     }

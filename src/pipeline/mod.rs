@@ -1090,7 +1090,7 @@ fn dwell_warning(p: &Predicted, opts: &CompileOptions) -> Option<String> {
     let (dwell, cont) = (opts.dwell?, p.continuous_workspace_rms?);
     (p.workspace_rms > 2.0 * cont).then(|| {
         format!(
-            "--dwell {}: the plateau means predict {} um RMS over the joint space, more than twice the {} um of the same run recorded with a synchronous joint log: a longer dwell averages more of each standstill",
+            "--dwell {}: the plateau means predict {} µm RMS over the joint space, more than twice the {} µm of the same run recorded with a synchronous joint log: a longer dwell averages more of each standstill",
             crate::units::fmt_fixed(dwell, 2),
             crate::units::fmt_fixed(p.workspace_rms, 2),
             crate::units::fmt_fixed(cont, 2)

@@ -423,7 +423,7 @@ pub fn text(rep: &Report, show: usize) -> String {
         c.usable, c.out_of_reach, c.no_room, c.no_valid_pose, c.too_few_poses, c.compile_failed
     );
     t += &format!(
-        "  score: predicted MAP position uncertainty after calibrating from a program compiled there (1 sigma, RMS over {} joint poses, after rigid registration; bar noise {} um at {} Hz; held parameters at the prior {} mm / {} deg)\n",
+        "  score: predicted MAP position uncertainty after calibrating from a program compiled there (1 sigma, RMS over {} joint poses, after rigid registration; bar noise {} µm at {} Hz; held parameters at the prior {} mm / {} deg)\n",
         s.workspace_poses,
         fmt_fixed(s.bar_noise_um, 2),
         fmt_fixed(s.bar_rate_hz, 0),
@@ -474,7 +474,7 @@ pub fn text(rep: &Report, show: usize) -> String {
     if let Some(b) = &rep.best {
         let is_current = rep.current.as_ref().is_some_and(|c| c.index == b.index);
         t += &format!(
-            "best: {}{} mm, {} um (rank 1 of {usable})",
+            "best: {}{} mm, {} µm (rank 1 of {usable})",
             if is_current {
                 "the cell's fixture, "
             } else {
@@ -485,7 +485,7 @@ pub fn text(rep: &Report, show: usize) -> String {
         );
         if let (false, Some(cur), Some(ratio)) = (is_current, &rep.current, b.ratio) {
             t += &format!(
-                "; {} x better than the cell's fixture ({} um, rank {} of {usable})",
+                "; {} x better than the cell's fixture ({} µm, rank {} of {usable})",
                 fmt_fixed(ratio, 2),
                 cur.score_um.map_or_else(|| "-".into(), um),
                 cur.rank.map_or_else(|| "-".into(), |r| r.to_string())
@@ -511,7 +511,7 @@ pub fn text(rep: &Report, show: usize) -> String {
         for (k, (&i, f)) in c.members.iter().zip(&c.fixtures_mm).enumerate() {
             let m = &rep.candidates[i];
             t += &format!(
-                "  {}  {} mm  (rank {}, {} um alone)\n",
+                "  {}  {} mm  (rank {}, {} µm alone)\n",
                 k + 1,
                 f3(f),
                 m.rank.map_or_else(|| "-".into(), |r| r.to_string()),
@@ -519,7 +519,7 @@ pub fn text(rep: &Report, show: usize) -> String {
             );
         }
         t += &format!(
-            "  together: {} um RMS, {} um p95 over the joint space; {} x better than the best single fixture ({} um; measured {} times: {} um)",
+            "  together: {} µm RMS, {} µm p95 over the joint space; {} x better than the best single fixture ({} µm; measured {} times: {} µm)",
             um(c.predicted_um),
             um(c.predicted_p95_um),
             fmt_fixed(c.gain_over_best_single, 2),

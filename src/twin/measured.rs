@@ -237,7 +237,7 @@ pub fn parse_csv(text: &str, min_rows: usize) -> Result<Measured, CsvError> {
                 return Err(err(
                     line,
                     col(c),
-                    format!("standard uncertainty {s} um is not positive"),
+                    format!("standard uncertainty {s} µm is not positive"),
                 ));
             }
             v.push(s * 1e-6);

@@ -367,7 +367,7 @@ fn stop_and_measure(
         .collect();
     if let Some(worst) = spreads.iter().copied().reduce(f64::max) {
         summary.push(format!(
-            "plateau spread: median {} um, largest {} um",
+            "plateau spread: median {} µm, largest {} µm",
             fmt_fixed(median(&spreads).unwrap_or(worst) * 1e6, 2),
             fmt_fixed(worst * 1e6, 2)
         ));
