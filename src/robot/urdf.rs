@@ -64,7 +64,11 @@ fn convert(text: &str, path: &Path, opts: &LoadOptions) -> Result<Robot, String>
     // Links behind a moving joint off the chain (a balancing cylinder, a parallelogram
     // linkage): each gets the chain of joints from its nearest rigid ancestor, so that its pose
     // is known for every q and its geometry joins the collision scene.
-    let (passive, passive_of, notes) = passive_links(&doc, &lay, &frames)?;
+    let Passive {
+        links: passive,
+        of_link: passive_of,
+        notes,
+    } = passive_links(&doc, &lay, &frames)?;
     // Collision geometry of every link, in document order, then by frame: links rigid with a
     // DH frame in that frame, passive links in their own.
     let urdf_dir = path.parent().unwrap_or(Path::new(""));
@@ -126,11 +130,18 @@ fn joints(doc: &urdf_rs::Robot, revolute: &[usize]) -> [Joint; 6] {
 
 /// The links behind a moving joint off the chain, the passive link (index) of every link that
 /// is one, and the notes on joints nothing drives.
+struct Passive {
+    links: Vec<PassiveLink>,
+    of_link: Vec<Option<usize>>,
+    notes: Vec<String>,
+}
+
+/// Each such link gets the chain of joints from its nearest rigid ancestor.
 fn passive_links(
     doc: &urdf_rs::Robot,
     lay: &Layout,
     frames: &[Frame; 7],
-) -> Result<(Vec<PassiveLink>, Vec<Option<usize>>, Vec<String>), String> {
+) -> Result<Passive, String> {
     let Layout {
         tree,
         joint_number,
@@ -184,7 +195,11 @@ fn passive_links(
         });
     }
     notes.extend(drives.notes);
-    Ok((passive, passive_of, notes))
+    Ok(Passive {
+        links: passive,
+        of_link: passive_of,
+        notes,
+    })
 }
 
 /// The steps from a passive link's rigid ancestor (its DH `frame` and its `pose` at q = 0)
