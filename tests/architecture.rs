@@ -223,3 +223,87 @@ fn a_subcommand_imports_no_other_subcommand() {
         }
     }
 }
+
+/// The longest a function in src/ may be: lines from its `fn` to its closing brace.
+const MAX_FN_LINES: usize = 150;
+
+/// Every function with a body (free, in an impl, a trait's default) in `text`: (line of its
+/// `fn`, name, lines from the `fn` to the closing brace). Parsed, so braces in strings, chars
+/// and comments do not count.
+fn function_lengths(text: &str) -> Vec<(usize, String, usize)> {
+    use syn::visit::Visit;
+    struct Lengths(Vec<(usize, String, usize)>);
+    impl Lengths {
+        fn note(&mut self, sig: &syn::Signature, block: &syn::Block) {
+            let from = sig.fn_token.span.start().line;
+            let to = block.brace_token.span.close().end().line;
+            self.0.push((from, sig.ident.to_string(), to + 1 - from));
+        }
+    }
+    impl<'ast> Visit<'ast> for Lengths {
+        fn visit_item_fn(&mut self, f: &'ast syn::ItemFn) {
+            self.note(&f.sig, &f.block);
+            syn::visit::visit_item_fn(self, f);
+        }
+        fn visit_impl_item_fn(&mut self, f: &'ast syn::ImplItemFn) {
+            self.note(&f.sig, &f.block);
+            syn::visit::visit_impl_item_fn(self, f);
+        }
+        fn visit_trait_item_fn(&mut self, f: &'ast syn::TraitItemFn) {
+            if let Some(block) = &f.default {
+                self.note(&f.sig, block);
+            }
+            syn::visit::visit_trait_item_fn(self, f);
+        }
+    }
+    let file = syn::parse_file(text).unwrap_or_else(|e| panic!("not Rust: {e}"));
+    let mut lengths = Lengths(Vec::new());
+    lengths.visit_file(&file);
+    lengths.0
+}
+
+#[test]
+fn no_function_in_src_is_over_150_lines() {
+    // The measure itself: braces in strings, raw strings, chars and comments are not code.
+    let sample = "fn a() {\n    let s = \"{{\";\n    let r = r#\"}\"#;\n    let c = '{';\n    // }\n}\n\nimpl X {\n    fn b(&self) -> u8 {\n        1\n    }\n}\n\ntrait T {\n    fn c() {}\n    fn d();\n}\n";
+    assert_eq!(
+        function_lengths(sample),
+        [
+            (1, "a".to_string(), 6),
+            (9, "b".to_string(), 3),
+            (15, "c".to_string(), 1)
+        ]
+    );
+
+    let src = root().join("src");
+    let mut lengths = Vec::new();
+    let mut stack = vec![src.clone()];
+    while let Some(dir) = stack.pop() {
+        for e in std::fs::read_dir(&dir).unwrap() {
+            let path = e.unwrap().path();
+            if path.is_dir() {
+                stack.push(path);
+            } else if path.extension().is_some_and(|x| x == "rs") {
+                let text = std::fs::read_to_string(&path).unwrap();
+                let rel = path.strip_prefix(root()).unwrap();
+                let file = rel.to_string_lossy().replace('\\', "/");
+                for (line, name, n) in function_lengths(&text) {
+                    lengths.push((file.clone(), line, name, n));
+                }
+            }
+        }
+    }
+    lengths.sort();
+    assert!(lengths.len() > 1000, "{} functions in src/", lengths.len());
+    let mut offenders = Vec::new();
+    for (file, line, name, n) in &lengths {
+        if *n > MAX_FN_LINES {
+            offenders.push(format!("{file}:{line} {name} {n} lines"));
+        }
+    }
+    assert!(
+        offenders.is_empty(),
+        "functions over {MAX_FN_LINES} lines (split them at their steps into named functions):\n{}",
+        offenders.join("\n")
+    );
+}

@@ -900,6 +900,20 @@ fn xyz_with_std(v: &[f64; 3], sd: &[Option<f64>; 3]) -> String {
 /// The printed summary of a report (also rebuilt when a report is restated, see
 /// `compensate::drift`).
 pub fn summary(r: &Report) -> String {
+    let mut s = data_lines(r);
+    model_lines(r, &mut s);
+    setup_lines(r, &mut s);
+    prediction_lines(r, &mut s);
+    for w in &r.warnings {
+        s += &format!("warning: {w}\n");
+    }
+    s += &r.verdict;
+    s.push('\n');
+    s
+}
+
+/// The summary's data: the runs, their rows and noise, and the RMS before and after.
+fn data_lines(r: &Report) -> String {
     let forms: Vec<&str> = r.runs.iter().map(|x| x.form).collect();
     let static_only = forms.iter().all(|f| *f != "continuous");
     use crate::diagnose::noise::NoiseSource as N;
@@ -930,6 +944,11 @@ pub fn summary(r: &Report) -> String {
         fmt_fixed(r.rms_before_um, 3),
         fmt_fixed(r.rms_after_um, 3)
     );
+    s
+}
+
+/// The model fitted: the effects with their sizes, the parameters determined and held.
+fn model_lines(r: &Report, s: &mut String) {
     let effects: Vec<String> = r
         .effects
         .iter()
@@ -938,7 +957,7 @@ pub fn summary(r: &Report) -> String {
             None => e.effect.to_string(),
         })
         .collect();
-    s += &format!(
+    *s += &format!(
         "effects fitted with the geometry ({}): {}\n",
         r.effects_mode,
         if effects.is_empty() {
@@ -957,14 +976,14 @@ pub fn summary(r: &Report) -> String {
             (true, _) => "in the robot file",
             (false, _) => "NOT in the robot file",
         };
-        s += &format!(
+        *s += &format!(
             "  {name}: {} µm RMS, {} µm p95 over the joint space ({}); {carried}\n",
             fmt_fixed(e.workspace_rms_um, 2),
             fmt_fixed(e.workspace_p95_um, 2),
             e.at
         );
     }
-    s += &format!(
+    *s += &format!(
         "determined: {} parameters; held at nominal: {}\n",
         r.determined.len(),
         if r.undetermined.is_empty() {
@@ -977,9 +996,14 @@ pub fn summary(r: &Report) -> String {
                 .join(", ")
         }
     );
+}
+
+/// The set-up fitted with the robot: tool point, fixtures and length zeros; the steps in the
+/// runs and the outliers dropped.
+fn setup_lines(r: &Report, s: &mut String) {
     let t = &r.tool;
     if t.moved_mm > 0.0 {
-        s += &format!(
+        *s += &format!(
             "tool point (MAP): {}, {}, {} mm (given {}, {}, {}; moved {} mm)\n",
             fmt_fixed(t.fitted_mm[0], 3),
             fmt_fixed(t.fitted_mm[1], 3),
@@ -992,7 +1016,7 @@ pub fn summary(r: &Report) -> String {
     }
     for run in &r.runs {
         if let Some(f) = run.fixture_fitted_mm {
-            s += &format!(
+            *s += &format!(
                 "fixture of {}: {}, {}, {} mm (given {}, {}, {}; moved {} mm)\n",
                 run.measured,
                 fmt_fixed(f[0], 3),
@@ -1005,7 +1029,7 @@ pub fn summary(r: &Report) -> String {
             );
         }
         if run.length_offset_std_mm.is_some() {
-            s += &format!(
+            *s += &format!(
                 "length zero of {}: {} mm (reading minus ball-centre distance)\n",
                 run.measured,
                 fmt_fixed(run.length_offset_mm, 4)
@@ -1017,35 +1041,40 @@ pub fn summary(r: &Report) -> String {
             Some(t) => format!("row {} (t {} s)", g.from_row, fmt_fixed(t, 2)),
             None => format!("row {}", g.from_row),
         };
-        s += &format!("step in run {} at {when}: {}\n", g.run, g.cause);
+        *s += &format!("step in run {} at {when}: {}\n", g.run, g.cause);
     }
     if !r.outliers.is_empty() {
-        s += &format!(
+        *s += &format!(
             "outliers dropped: {} row{}\n",
             r.outliers.len(),
             if r.outliers.len() == 1 { "" } else { "s" }
         );
     }
+}
+
+/// What the calibration predicts and how it validated; the reading weights and the set-up
+/// with the nominal geometry.
+fn prediction_lines(r: &Report, s: &mut String) {
     let p = &r.predicted_position_std_um;
-    s += &format!(
+    *s += &format!(
         "predicted MAP position uncertainty (1 sigma, after rigid registration): {} µm RMS where measured; {} µm RMS, {} µm p95 over the joint space\n",
         fmt_fixed(p.measured_region_rms, 2),
         fmt_fixed(p.workspace_rms, 2),
         fmt_fixed(p.workspace_p95, 2)
     );
     if r.delivered.content == "geometry only" {
-        s += &format!(
+        *s += &format!(
             "the robot file carries the geometry only: the prediction includes the effects left out (the model with them: {} µm RMS over the joint space)\n",
             fmt_fixed(p.model_workspace_rms, 2)
         );
     }
-    s += &format!(
+    *s += &format!(
         "validation (held out): {} µm RMS nominal, {} µm RMS calibrated\n",
         fmt_fixed(r.validation.heldout_rms_um.nominal, 3),
         fmt_fixed(r.validation.heldout_rms_um.calibrated, 3)
     );
     if let Some(w) = &r.reading_weights {
-        s += &format!(
+        *s += &format!(
             "readings weighted by their own uncertainty: joints logged to {} deg; rounding {} µm RMS, up to {} µm per reading{}\n",
             w.joint_resolution_deg
                 .first()
@@ -1064,7 +1093,7 @@ pub fn summary(r: &Report) -> String {
         );
     }
     if let Some(set) = r.setup.as_ref().filter(|s| s.delivered) {
-        s += &format!(
+        *s += &format!(
             "set-up with the nominal geometry: tool point {} mm{}; held out {} µm RMS\n",
             xyz_with_std(&set.tool_mm, &set.tool_std_mm),
             set.fixtures_mm
@@ -1076,12 +1105,6 @@ pub fn summary(r: &Report) -> String {
             fmt_fixed(set.heldout_rms_um, 1)
         );
     }
-    for w in &r.warnings {
-        s += &format!("warning: {w}\n");
-    }
-    s += &r.verdict;
-    s.push('\n');
-    s
 }
 
 #[cfg(test)]

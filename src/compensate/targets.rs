@@ -147,73 +147,123 @@ pub fn parse(text: &str) -> Result<TargetFile, CsvError> {
     let (hline, header) = lines
         .next()
         .ok_or_else(|| err(1, format!("empty file: expected a header ({EXPECTED})")))?;
-    let cols: Vec<String> = fields(hline, header)?
-        .into_iter()
-        .map(|(_, v)| v.trim().to_string())
-        .collect();
-    let known: Vec<&str> = ["name", "approach"]
-        .into_iter()
-        .chain(JOINTS)
-        .chain(XYZ)
-        .chain(RXYZ)
-        .collect();
-    for (k, c) in cols.iter().enumerate() {
-        if !known.contains(&c.as_str()) {
-            return Err(err(
-                hline,
-                format!("unknown column '{c}' (expected {EXPECTED})"),
-            ));
-        }
-        if cols[..k].contains(c) {
-            return Err(err(hline, format!("column '{c}' given twice")));
-        }
-    }
-    let at = |name: &str| cols.iter().position(|c| c == name);
-    let group = |names: &[&str]| -> Result<Option<Vec<usize>>, CsvError> {
-        let found: Vec<Option<usize>> = names.iter().map(|n| at(n)).collect();
-        match found.iter().filter(|f| f.is_some()).count() {
-            0 => Ok(None),
-            n if n == names.len() => Ok(Some(found.into_iter().flatten().collect())),
-            _ => Err(err(
-                hline,
-                format!(
-                    "columns {} come together: {} missing",
-                    names.join(","),
-                    names
-                        .iter()
-                        .zip(&found)
-                        .filter(|(_, f)| f.is_none())
-                        .map(|(n, _)| *n)
-                        .collect::<Vec<_>>()
-                        .join(", ")
-                ),
-            )),
-        }
-    };
-    let joints = group(&JOINTS)?;
-    let xyz = group(&XYZ)?;
-    let rxyz = group(&RXYZ)?;
-    let kind = match (&xyz, &rxyz, &joints) {
-        (Some(_), Some(_), _) => Kind::Pose,
-        (Some(_), None, _) => Kind::Position,
-        (None, Some(_), _) => {
-            return Err(err(
-                hline,
-                "rx_deg,ry_deg,rz_deg need the position x_mm,y_mm,z_mm",
-            ))
-        }
-        (None, None, Some(_)) => Kind::Joints,
-        (None, None, None) => {
-            return Err(err(
-                hline,
-                format!("no target columns (expected {EXPECTED})"),
-            ))
-        }
-    };
-    let name_col = at("name");
-    let approach_col = at("approach");
+    let cols = Columns::read(hline, header)?;
+    let kind = cols.kind;
     let mut rows = Vec::new();
     for (line, text) in lines {
+        rows.push(cols.row(line, text)?);
+    }
+    if rows.is_empty() {
+        return Err(err(hline, "no targets after the header"));
+    }
+    Ok(TargetFile {
+        header: header.to_string(),
+        kind,
+        rows,
+    })
+}
+
+/// The header's columns: their names, the column of each target group that is there, the kind
+/// of target they give and the name and approach columns.
+struct Columns {
+    names: Vec<String>,
+    joints: Option<Vec<usize>>,
+    xyz: Option<Vec<usize>>,
+    rxyz: Option<Vec<usize>>,
+    kind: Kind,
+    name_col: Option<usize>,
+    approach_col: Option<usize>,
+}
+
+impl Columns {
+    /// The header `header` on line `hline`.
+    fn read(hline: usize, header: &str) -> Result<Columns, CsvError> {
+        let cols: Vec<String> = fields(hline, header)?
+            .into_iter()
+            .map(|(_, v)| v.trim().to_string())
+            .collect();
+        let known: Vec<&str> = ["name", "approach"]
+            .into_iter()
+            .chain(JOINTS)
+            .chain(XYZ)
+            .chain(RXYZ)
+            .collect();
+        for (k, c) in cols.iter().enumerate() {
+            if !known.contains(&c.as_str()) {
+                return Err(err(
+                    hline,
+                    format!("unknown column '{c}' (expected {EXPECTED})"),
+                ));
+            }
+            if cols[..k].contains(c) {
+                return Err(err(hline, format!("column '{c}' given twice")));
+            }
+        }
+        let at = |name: &str| cols.iter().position(|c| c == name);
+        let group = |names: &[&str]| -> Result<Option<Vec<usize>>, CsvError> {
+            let found: Vec<Option<usize>> = names.iter().map(|n| at(n)).collect();
+            match found.iter().filter(|f| f.is_some()).count() {
+                0 => Ok(None),
+                n if n == names.len() => Ok(Some(found.into_iter().flatten().collect())),
+                _ => Err(err(
+                    hline,
+                    format!(
+                        "columns {} come together: {} missing",
+                        names.join(","),
+                        names
+                            .iter()
+                            .zip(&found)
+                            .filter(|(_, f)| f.is_none())
+                            .map(|(n, _)| *n)
+                            .collect::<Vec<_>>()
+                            .join(", ")
+                    ),
+                )),
+            }
+        };
+        let joints = group(&JOINTS)?;
+        let xyz = group(&XYZ)?;
+        let rxyz = group(&RXYZ)?;
+        let kind = match (&xyz, &rxyz, &joints) {
+            (Some(_), Some(_), _) => Kind::Pose,
+            (Some(_), None, _) => Kind::Position,
+            (None, Some(_), _) => {
+                return Err(err(
+                    hline,
+                    "rx_deg,ry_deg,rz_deg need the position x_mm,y_mm,z_mm",
+                ))
+            }
+            (None, None, Some(_)) => Kind::Joints,
+            (None, None, None) => {
+                return Err(err(
+                    hline,
+                    format!("no target columns (expected {EXPECTED})"),
+                ))
+            }
+        };
+        let name_col = at("name");
+        let approach_col = at("approach");
+        Ok(Columns {
+            names: cols,
+            joints,
+            xyz,
+            rxyz,
+            kind,
+            name_col,
+            approach_col,
+        })
+    }
+
+    /// The row `text` on line `line`.
+    fn row(&self, line: usize, text: &str) -> Result<Row, CsvError> {
+        let Columns {
+            names: cols,
+            joints,
+            xyz,
+            rxyz,
+            ..
+        } = self;
+        let (kind, name_col, approach_col) = (self.kind, self.name_col, self.approach_col);
         let f = fields(line, text)?;
         if f.len() != cols.len() {
             return Err(err(
@@ -264,9 +314,9 @@ pub fn parse(text: &str) -> Result<TargetFile, CsvError> {
                 ),
             ))
         };
-        let q = take(&joints, kind != Kind::Joints)?;
-        let p = take(&xyz, false)?;
-        let r = take(&rxyz, false)?;
+        let q = take(joints, kind != Kind::Joints)?;
+        let p = take(xyz, false)?;
+        let r = take(rxyz, false)?;
         let approach = match approach_col {
             Some(c) => Some(parse_approach(f[c].1.trim()).ok_or_else(|| {
                 err(
@@ -279,7 +329,7 @@ pub fn parse(text: &str) -> Result<TargetFile, CsvError> {
             })?),
             None => None,
         };
-        rows.push(Row {
+        Ok(Row {
             line,
             raw: f.iter().map(|(raw, _)| raw.clone()).collect(),
             name: name_col.map(|c| f[c].1.trim().to_string()),
@@ -287,16 +337,8 @@ pub fn parse(text: &str) -> Result<TargetFile, CsvError> {
             xyz_mm: p.map(|v| [v[0], v[1], v[2]]),
             rxyz_deg: r.map(|v| [v[0], v[1], v[2]]),
             approach,
-        });
+        })
     }
-    if rows.is_empty() {
-        return Err(err(hline, "no targets after the header"));
-    }
-    Ok(TargetFile {
-        header: header.to_string(),
-        kind,
-        rows,
-    })
 }
 
 /// The mapping with degree units (the file's joint columns are degrees in every dialect).

@@ -103,14 +103,57 @@ pub fn identify(
     if p == 0 || n <= p {
         return out;
     }
+    let Some(sol) = solve(rows, c, c_err, levels, active, norms) else {
+        return out;
+    };
+    out.singular_values = sol.singular_values.clone();
+    out.fit_rms_um_per_n = sol.fit_rms_um_per_n;
+    let undetermined = sol.judge(&mut out);
+    // The combinations of the undetermined joints that are determined: eigenvectors of their
+    // marginal covariance (in scaled coordinates) with a small relative uncertainty.
+    if undetermined.len() >= 2 {
+        out.combinations = sol.combinations(&undetermined);
+    }
+    out
+}
+
+/// The least-squares solution over the joints with a lever (`active`; `norms`: the column
+/// norms of all six) and what the judgement of each joint needs.
+struct Solution {
+    active: Vec<usize>,
+    norms: [f64; 6],
+    /// Compliances and their standard uncertainties (rad/(N·m)), per active joint.
+    x: Vec<f64>,
+    sd: Vec<f64>,
+    /// Covariance in the scaled coordinates xs_k = ||a_k|| x_k.
+    cov: DMatrix<f64>,
+    /// The load dependence (upper minus lower loads' solution, scaled) and the standard
+    /// uncertainty before it was added.
+    level_change: Vec<f64>,
+    before: Vec<f64>,
+    singular_values: Vec<f64>,
+    fit_rms_um_per_n: f64,
+}
+
+/// The fit of [`identify`] on the columns scaled to unit norm; None when the SVD fails.
+fn solve(
+    rows: &[[f64; 6]],
+    c: &[f64],
+    c_err: &[Vec<f64>],
+    levels: Option<(&[f64], &[f64])>,
+    active: Vec<usize>,
+    norms: [f64; 6],
+) -> Option<Solution> {
+    let n = rows.len();
+    let p = active.len();
     let a = DMatrix::from_fn(n, p, |r, k| rows[r][active[k]] / norms[active[k]]);
     let y = DVector::from_column_slice(c);
     let svd = a.clone().svd(true, true);
     let (Some(u), Some(vt)) = (svd.u.as_ref(), svd.v_t.as_ref()) else {
-        return out;
+        return None;
     };
     let s = &svd.singular_values;
-    out.singular_values = s.iter().copied().collect();
+    let singular_values = s.iter().copied().collect();
     let smax = s.iter().cloned().fold(0.0, f64::max);
     // Minimum-norm least squares in the scaled coordinates xs_k = ||a_k|| x_k.
     let mut xs = DVector::zeros(p);
@@ -126,7 +169,7 @@ pub fn identify(
     }
     let resid: Vec<f64> = (0..n).map(|r| y[r] - (a.row(r) * &xs)[0]).collect();
     let rss: f64 = resid.iter().map(|v| v * v).sum();
-    out.fit_rms_um_per_n = (rss / n as f64).sqrt() * 1e6;
+    let fit_rms_um_per_n = (rss / n as f64).sqrt() * 1e6;
     let rms_c = (c.iter().map(|v| v * v).sum::<f64>() / n as f64).sqrt();
     let s2 = rss / (n - p) as f64 * inflation(&resid) + (MODEL_FLOOR * rms_c).powi(2);
     // Model error and floor: s² V S⁻² Vᵀ (infinite along a null direction).
@@ -175,19 +218,57 @@ pub fn identify(
     let sd: Vec<f64> = (0..p)
         .map(|k| cov[(k, k)].max(0.0).sqrt() / norms[active[k]])
         .collect();
-    let mut undetermined = Vec::new();
-    for k in 0..p {
-        let j = active[k];
-        out.estimate_rad_per_nm[j] = Some(x[k]);
-        out.estimate_std_rad_per_nm[j] = Some(sd[k]);
-        let rel = sd[k] / x[k].abs();
-        if x[k] > 0.0 && rel.is_finite() && rel <= REL_LIMIT {
-            let kk = 1.0 / x[k];
-            out.stiffness_nm_per_rad[j] = Some(kk);
-            out.std_nm_per_rad[j] = Some(kk * rel);
-            continue;
+    Some(Solution {
+        active,
+        norms,
+        x,
+        sd,
+        cov,
+        level_change,
+        before,
+        singular_values,
+        fit_rms_um_per_n,
+    })
+}
+
+impl Solution {
+    /// Enters every active joint's estimate in `out`, its stiffness where it is determined and
+    /// why where it is not; returns the undetermined ones (indices into `active`).
+    fn judge(&self, out: &mut Stiffness) -> Vec<usize> {
+        let Solution { active, x, sd, .. } = self;
+        let p = active.len();
+        let mut undetermined = Vec::new();
+        for k in 0..p {
+            let j = active[k];
+            out.estimate_rad_per_nm[j] = Some(x[k]);
+            out.estimate_std_rad_per_nm[j] = Some(sd[k]);
+            let rel = sd[k] / x[k].abs();
+            if x[k] > 0.0 && rel.is_finite() && rel <= REL_LIMIT {
+                let kk = 1.0 / x[k];
+                out.stiffness_nm_per_rad[j] = Some(kk);
+                out.std_nm_per_rad[j] = Some(kk * rel);
+                continue;
+            }
+            undetermined.push(k);
+            out.why[j] = Some(self.why_not(k, rel));
         }
-        undetermined.push(k);
+        undetermined
+    }
+
+    /// Why active joint `k` (relative uncertainty `rel`) is not determined.
+    fn why_not(&self, k: usize, rel: f64) -> String {
+        let Solution {
+            active,
+            norms,
+            x,
+            sd,
+            cov,
+            level_change,
+            before,
+            ..
+        } = self;
+        let p = active.len();
+        let j = active[k];
         // The joints it is confused with: correlation of the estimates above 0.9.
         let partners: Vec<String> = (0..p)
             .filter(|&m| m != k)
@@ -212,7 +293,7 @@ pub fn identify(
                 change * 100.0
             );
         }
-        out.why[j] = Some(if x[k] <= 0.0 {
+        if x[k] <= 0.0 {
             format!(
                 "not determined by this circle: the fit gives a non-positive compliance ({:.3e} ± {:.1e} rad/(N·m)){with}",
                 x[k], sd[k]
@@ -227,11 +308,19 @@ pub fn identify(
             format!(
                 "not determined by this circle: its column lies in the span of the others{with}"
             )
-        });
+        }
     }
-    // The combinations of the undetermined joints that are determined: eigenvectors of their
-    // marginal covariance (in scaled coordinates) with a small relative uncertainty.
-    if undetermined.len() >= 2 {
+
+    /// The determined combinations of the `undetermined` joints (indices into `active`).
+    fn combinations(&self, undetermined: &[usize]) -> Vec<Combination> {
+        let Solution {
+            active,
+            norms,
+            x,
+            cov,
+            ..
+        } = self;
+        let mut combinations = Vec::new();
         let m = undetermined.len();
         let sub = DMatrix::from_fn(m, m, |i, j| cov[(undetermined[i], undetermined[j])]);
         if sub.iter().all(|v| v.is_finite()) {
@@ -258,7 +347,7 @@ pub fn identify(
                 }
                 // Every weight stays: a small weight on a soft joint still counts.
                 let keep: Vec<usize> = (0..m).collect();
-                out.combinations.push(Combination {
+                combinations.push(Combination {
                     joints: keep.iter().map(|&i| active[undetermined[i]] + 1).collect(),
                     weights: keep.iter().map(|&i| w[i]).collect(),
                     compliance_rad_per_nm: value,
@@ -270,8 +359,8 @@ pub fn identify(
                 });
             }
         }
+        combinations
     }
-    out
 }
 
 #[cfg(test)]

@@ -798,82 +798,132 @@ pub fn align(
     }
     // Pass 2: the zero and the scatter of the lengths, the controller's move-time ratio and
     // the scatter of the times between plateaus, from pass 1's matches.
-    let resid: Vec<f64> = first
+    sc.pass2 = Some(sc.pass2_scales(&first));
+    let timeline = fit_timeline(tpl, obs, &first, sections);
+    let post = posterior(&sc);
+    let (matched, confidence) = decide(tpl, obs, &post, &timeline)?;
+    let pairs: Vec<(usize, usize)> = matched
+        .iter()
+        .enumerate()
+        .filter_map(|(k, j)| j.map(|j| (k, j)))
+        .collect();
+    if pairs.len() < 2 {
+        return Err(AlignError::NoMatch(format!(
+            "{} of {} poses matched a plateau",
+            pairs.len(),
+            kn
+        )));
+    }
+    let resid: Vec<f64> = pairs
         .iter()
         .map(|&(k, j)| obs[j].mean - tpl.slots[k].length)
         .collect();
-    let zero = median(&resid).unwrap_or(0.0);
-    // The local zero of every slot: the median of its matched neighbours' (up to three on
-    // either side, in its section, itself left out), else the global one.
-    let mut of_slot: Vec<Option<f64>> = vec![None; kn];
-    for (&(k, _), r) in first.iter().zip(&resid) {
-        of_slot[k] = Some(*r);
+    let n = resid.len() as f64;
+    let zero = resid.iter().sum::<f64>() / n;
+    let zero_spread =
+        (resid.iter().map(|r| (r - zero).powi(2)).sum::<f64>() / (n - 1.0).max(1.0)).sqrt();
+    let timeline = fit_timeline(tpl, obs, &pairs, sections);
+    Ok(Alignment {
+        matched,
+        confidence,
+        zero,
+        zero_spread,
+        zero_std: zero_spread / n.sqrt(),
+        timeline,
+    })
+}
+
+impl Scorer<'_> {
+    /// Pass 2's scales from pass 1's matches `first` (slot, plateau).
+    fn pass2_scales(&self, first: &[(usize, usize)]) -> Pass2 {
+        let (tpl, obs, interval) = (self.tpl, self.obs, self.interval);
+        let kn = tpl.slots.len();
+        let resid: Vec<f64> = first
+            .iter()
+            .map(|&(k, j)| obs[j].mean - tpl.slots[k].length)
+            .collect();
+        let zero = median(&resid).unwrap_or(0.0);
+        // The local zero of every slot: the median of its matched neighbours' (up to three on
+        // either side, in its section, itself left out), else the global one.
+        let mut of_slot: Vec<Option<f64>> = vec![None; kn];
+        for (&(k, _), r) in first.iter().zip(&resid) {
+            of_slot[k] = Some(*r);
+        }
+        let local_zero: Vec<f64> = (0..kn)
+            .map(|k| {
+                let sec = tpl.slots[k].section;
+                let near: Vec<f64> = (k.saturating_sub(LOCAL)..(k + LOCAL + 1).min(kn))
+                    .filter(|&i| i != k && tpl.slots[i].section == sec)
+                    .filter_map(|i| of_slot[i])
+                    .collect();
+                if near.len() >= 2 {
+                    median(&near).unwrap_or(zero)
+                } else {
+                    zero
+                }
+            })
+            .collect();
+        let loo: Vec<f64> = first
+            .iter()
+            .zip(&resid)
+            .map(|(&(k, _), r)| r - local_zero[k])
+            .collect();
+        let length_scale = mad(&loo).max(LENGTH_FLOOR);
+        let steps: Vec<(f64, f64, f64)> = first
+            .windows(2)
+            .filter(|w| tpl.slots[w[0].0].section == tpl.slots[w[1].0].section)
+            .map(|w| self.gap(w[0].0, w[0].1, w[1].0, w[1].1))
+            .collect();
+        let ratios: Vec<f64> = steps
+            .iter()
+            .filter(|s| s.1 > 0.2)
+            .map(|s| (s.0 - s.2) / s.1)
+            .collect();
+        let move_ratio = if ratios.len() >= 3 {
+            median(&ratios).unwrap_or(1.0)
+        } else {
+            1.0
+        };
+        let errs: Vec<f64> = steps.iter().map(|s| s.0 - move_ratio * s.1 - s.2).collect();
+        let time_sigma = mad(&errs).max(TIME_FLOOR + interval);
+        // The gaps beyond 3 sigmas, up to what a ramp can move an edge: plateau edges a smooth
+        // stop moved (beyond that: pass 1's wrong matches, stops); their RMS is the edge scatter,
+        // their share its weight (bounded: a few steps cannot say it is rare, nor make every gap
+        // uncertain).
+        let edge_max = (EDGE_MAX * tpl.dwell).min(EDGE_RAMP);
+        let wide: Vec<f64> = errs
+            .iter()
+            .copied()
+            .filter(|e| e.abs() > 3.0 * time_sigma && e.abs() <= edge_max)
+            .collect();
+        let edge_share = ((wide.len() as f64 + 1.0) / (errs.len() as f64 + 2.0))
+            .clamp(EDGE_SHARE.0, EDGE_SHARE.1);
+        let edge_sigma = (wide.iter().map(|e| e * e).sum::<f64>() / wide.len().max(1) as f64)
+            .sqrt()
+            .clamp(3.0 * time_sigma, edge_max.max(3.0 * time_sigma));
+        if std::env::var_os("EDBB_DEBUG").is_some() {
+            eprintln!("pass1 {:?}\nratio {move_ratio} sigma {time_sigma} edge {edge_share} {edge_sigma} lscale {length_scale} zero {zero} errs {:?}\nsteps {:?}", first, errs, steps);
+        }
+        Pass2 {
+            local_zero,
+            length_scale,
+            move_ratio,
+            time_sigma,
+            edge_share,
+            edge_sigma,
+        }
     }
-    let local_zero: Vec<f64> = (0..kn)
-        .map(|k| {
-            let sec = tpl.slots[k].section;
-            let near: Vec<f64> = (k.saturating_sub(LOCAL)..(k + LOCAL + 1).min(kn))
-                .filter(|&i| i != k && tpl.slots[i].section == sec)
-                .filter_map(|i| of_slot[i])
-                .collect();
-            if near.len() >= 2 {
-                median(&near).unwrap_or(zero)
-            } else {
-                zero
-            }
-        })
-        .collect();
-    let loo: Vec<f64> = first
-        .iter()
-        .zip(&resid)
-        .map(|(&(k, _), r)| r - local_zero[k])
-        .collect();
-    let length_scale = mad(&loo).max(LENGTH_FLOOR);
-    let steps: Vec<(f64, f64, f64)> = first
-        .windows(2)
-        .filter(|w| tpl.slots[w[0].0].section == tpl.slots[w[1].0].section)
-        .map(|w| sc.gap(w[0].0, w[0].1, w[1].0, w[1].1))
-        .collect();
-    let ratios: Vec<f64> = steps
-        .iter()
-        .filter(|s| s.1 > 0.2)
-        .map(|s| (s.0 - s.2) / s.1)
-        .collect();
-    let move_ratio = if ratios.len() >= 3 {
-        median(&ratios).unwrap_or(1.0)
-    } else {
-        1.0
-    };
-    let errs: Vec<f64> = steps.iter().map(|s| s.0 - move_ratio * s.1 - s.2).collect();
-    let time_sigma = mad(&errs).max(TIME_FLOOR + interval);
-    // The gaps beyond 3 sigmas, up to what a ramp can move an edge: plateau edges a smooth
-    // stop moved (beyond that: pass 1's wrong matches, stops); their RMS is the edge scatter,
-    // their share its weight (bounded: a few steps cannot say it is rare, nor make every gap
-    // uncertain).
-    let edge_max = (EDGE_MAX * tpl.dwell).min(EDGE_RAMP);
-    let wide: Vec<f64> = errs
-        .iter()
-        .copied()
-        .filter(|e| e.abs() > 3.0 * time_sigma && e.abs() <= edge_max)
-        .collect();
-    let edge_share =
-        ((wide.len() as f64 + 1.0) / (errs.len() as f64 + 2.0)).clamp(EDGE_SHARE.0, EDGE_SHARE.1);
-    let edge_sigma = (wide.iter().map(|e| e * e).sum::<f64>() / wide.len().max(1) as f64)
-        .sqrt()
-        .clamp(3.0 * time_sigma, edge_max.max(3.0 * time_sigma));
-    if std::env::var_os("EDBB_DEBUG").is_some() {
-        eprintln!("pass1 {:?}\nratio {move_ratio} sigma {time_sigma} edge {edge_share} {edge_sigma} lscale {length_scale} zero {zero} errs {:?}\nsteps {:?}", first, errs, steps);
-    }
-    sc.pass2 = Some(Pass2 {
-        local_zero,
-        length_scale,
-        move_ratio,
-        time_sigma,
-        edge_share,
-        edge_sigma,
-    });
-    let timeline = fit_timeline(tpl, obs, &first, sections);
-    let post = posterior(&sc);
+}
+
+/// Each slot's plateau from the posterior `post` (slot-major, one row of plateaus per slot)
+/// and its probability (of the match, or of no plateau); an error where neither is sure.
+fn decide(
+    tpl: &Template,
+    obs: &[Observed],
+    post: &[f64],
+    timeline: &Timeline,
+) -> Result<(Vec<Option<usize>>, Vec<f64>), AlignError> {
+    let kn = tpl.slots.len();
     let jn = obs.len();
     let mut matched = vec![None; kn];
     let mut confidence = vec![0.0; kn];
@@ -914,7 +964,7 @@ pub fn align(
             if missing >= 0.01 {
                 what.push(format!("no plateau (p {})", fmt_fixed(missing, 2)));
             }
-            let when = due(&timeline, s)
+            let when = due(timeline, s)
                 .map(|t| format!(", due near {} s on the bar clock", fmt_fixed(t, 1)))
                 .unwrap_or_default();
             return Err(AlignError::Ambiguous(format!(
@@ -926,35 +976,7 @@ pub fn align(
             )));
         }
     }
-    let pairs: Vec<(usize, usize)> = matched
-        .iter()
-        .enumerate()
-        .filter_map(|(k, j)| j.map(|j| (k, j)))
-        .collect();
-    if pairs.len() < 2 {
-        return Err(AlignError::NoMatch(format!(
-            "{} of {} poses matched a plateau",
-            pairs.len(),
-            kn
-        )));
-    }
-    let resid: Vec<f64> = pairs
-        .iter()
-        .map(|&(k, j)| obs[j].mean - tpl.slots[k].length)
-        .collect();
-    let n = resid.len() as f64;
-    let zero = resid.iter().sum::<f64>() / n;
-    let zero_spread =
-        (resid.iter().map(|r| (r - zero).powi(2)).sum::<f64>() / (n - 1.0).max(1.0)).sqrt();
-    let timeline = fit_timeline(tpl, obs, &pairs, sections);
-    Ok(Alignment {
-        matched,
-        confidence,
-        zero,
-        zero_spread,
-        zero_std: zero_spread / n.sqrt(),
-        timeline,
-    })
+    Ok((matched, confidence))
 }
 
 #[cfg(test)]

@@ -300,155 +300,22 @@ pub fn sync(
     let stride = u.len().div_ceil(SEARCH_SAMPLES).max(1);
     let idx: Vec<usize> = (0..u.len()).step_by(stride).collect();
     // 1. Coarse: t_joint = u − offset over every overlapping offset.
-    let (lo, hi) = (u0 - t1, u1 - t0);
-    let steps = ((hi - lo) / COARSE_STEP).ceil() as usize + 1;
-    let coarse: Vec<(usize, f64)> = (0..steps)
-        .into_par_iter()
-        .map_init(Vec::new, |buf, s| {
-            let o = lo + s as f64 * COARSE_STEP;
-            (pb.score(&idx, &|x| x - o, COARSE_TOL, buf), o)
-        })
-        .collect();
-    // Highest count, the earliest offset on a tie (deterministic).
-    let (best_n, best_o) = coarse
-        .iter()
-        .fold((0usize, lo), |b, &(n, o)| if n > b.0 { (n, o) } else { b });
-    if best_n < 20 {
-        return Err(LogsError::Bad(
-            "the bar's readings agree with the lengths the joint log predicts at no clock offset: is this the bar log of the run the joint log recorded?".into(),
-        ));
-    }
+    let best_o = pb.coarse_offset(&idx, (u0 - t1, u1 - t0))?;
     // 2. Finer, with drift, about the middle of the bar log.
     let u_mid = 0.5 * (u0 + u1);
     let t_mid = u_mid - best_o;
-    let shifts = (2.0 * FINE_SPAN / FINE_STEP).round() as usize + 1;
-    let drifts = (2.0 * DRIFT_MAX / DRIFT_STEP).round() as usize + 1;
-    let fine: Vec<(usize, f64, f64)> = (0..shifts * drifts)
-        .into_par_iter()
-        .map_init(Vec::new, |buf, x| {
-            let shift = -FINE_SPAN + (x / drifts) as f64 * FINE_STEP;
-            let drift = -DRIFT_MAX + (x % drifts) as f64 * DRIFT_STEP;
-            let map = |v: f64| t_mid + (v - u_mid - shift) / (1.0 + drift);
-            (pb.score(&idx, &map, FINE_TOL, buf), shift, drift)
-        })
-        .collect();
-    // Most agreeing samples; ties to the smallest |drift|, then the smallest |shift|.
-    let (_, mut shift, mut drift) = fine.iter().fold((0usize, 0.0f64, 0.0f64), |b, &(n, s, d)| {
-        let better = n > b.0 || (n == b.0 && (d.abs(), s.abs()) < (b.2.abs(), b.1.abs()));
-        if better {
-            (n, s, d)
-        } else {
-            b
-        }
-    });
+    let start = pb.fine_search(&idx, u_mid, t_mid);
     // 3. Gauss–Newton on (shift, drift, zero, smoothing) over the mounted samples; again
     //    with the smoothing held at 0 where it does not matter (see SMOOTHING_MATTERS).
-    let start = (shift, drift);
-    let mut zero = 0.0;
-    let mut smooth = 0.0;
-    let mut used: Vec<usize> = Vec::new();
-    let mut cov = nalgebra::Matrix4::<f64>::zeros();
-    let mut rms = 0.0;
-    for free in [true, false] {
-        (shift, drift) = start;
-        zero = 0.0;
-        smooth = 0.0;
-        let mut tol = FINE_TOL;
-        let mut sigma2 = FINE_TOL * FINE_TOL;
-        let mut curvature_ms = 0.0;
-        for round in 0..12 {
-            let map = |v: f64| t_mid + (v - u_mid - shift) / (1.0 + drift);
-            // Residuals, slopes and curvatures of every sample the joint log covers.
-            let res: Vec<Option<Local>> = (0..u.len())
-                .into_par_iter()
-                .map(|k| {
-                    let x = pb.local(map(u[k]))?;
-                    Some(Local {
-                        r: l[k] - x.r - smooth * x.curvature,
-                        ..x
-                    })
-                })
-                .collect();
-            if round == 0 {
-                let mut r: Vec<f64> = res.iter().flatten().map(|x| x.r).collect();
-                zero = mode(&mut r, FINE_TOL);
-            }
-            // Agreeing samples, in runs of at least MIN_RUN seconds.
-            let agree: Vec<bool> = res
-                .iter()
-                .map(|x| x.as_ref().is_some_and(|x| (x.r - zero).abs() <= tol))
-                .collect();
-            used = runs(u, &agree, MIN_RUN);
-            if used.len() < 20 {
-                return Err(LogsError::Bad(
-                "the bar's readings agree with the joint log's lengths for less than a second at the best clock offset: no synchronisation".into(),
-            ));
-            }
-            let mut jtj = nalgebra::Matrix4::<f64>::zeros();
-            let mut jtr = nalgebra::Vector4::<f64>::zeros();
-            let mut resid = Vec::with_capacity(used.len());
-            for &k in &used {
-                let Some(x) = &res[k] else { continue };
-                let r = x.r - zero;
-                // d(prediction)/d(shift) = −slope/(1+d); d/d(drift) = −slope·(u−u_mid−shift)/(1+d)².
-                let a = 1.0 + drift;
-                let j = nalgebra::Vector4::new(
-                    -x.slope / a,
-                    -x.slope * (u[k] - u_mid - shift) / (a * a),
-                    1.0,
-                    x.curvature,
-                );
-                jtj += j * j.transpose();
-                jtr += j * r;
-                resid.push(r);
-            }
-            // The smoothing's prior: 0 ± SMOOTHING_PRIOR (a motion that hardly accelerates does
-            // not determine it; then it stays near 0).
-            let ridge = if free {
-                sigma2 / (SMOOTHING_PRIOR * SMOOTHING_PRIOR)
-            } else {
-                jtj[(3, 3)].max(1.0) * 1e12
-            };
-            curvature_ms = jtj[(3, 3)] / resid.len().max(1) as f64;
-            jtj[(3, 3)] += ridge;
-            jtr[3] -= ridge * smooth;
-            let n = resid.len() as f64;
-            let rss: f64 = resid.iter().map(|r| r * r).sum();
-            sigma2 = rss / (n - 4.0).max(1.0);
-            let rho = lag1(&resid).clamp(0.0, 0.99);
-            let inv = jtj.try_inverse().ok_or_else(|| {
-            LogsError::Bad("the readings do not determine the clock: the robot hardly moved while the bar was mounted".into())
-        })?;
-            cov = inv * sigma2 * (1.0 + rho) / (1.0 - rho);
-            rms = (rss / n).sqrt();
-            let step = inv * jtr;
-            shift += step[0];
-            drift += step[1];
-            zero += step[2];
-            if free {
-                smooth += step[3];
-            }
-            let robust = 1.4826 * {
-                let mut a: Vec<f64> = resid.iter().map(|r| r.abs()).collect();
-                let k = a.len() / 2;
-                a.select_nth_unstable_by(k, f64::total_cmp);
-                a[k]
-            };
-            tol = (5.0 * robust).clamp(20e-6, FINE_TOL);
-            if step[0].abs() < 1e-9 && step[1].abs() < 1e-12 && round >= 3 {
-                break;
-            }
-        }
-        // The smoothing kept: significant, and changing the readings by more than a share of
-        // their residual.
-        let effect = smooth.abs() * curvature_ms.sqrt();
-        if !free
-            || (smooth.abs() > 3.0 * cov[(3, 3)].max(0.0).sqrt()
-                && effect > SMOOTHING_MATTERS * rms)
-        {
-            break;
-        }
-    }
+    let Fit {
+        shift,
+        drift,
+        zero,
+        smooth,
+        used,
+        cov,
+        rms,
+    } = pb.gauss_newton(u_mid, t_mid, start)?;
     let a = 1.0 + drift;
     let map = |v: f64| t_mid + (v - u_mid - shift) / a;
     // offset = t_bar at t_joint = 0: u_mid + shift − (1 + drift)·t_mid.
@@ -488,6 +355,213 @@ pub fn sync(
         q,
         length,
     })
+}
+
+/// What the Gauss–Newton refinement (step 3) ends with: the clock (shift, drift about the
+/// middle of the bar log), the bar's zero and smoothing, the samples used, the covariance and
+/// the RMS of the last round.
+struct Fit {
+    shift: f64,
+    drift: f64,
+    zero: f64,
+    smooth: f64,
+    used: Vec<usize>,
+    cov: nalgebra::Matrix4<f64>,
+    rms: f64,
+}
+
+impl Problem<'_> {
+    /// Step 1: the offset (t_joint = u − offset) in `lo..hi` at which the most samples agree.
+    fn coarse_offset(&self, idx: &[usize], (lo, hi): (f64, f64)) -> Result<f64, LogsError> {
+        use rayon::prelude::*;
+        let steps = ((hi - lo) / COARSE_STEP).ceil() as usize + 1;
+        let coarse: Vec<(usize, f64)> = (0..steps)
+            .into_par_iter()
+            .map_init(Vec::new, |buf, s| {
+                let o = lo + s as f64 * COARSE_STEP;
+                (self.score(idx, &|x| x - o, COARSE_TOL, buf), o)
+            })
+            .collect();
+        // Highest count, the earliest offset on a tie (deterministic).
+        let (best_n, best_o) = coarse
+            .iter()
+            .fold((0usize, lo), |b, &(n, o)| if n > b.0 { (n, o) } else { b });
+        if best_n < 20 {
+            return Err(LogsError::Bad(
+                "the bar's readings agree with the lengths the joint log predicts at no clock offset: is this the bar log of the run the joint log recorded?".into(),
+            ));
+        }
+        Ok(best_o)
+    }
+
+    /// Step 2: the (shift, drift) about the middle of the bar log at which the most samples
+    /// agree.
+    fn fine_search(&self, idx: &[usize], u_mid: f64, t_mid: f64) -> (f64, f64) {
+        use rayon::prelude::*;
+        let shifts = (2.0 * FINE_SPAN / FINE_STEP).round() as usize + 1;
+        let drifts = (2.0 * DRIFT_MAX / DRIFT_STEP).round() as usize + 1;
+        let fine: Vec<(usize, f64, f64)> = (0..shifts * drifts)
+            .into_par_iter()
+            .map_init(Vec::new, |buf, x| {
+                let shift = -FINE_SPAN + (x / drifts) as f64 * FINE_STEP;
+                let drift = -DRIFT_MAX + (x % drifts) as f64 * DRIFT_STEP;
+                let map = |v: f64| t_mid + (v - u_mid - shift) / (1.0 + drift);
+                (self.score(idx, &map, FINE_TOL, buf), shift, drift)
+            })
+            .collect();
+        // Most agreeing samples; ties to the smallest |drift|, then the smallest |shift|.
+        let (_, shift, drift) = fine.iter().fold((0usize, 0.0f64, 0.0f64), |b, &(n, s, d)| {
+            let better = n > b.0 || (n == b.0 && (d.abs(), s.abs()) < (b.2.abs(), b.1.abs()));
+            if better {
+                (n, s, d)
+            } else {
+                b
+            }
+        });
+        (shift, drift)
+    }
+
+    /// Step 3: Gauss–Newton from `start` = (shift, drift).
+    fn gauss_newton(&self, u_mid: f64, t_mid: f64, start: (f64, f64)) -> Result<Fit, LogsError> {
+        let u = self.u;
+        let (mut shift, mut drift) = start;
+        let mut zero = 0.0;
+        let mut smooth = 0.0;
+        let mut used: Vec<usize> = Vec::new();
+        let mut cov = nalgebra::Matrix4::<f64>::zeros();
+        let mut rms = 0.0;
+        for free in [true, false] {
+            (shift, drift) = start;
+            zero = 0.0;
+            smooth = 0.0;
+            let mut tol = FINE_TOL;
+            let mut sigma2 = FINE_TOL * FINE_TOL;
+            let mut curvature_ms = 0.0;
+            for round in 0..12 {
+                let map = |v: f64| t_mid + (v - u_mid - shift) / (1.0 + drift);
+                let res = self.residuals(map, smooth);
+                if round == 0 {
+                    let mut r: Vec<f64> = res.iter().flatten().map(|x| x.r).collect();
+                    zero = mode(&mut r, FINE_TOL);
+                }
+                // Agreeing samples, in runs of at least MIN_RUN seconds.
+                let agree: Vec<bool> = res
+                    .iter()
+                    .map(|x| x.as_ref().is_some_and(|x| (x.r - zero).abs() <= tol))
+                    .collect();
+                used = runs(u, &agree, MIN_RUN);
+                if used.len() < 20 {
+                    return Err(LogsError::Bad(
+                    "the bar's readings agree with the joint log's lengths for less than a second at the best clock offset: no synchronisation".into(),
+                ));
+                }
+                let (mut jtj, mut jtr, resid) =
+                    self.normal_equations(&res, &used, zero, (shift, drift), u_mid);
+                // The smoothing's prior: 0 ± SMOOTHING_PRIOR (a motion that hardly accelerates does
+                // not determine it; then it stays near 0).
+                let ridge = if free {
+                    sigma2 / (SMOOTHING_PRIOR * SMOOTHING_PRIOR)
+                } else {
+                    jtj[(3, 3)].max(1.0) * 1e12
+                };
+                curvature_ms = jtj[(3, 3)] / resid.len().max(1) as f64;
+                jtj[(3, 3)] += ridge;
+                jtr[3] -= ridge * smooth;
+                let n = resid.len() as f64;
+                let rss: f64 = resid.iter().map(|r| r * r).sum();
+                sigma2 = rss / (n - 4.0).max(1.0);
+                let rho = lag1(&resid).clamp(0.0, 0.99);
+                let inv = jtj.try_inverse().ok_or_else(|| {
+                LogsError::Bad("the readings do not determine the clock: the robot hardly moved while the bar was mounted".into())
+            })?;
+                cov = inv * sigma2 * (1.0 + rho) / (1.0 - rho);
+                rms = (rss / n).sqrt();
+                let step = inv * jtr;
+                shift += step[0];
+                drift += step[1];
+                zero += step[2];
+                if free {
+                    smooth += step[3];
+                }
+                let robust = 1.4826 * {
+                    let mut a: Vec<f64> = resid.iter().map(|r| r.abs()).collect();
+                    let k = a.len() / 2;
+                    a.select_nth_unstable_by(k, f64::total_cmp);
+                    a[k]
+                };
+                tol = (5.0 * robust).clamp(20e-6, FINE_TOL);
+                if step[0].abs() < 1e-9 && step[1].abs() < 1e-12 && round >= 3 {
+                    break;
+                }
+            }
+            // The smoothing kept: significant, and changing the readings by more than a share of
+            // their residual.
+            let effect = smooth.abs() * curvature_ms.sqrt();
+            if !free
+                || (smooth.abs() > 3.0 * cov[(3, 3)].max(0.0).sqrt()
+                    && effect > SMOOTHING_MATTERS * rms)
+            {
+                break;
+            }
+        }
+        Ok(Fit {
+            shift,
+            drift,
+            zero,
+            smooth,
+            used,
+            cov,
+            rms,
+        })
+    }
+
+    /// Residual, slope and curvature of every sample the joint log covers, at the clock `map`
+    /// and the smoothing `smooth`.
+    fn residuals(&self, map: impl Fn(f64) -> f64 + Sync, smooth: f64) -> Vec<Option<Local>> {
+        use rayon::prelude::*;
+        let (u, l) = (self.u, self.l);
+        (0..u.len())
+            .into_par_iter()
+            .map(|k| {
+                let x = self.local(map(u[k]))?;
+                Some(Local {
+                    r: l[k] - x.r - smooth * x.curvature,
+                    ..x
+                })
+            })
+            .collect()
+    }
+
+    /// The normal equations over the samples used (JᵀJ, Jᵀr) and their residuals (m).
+    fn normal_equations(
+        &self,
+        res: &[Option<Local>],
+        used: &[usize],
+        zero: f64,
+        (shift, drift): (f64, f64),
+        u_mid: f64,
+    ) -> (nalgebra::Matrix4<f64>, nalgebra::Vector4<f64>, Vec<f64>) {
+        let u = self.u;
+        let mut jtj = nalgebra::Matrix4::<f64>::zeros();
+        let mut jtr = nalgebra::Vector4::<f64>::zeros();
+        let mut resid = Vec::with_capacity(used.len());
+        for &k in used {
+            let Some(x) = &res[k] else { continue };
+            let r = x.r - zero;
+            // d(prediction)/d(shift) = −slope/(1+d); d/d(drift) = −slope·(u−u_mid−shift)/(1+d)².
+            let a = 1.0 + drift;
+            let j = nalgebra::Vector4::new(
+                -x.slope / a,
+                -x.slope * (u[k] - u_mid - shift) / (a * a),
+                1.0,
+                x.curvature,
+            );
+            jtj += j * j.transpose();
+            jtr += j * r;
+            resid.push(r);
+        }
+        (jtj, jtr, resid)
+    }
 }
 
 /// The most rows per second a continuous run keeps after synchronisation: consecutive bar

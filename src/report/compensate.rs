@@ -6,6 +6,7 @@
 
 use super::{Block, Page, ReportError, Section};
 use crate::compensate::drift::Drift;
+use crate::compensate::offsets::Mastering;
 use crate::compensate::Report;
 use crate::plot::{Figure, Panel, Series};
 use crate::units::fmt_fixed;
@@ -84,6 +85,62 @@ fn um(v: f64, d: usize) -> String {
 
 pub fn page(r: &Report, robot: &str) -> Result<Page, ReportError> {
     let a = &r.accuracy;
+    let facts = facts(r, robot);
+    let mut sections = vec![Section {
+        heading: "Accuracy over the joint space".into(),
+        blocks: vec![
+            Block::figure(
+                "fig-accuracy",
+                "The TCP of the calibrated robot against the nominal robot's at random joint poses within the limits, after a best rigid registration: commanded with the nominal joints (nothing applied) and with the mastering offsets applied; full compensation leaves the calibration's own predicted uncertainty.",
+                &accuracy_figure(r),
+            )?,
+            Block::text(a.how.clone()),
+        ],
+    }];
+    if let Some(t) = &r.targets {
+        let mut blocks = vec![Block::figure(
+            "fig-targets",
+            "Per compensated target: how far the calibrated robot's TCP is from the target at the nominal joints (what a controller with the nominal model does) and at the compensated joints as written.",
+            &targets_figure(t),
+        )?];
+        if !t.not_compensated.is_empty() {
+            blocks.push(Block::table(
+                &["line", "name", "why not compensated"],
+                t.not_compensated
+                    .iter()
+                    .map(|n| {
+                        vec![
+                            n.line.to_string(),
+                            n.name.clone().unwrap_or_default(),
+                            n.status.clone(),
+                        ]
+                    })
+                    .collect(),
+            ));
+        }
+        sections.push(Section {
+            heading: "Targets".into(),
+            blocks,
+        });
+    }
+    if let Some(m) = &r.mastering {
+        sections.push(mastering_section(m));
+    }
+    Ok(Page {
+        title: format!("edbbgen — compensation for {robot}"),
+        kind: "compensate".into(),
+        tool_version: env!("CARGO_PKG_VERSION").to_string(),
+        inputs_sha256: String::new(),
+        facts,
+        warnings: r.notes.clone(),
+        sections,
+    })
+}
+
+/// The page's facts: the robots, the tool point, the accuracy each way, the targets and the
+/// program.
+fn facts(r: &Report, robot: &str) -> Vec<(String, String)> {
+    let a = &r.accuracy;
     let mut facts = vec![
         ("calibrated robot".to_string(), robot.to_string()),
         ("nominal robot".to_string(), r.nominal.clone()),
@@ -157,84 +214,41 @@ pub fn page(r: &Report, robot: &str) -> Result<Page, ReportError> {
             ),
         ));
     }
-    let mut sections = vec![Section {
-        heading: "Accuracy over the joint space".into(),
+    facts
+}
+
+/// The mastering offsets per axis and where the controller keeps them.
+fn mastering_section(m: &Mastering) -> Section {
+    let rows = m
+        .axes
+        .iter()
+        .zip(&m.instructions)
+        .map(|(x, i)| {
+            vec![
+                x.axis.clone(),
+                fmt_fixed(x.joint_delta_deg, 6),
+                x.joint_std_deg.map(|v| fmt_fixed(v, 6)).unwrap_or_default(),
+                format!("{} {}", fmt_fixed(x.delta, 6), x.units),
+                i.clone(),
+            ]
+        })
+        .collect();
+    Section {
+        heading: "Mastering offsets".into(),
         blocks: vec![
-            Block::figure(
-                "fig-accuracy",
-                "The TCP of the calibrated robot against the nominal robot's at random joint poses within the limits, after a best rigid registration: commanded with the nominal joints (nothing applied) and with the mastering offsets applied; full compensation leaves the calibration's own predicted uncertainty.",
-                &accuracy_figure(r),
-            )?,
-            Block::text(a.how.clone()),
+            Block::text(m.convention.clone()),
+            Block::table(
+                &[
+                    "axis",
+                    "joint zero Δθ [deg]",
+                    "std [deg]",
+                    "axis reading change",
+                    "where the controller keeps it",
+                ],
+                rows,
+            ),
         ],
-    }];
-    if let Some(t) = &r.targets {
-        let mut blocks = vec![Block::figure(
-            "fig-targets",
-            "Per compensated target: how far the calibrated robot's TCP is from the target at the nominal joints (what a controller with the nominal model does) and at the compensated joints as written.",
-            &targets_figure(t),
-        )?];
-        if !t.not_compensated.is_empty() {
-            blocks.push(Block::table(
-                &["line", "name", "why not compensated"],
-                t.not_compensated
-                    .iter()
-                    .map(|n| {
-                        vec![
-                            n.line.to_string(),
-                            n.name.clone().unwrap_or_default(),
-                            n.status.clone(),
-                        ]
-                    })
-                    .collect(),
-            ));
-        }
-        sections.push(Section {
-            heading: "Targets".into(),
-            blocks,
-        });
     }
-    if let Some(m) = &r.mastering {
-        let rows = m
-            .axes
-            .iter()
-            .zip(&m.instructions)
-            .map(|(x, i)| {
-                vec![
-                    x.axis.clone(),
-                    fmt_fixed(x.joint_delta_deg, 6),
-                    x.joint_std_deg.map(|v| fmt_fixed(v, 6)).unwrap_or_default(),
-                    format!("{} {}", fmt_fixed(x.delta, 6), x.units),
-                    i.clone(),
-                ]
-            })
-            .collect();
-        sections.push(Section {
-            heading: "Mastering offsets".into(),
-            blocks: vec![
-                Block::text(m.convention.clone()),
-                Block::table(
-                    &[
-                        "axis",
-                        "joint zero Δθ [deg]",
-                        "std [deg]",
-                        "axis reading change",
-                        "where the controller keeps it",
-                    ],
-                    rows,
-                ),
-            ],
-        });
-    }
-    Ok(Page {
-        title: format!("edbbgen — compensation for {robot}"),
-        kind: "compensate".into(),
-        tool_version: env!("CARGO_PKG_VERSION").to_string(),
-        inputs_sha256: String::new(),
-        facts,
-        warnings: r.notes.clone(),
-        sections,
-    })
 }
 
 /// The drift section of a calibration page.

@@ -4,7 +4,7 @@
 //! of the `edbbgen.diagnose/1` report.
 
 use super::{Block, Page, ReportError, Section};
-use crate::diagnose::{Diagnosis, Where};
+use crate::diagnose::{Diagnosis, Report, Where};
 use crate::plot::{break_gaps, Figure, Legend, Panel, Series};
 use crate::twin::Measured;
 use crate::units::{fmt_fixed, to_mm};
@@ -59,81 +59,11 @@ pub fn page(
     inputs_sha256: &str,
 ) -> Result<Page, ReportError> {
     let r = &d.report;
-    let t = &d.t;
-
-    // ---- Fig. 11: measured and modelled bar length --------------------------------------------
-    let measured_pts: Vec<(f64, f64)> = t
-        .iter()
-        .zip(&measured.length)
-        .map(|(t, l)| (*t, to_mm(*l)))
-        .collect();
-    let model_pts = |res: &[f64]| -> Vec<(f64, f64)> {
-        t.iter()
-            .zip(measured.length.iter().zip(res))
-            .map(|(t, (l, e))| (*t, to_mm(l - e)))
-            .collect()
-    };
-    let mut len_series = vec![Series::line(
-        "measured",
-        BLUE,
-        break_gaps(&measured_pts, 20.0),
-    )];
-    if let Some((_, nominal)) = d.stages.first() {
-        len_series.push(Series::line(
-            "nominal model",
-            RED,
-            break_gaps(&model_pts(nominal), 20.0),
-        ));
-    }
-    if d.stages.len() > 1 {
-        if let Some((label, last)) = d.stages.last() {
-            len_series.push(Series::line(
-                format!("final model ({label})"),
-                GREEN,
-                break_gaps(&model_pts(last), 20.0),
-            ));
-        }
-    }
-    let fig11 = Figure {
-        title: String::new(),
-        panels: vec![Panel {
-            title: "bar length over time".into(),
-            x_label: "t [s]".into(),
-            y_label: "L [mm]".into(),
-            series: len_series,
-            legend: Legend::Outside,
-            ..Panel::default()
-        }],
-        columns: 1,
-        panel_px: (960, 300),
-    };
-
-    // ---- Fig. 12: the residual after each step --------------------------------------------------
-    let fig12 = Figure {
-        title: String::new(),
-        panels: d
-            .stages
-            .iter()
-            .enumerate()
-            .map(|(k, (label, res))| {
-                let pts: Vec<(f64, f64)> = t.iter().zip(res).map(|(t, e)| (*t, e * 1e6)).collect();
-                let rms =
-                    (res.iter().map(|e| e * e).sum::<f64>() / res.len().max(1) as f64).sqrt() * 1e6;
-                Panel {
-                    title: format!("{label}: RMS {} µm", fmt_fixed(rms, 3)),
-                    x_label: "t [s]".into(),
-                    y_label: "measured − model [µm]".into(),
-                    // One colour per step, so every step counts as a series of its own.
-                    series: vec![Series::line("", k, break_gaps(&pts, 20.0))],
-                    ..Panel::default()
-                }
-            })
-            .collect(),
-        columns: 1,
-        panel_px: (960, 200),
-    };
-
-    // ---- tables -------------------------------------------------------------------------------
+    let fig11 = length_figure(measured, d);
+    let fig12 = residual_figure(d);
+    let params = param_rows(r);
+    let final_model = final_model_rows(r);
+    let facts = facts(r, robot);
     let steps: Vec<Vec<String>> = r
         .steps
         .iter()
@@ -147,93 +77,6 @@ pub fn page(
             ]
         })
         .collect();
-    let mut params: Vec<Vec<String>> = Vec::new();
-    for s in &r.steps {
-        for (k, v) in &s.params {
-            let std = s.std.get(k).map(value_text).unwrap_or_default();
-            params.push(vec![
-                match s.joint {
-                    Some(j) => format!("{} (joint {j})", s.effect),
-                    None => s.effect.to_string(),
-                },
-                k.clone(),
-                value_text(v),
-                std,
-            ]);
-        }
-    }
-    let mut final_model: Vec<Vec<String>> = r
-        .model
-        .params
-        .iter()
-        .map(|(k, v)| {
-            vec![
-                "geometric".to_string(),
-                k.clone(),
-                value_text(v),
-                r.model.std.get(k).map(value_text).unwrap_or_default(),
-            ]
-        })
-        .collect();
-    for e in &r.model.effects {
-        for (k, v) in &e.params {
-            final_model.push(vec![
-                match e.joint {
-                    Some(j) => format!("{} (joint {j})", e.effect),
-                    None => e.effect.to_string(),
-                },
-                k.clone(),
-                value_text(v),
-                e.std.get(k).map(value_text).unwrap_or_default(),
-            ]);
-        }
-    }
-    let named: Vec<String> = r
-        .named_effects
-        .iter()
-        .map(|e| match e.joint {
-            Some(j) => format!("{} (joint {j})", e.effect),
-            None => e.effect.to_string(),
-        })
-        .collect();
-    let mut facts = vec![
-        ("robot".to_string(), robot.to_string()),
-        (
-            "data".into(),
-            format!("{} rows over {} s", r.rows, fmt_fixed(r.duration_s, 1)),
-        ),
-        (
-            "bar noise (estimated)".into(),
-            format!("{} µm", fmt_fixed(r.noise_um, 2)),
-        ),
-        (
-            "RMS, nominal model".into(),
-            format!("{} µm", fmt_fixed(r.rms_nominal_um, 2)),
-        ),
-        ("named effects".into(), named.join(", ")),
-        (
-            "RMS, final model".into(),
-            format!("{} µm", fmt_fixed(r.rms_final_um, 3)),
-        ),
-        (
-            "lag-1 autocorrelation of the final residual".into(),
-            fmt_fixed(r.lag1_final, 3),
-        ),
-        (
-            "verdict".into(),
-            if r.unexplained {
-                "structure above the noise remains that no known effect explains".into()
-            } else {
-                "residual at the noise level".into()
-            },
-        ),
-    ];
-    if let Some(w) = &r.nominal_where {
-        facts.push(("nominal model: largest disagreement".into(), where_text(w)));
-    }
-    if let Some(w) = &r.where_ {
-        facts.push(("unexplained: where".into(), where_text(w)));
-    }
     let warnings = if r.unexplained {
         vec!["unexplained structure remains above the instrument noise (see 'where')".to_string()]
     } else {
@@ -287,4 +130,183 @@ pub fn page(
             },
         ],
     })
+}
+
+/// Fig. 11: the measured bar length over time and the nominal and final models' lengths.
+fn length_figure(measured: &Measured, d: &Diagnosis) -> Figure {
+    let (t, x_label) = crate::plot::run_axis(&d.t, d.timed);
+    let measured_pts: Vec<(f64, f64)> = t
+        .iter()
+        .zip(&measured.length)
+        .map(|(t, l)| (*t, to_mm(*l)))
+        .collect();
+    let model_pts = |res: &[f64]| -> Vec<(f64, f64)> {
+        t.iter()
+            .zip(measured.length.iter().zip(res))
+            .map(|(t, (l, e))| (*t, to_mm(l - e)))
+            .collect()
+    };
+    let mut len_series = vec![Series::line(
+        "measured",
+        BLUE,
+        break_gaps(&measured_pts, 20.0),
+    )];
+    if let Some((_, nominal)) = d.stages.first() {
+        len_series.push(Series::line(
+            "nominal model",
+            RED,
+            break_gaps(&model_pts(nominal), 20.0),
+        ));
+    }
+    if d.stages.len() > 1 {
+        if let Some((label, last)) = d.stages.last() {
+            len_series.push(Series::line(
+                format!("final model ({label})"),
+                GREEN,
+                break_gaps(&model_pts(last), 20.0),
+            ));
+        }
+    }
+    Figure {
+        title: String::new(),
+        panels: vec![Panel {
+            title: "bar length over time".into(),
+            x_label: x_label.into(),
+            y_label: "L [mm]".into(),
+            series: len_series,
+            legend: Legend::Outside,
+            ..Panel::default()
+        }],
+        columns: 1,
+        panel_px: (960, 300),
+    }
+}
+
+/// Fig. 12: the residual after each step, one panel each.
+fn residual_figure(d: &Diagnosis) -> Figure {
+    let (t, x_label) = crate::plot::run_axis(&d.t, d.timed);
+    Figure {
+        title: String::new(),
+        panels: d
+            .stages
+            .iter()
+            .enumerate()
+            .map(|(k, (label, res))| {
+                let pts: Vec<(f64, f64)> = t.iter().zip(res).map(|(t, e)| (*t, e * 1e6)).collect();
+                let rms =
+                    (res.iter().map(|e| e * e).sum::<f64>() / res.len().max(1) as f64).sqrt() * 1e6;
+                Panel {
+                    title: format!("{label}: RMS {} µm", fmt_fixed(rms, 3)),
+                    x_label: x_label.into(),
+                    y_label: "measured − model [µm]".into(),
+                    // One colour per step, so every step counts as a series of its own.
+                    series: vec![Series::line("", k, break_gaps(&pts, 20.0))],
+                    ..Panel::default()
+                }
+            })
+            .collect(),
+        columns: 1,
+        panel_px: (960, 200),
+    }
+}
+
+/// Each step's parameters with their standard uncertainties.
+fn param_rows(r: &Report) -> Vec<Vec<String>> {
+    let mut params: Vec<Vec<String>> = Vec::new();
+    for s in &r.steps {
+        for (k, v) in &s.params {
+            let std = s.std.get(k).map(value_text).unwrap_or_default();
+            params.push(vec![
+                match s.joint {
+                    Some(j) => format!("{} (joint {j})", s.effect),
+                    None => s.effect.to_string(),
+                },
+                k.clone(),
+                value_text(v),
+                std,
+            ]);
+        }
+    }
+    params
+}
+
+/// The geometry and every named effect fitted together.
+fn final_model_rows(r: &Report) -> Vec<Vec<String>> {
+    let mut final_model: Vec<Vec<String>> = r
+        .model
+        .params
+        .iter()
+        .map(|(k, v)| {
+            vec![
+                "geometric".to_string(),
+                k.clone(),
+                value_text(v),
+                r.model.std.get(k).map(value_text).unwrap_or_default(),
+            ]
+        })
+        .collect();
+    for e in &r.model.effects {
+        for (k, v) in &e.params {
+            final_model.push(vec![
+                match e.joint {
+                    Some(j) => format!("{} (joint {j})", e.effect),
+                    None => e.effect.to_string(),
+                },
+                k.clone(),
+                value_text(v),
+                e.std.get(k).map(value_text).unwrap_or_default(),
+            ]);
+        }
+    }
+    final_model
+}
+
+fn facts(r: &Report, robot: &str) -> Vec<(String, String)> {
+    let named: Vec<String> = r
+        .named_effects
+        .iter()
+        .map(|e| match e.joint {
+            Some(j) => format!("{} (joint {j})", e.effect),
+            None => e.effect.to_string(),
+        })
+        .collect();
+    let mut facts = vec![
+        ("robot".to_string(), robot.to_string()),
+        (
+            "data".into(),
+            format!("{} rows over {} s", r.rows, fmt_fixed(r.duration_s, 1)),
+        ),
+        (
+            "bar noise (estimated)".into(),
+            format!("{} µm", fmt_fixed(r.noise_um, 2)),
+        ),
+        (
+            "RMS, nominal model".into(),
+            format!("{} µm", fmt_fixed(r.rms_nominal_um, 2)),
+        ),
+        ("named effects".into(), named.join(", ")),
+        (
+            "RMS, final model".into(),
+            format!("{} µm", fmt_fixed(r.rms_final_um, 3)),
+        ),
+        (
+            "lag-1 autocorrelation of the final residual".into(),
+            fmt_fixed(r.lag1_final, 3),
+        ),
+        (
+            "verdict".into(),
+            if r.unexplained {
+                "structure above the noise remains that no known effect explains".into()
+            } else {
+                "residual at the noise level".into()
+            },
+        ),
+    ];
+    if let Some(w) = &r.nominal_where {
+        facts.push(("nominal model: largest disagreement".into(), where_text(w)));
+    }
+    if let Some(w) = &r.where_ {
+        facts.push(("unexplained: where".into(), where_text(w)));
+    }
+    facts
 }

@@ -52,6 +52,87 @@ fn ring(c: &[f64; 3], r: f64, v: (usize, usize)) -> Vec<(f64, f64)> {
 }
 
 pub fn page(robot: &Robot, rep: &Report, show: usize) -> Result<Page, ReportError> {
+    let fig = candidates_figure(robot, rep);
+    let rows: Vec<Vec<String>> = shown(rep, show)
+        .into_iter()
+        .map(|i| row(&rep.candidates[i]))
+        .collect();
+    let s = &rep.settings;
+    let facts = facts(rep);
+    let mut sections = vec![Section {
+        heading: "Candidate positions".into(),
+        blocks: vec![
+            Block::figure(
+                "fig-candidates",
+                "Candidate fixture positions around the robot (at q = 0), coloured by their score relative to the best; grey: not usable (no room, out of reach, no valid pose). Rings: the winner(s); black: the cell's fixture.",
+                &fig,
+            )?,
+            Block::text(format!(
+                "Scores \"by compile\" come from a compile at the position (step {}°, at most {} candidates) and the prediction from its recording; \"by proxy\" from the proxy (step {}°, {} poses, one reading per selected pose) times {}, the median compile/proxy ratio. \"admitted\" is the number of poses the bar admits there at the proxy grid.",
+                fmt_fixed(s.full.step_deg[0], 0),
+                s.full.max_candidates,
+                fmt_fixed(s.proxy.step_deg[0], 0),
+                s.proxy.poses,
+                fmt_fixed(s.proxy.scale, 3)
+            )),
+        ],
+    }];
+    let mut head: Vec<&str> = ROW_HEAD.to_vec();
+    head[9] = "note";
+    sections.push(Section {
+        heading: "Ranking".into(),
+        blocks: vec![Block::table(&head, rows)],
+    });
+    if let Some(c) = &rep.campaign {
+        let rows = c
+            .members
+            .iter()
+            .zip(&c.fixtures_mm)
+            .enumerate()
+            .map(|(k, (&i, f))| {
+                let m = &rep.candidates[i];
+                vec![
+                    (k + 1).to_string(),
+                    format!(
+                        "{}, {}, {}",
+                        fmt_fixed(f[0], 1),
+                        fmt_fixed(f[1], 1),
+                        fmt_fixed(f[2], 1)
+                    ),
+                    m.rank.map_or_else(|| "-".into(), |r| r.to_string()),
+                    m.score_um.map_or_else(|| "-".into(), um),
+                ]
+            })
+            .collect();
+        sections.push(Section {
+            heading: format!("Campaign of {} fixtures", c.count),
+            blocks: vec![
+                Block::table(&["run", "fixture [mm]", "rank alone", "alone [µm]"], rows),
+                Block::text(format!(
+                    "Calibrated together (shared robot parameters, each run's fixture known): {} µm RMS, {} µm p95 over the joint space ({} from the noise, {} from parameters held at their prior); {} parameters determined. Search: {}.",
+                    um(c.predicted_um),
+                    um(c.predicted_p95_um),
+                    um(c.from_noise_um),
+                    um(c.from_held_um),
+                    c.determined,
+                    c.search
+                )),
+            ],
+        });
+    }
+    Ok(Page {
+        title: "edbbgen — fixture placement".into(),
+        kind: "place".into(),
+        tool_version: env!("CARGO_PKG_VERSION").to_string(),
+        inputs_sha256: String::new(),
+        facts,
+        warnings: rep.warnings.clone(),
+        sections,
+    })
+}
+
+/// The candidates in three views around the robot at q = 0, coloured by class; the winners ringed.
+fn candidates_figure(robot: &Robot, rep: &Report) -> Figure {
     let best = rep
         .best
         .as_ref()
@@ -137,17 +218,17 @@ pub fn page(robot: &Robot, rep: &Report, show: usize) -> Result<Page, ReportErro
             ..Panel::default()
         }
     };
-    let fig = Figure {
+    Figure {
         title: String::new(),
         panels: VIEWS.iter().map(|&(n, a, b)| panel(n, (a, b))).collect(),
         columns: 3,
         panel_px: (330, 330),
-    };
+    }
+}
 
-    let rows: Vec<Vec<String>> = shown(rep, show)
-        .into_iter()
-        .map(|i| row(&rep.candidates[i]))
-        .collect();
+/// The page's facts: the robot, the grid, what the score is, the best, the cell's fixture and the
+/// campaign.
+fn facts(rep: &Report) -> Vec<(String, String)> {
     let s = &rep.settings;
     let mut facts = vec![
         ("robot".to_string(), format!("{} [{}]", rep.robot, rep.robot_file)),
@@ -224,74 +305,5 @@ pub fn page(robot: &Robot, rep: &Report, show: usize) -> Result<Page, ReportErro
             ),
         ));
     }
-    let mut sections = vec![Section {
-        heading: "Candidate positions".into(),
-        blocks: vec![
-            Block::figure(
-                "fig-candidates",
-                "Candidate fixture positions around the robot (at q = 0), coloured by their score relative to the best; grey: not usable (no room, out of reach, no valid pose). Rings: the winner(s); black: the cell's fixture.",
-                &fig,
-            )?,
-            Block::text(format!(
-                "Scores \"by compile\" come from a compile at the position (step {}°, at most {} candidates) and the prediction from its recording; \"by proxy\" from the proxy (step {}°, {} poses, one reading per selected pose) times {}, the median compile/proxy ratio. \"admitted\" is the number of poses the bar admits there at the proxy grid.",
-                fmt_fixed(s.full.step_deg[0], 0),
-                s.full.max_candidates,
-                fmt_fixed(s.proxy.step_deg[0], 0),
-                s.proxy.poses,
-                fmt_fixed(s.proxy.scale, 3)
-            )),
-        ],
-    }];
-    let mut head: Vec<&str> = ROW_HEAD.to_vec();
-    head[9] = "note";
-    sections.push(Section {
-        heading: "Ranking".into(),
-        blocks: vec![Block::table(&head, rows)],
-    });
-    if let Some(c) = &rep.campaign {
-        let rows = c
-            .members
-            .iter()
-            .zip(&c.fixtures_mm)
-            .enumerate()
-            .map(|(k, (&i, f))| {
-                let m = &rep.candidates[i];
-                vec![
-                    (k + 1).to_string(),
-                    format!(
-                        "{}, {}, {}",
-                        fmt_fixed(f[0], 1),
-                        fmt_fixed(f[1], 1),
-                        fmt_fixed(f[2], 1)
-                    ),
-                    m.rank.map_or_else(|| "-".into(), |r| r.to_string()),
-                    m.score_um.map_or_else(|| "-".into(), um),
-                ]
-            })
-            .collect();
-        sections.push(Section {
-            heading: format!("Campaign of {} fixtures", c.count),
-            blocks: vec![
-                Block::table(&["run", "fixture [mm]", "rank alone", "alone [µm]"], rows),
-                Block::text(format!(
-                    "Calibrated together (shared robot parameters, each run's fixture known): {} µm RMS, {} µm p95 over the joint space ({} from the noise, {} from parameters held at their prior); {} parameters determined. Search: {}.",
-                    um(c.predicted_um),
-                    um(c.predicted_p95_um),
-                    um(c.from_noise_um),
-                    um(c.from_held_um),
-                    c.determined,
-                    c.search
-                )),
-            ],
-        });
-    }
-    Ok(Page {
-        title: "edbbgen — fixture placement".into(),
-        kind: "place".into(),
-        tool_version: env!("CARGO_PKG_VERSION").to_string(),
-        inputs_sha256: String::new(),
-        facts,
-        warnings: rep.warnings.clone(),
-        sections,
-    })
+    facts
 }

@@ -531,45 +531,7 @@ pub fn from_toml(value: toml::Value) -> Result<Effects, String> {
     }
     let mut out = Effects::default();
     for c in f.cyclic_error {
-        let joint = joint_index(c.joint, "effects.cyclic_error")?;
-        let n = c.orders.len();
-        let zeros = vec![0.0; n];
-        let cos_std = c.cos_std_deg.unwrap_or_else(|| zeros.clone());
-        let sin_std = c.sin_std_deg.unwrap_or(zeros);
-        if n == 0
-            || c.cos_deg.len() != n
-            || c.sin_deg.len() != n
-            || cos_std.len() != n
-            || sin_std.len() != n
-        {
-            return Err(format!(
-                "effects.cyclic_error (joint {}): orders, cos_deg, sin_deg (and their std) need one value per order",
-                c.joint
-            ));
-        }
-        if c.orders.contains(&0) || c.orders.windows(2).any(|w| w[0] >= w[1]) {
-            return Err(format!(
-                "effects.cyclic_error (joint {}): orders must be ascending and at least 1",
-                c.joint
-            ));
-        }
-        if out.cyclic.iter().any(|x| x.joint == joint) {
-            return Err(format!(
-                "effects.cyclic_error: joint {} is given twice",
-                c.joint
-            ));
-        }
-        for v in [&c.cos_deg, &c.sin_deg, &cos_std, &sin_std] {
-            finite(v, "effects.cyclic_error")?;
-        }
-        out.cyclic.push(Cyclic {
-            joint,
-            orders: c.orders,
-            cos: c.cos_deg.iter().map(|v| v * DEG).collect(),
-            sin: c.sin_deg.iter().map(|v| v * DEG).collect(),
-            cos_std: cos_std.iter().map(|v| v * DEG).collect(),
-            sin_std: sin_std.iter().map(|v| v * DEG).collect(),
-        });
+        out.cyclic.push(cyclic(c, &out.cyclic)?);
     }
     for b in f.backlash {
         let joint = joint_index(b.joint, "effects.backlash")?;
@@ -592,112 +554,10 @@ pub fn from_toml(value: toml::Value) -> Result<Effects, String> {
         });
     }
     if let Some(c) = f.joint_compliance {
-        finite(&c.gravity_mps2, "effects.joint_compliance.gravity_mps2")?;
-        let form = match c.form.as_str() {
-            "known_masses" => {
-                let compliance = c.compliance_rad_per_nm.ok_or(
-                    "effects.joint_compliance: form \"known_masses\" needs compliance_rad_per_nm",
-                )?;
-                finite(&compliance, "effects.joint_compliance.compliance_rad_per_nm")?;
-                let mut masses = Vec::with_capacity(c.masses.len());
-                for m in &c.masses {
-                    if m.frame > 6 || !(m.mass_kg.is_finite() && m.mass_kg >= 0.0) {
-                        return Err(format!(
-                            "effects.joint_compliance.masses: frame {} (0..6), mass {} kg (>= 0)",
-                            m.frame, m.mass_kg
-                        ));
-                    }
-                    finite(&m.com_mm, "effects.joint_compliance.masses.com_mm")?;
-                    masses.push(PointMass {
-                        frame: m.frame,
-                        com: Vector3::from(m.com_mm) * 1e-3,
-                        mass: m.mass_kg,
-                    });
-                }
-                ComplianceForm::KnownMasses {
-                    compliance,
-                    std: c.compliance_std_rad_per_nm.unwrap_or([0.0; 6]),
-                    masses,
-                }
-            }
-            "link_moments" => {
-                let mut terms = Vec::with_capacity(c.terms.len());
-                for t in &c.terms {
-                    let joint = joint_index(t.joint, "effects.joint_compliance.terms")?;
-                    let moment = MOMENTS.iter().position(|m| *m == t.moment).ok_or_else(|| {
-                        format!(
-                            "effects.joint_compliance.terms: moment \"{}\" (expected mass, x, y or z)",
-                            t.moment
-                        )
-                    })?;
-                    if t.link <= joint || t.link > 6 {
-                        return Err(format!(
-                            "effects.joint_compliance.terms: link {} of joint {} (a link after the joint, up to 6)",
-                            t.link, t.joint
-                        ));
-                    }
-                    finite(&[t.value, t.std], "effects.joint_compliance.terms")?;
-                    terms.push(MomentTerm {
-                        joint,
-                        link: t.link,
-                        moment,
-                        value: t.value,
-                        std: t.std,
-                    });
-                }
-                ComplianceForm::LinkMoments { terms }
-            }
-            other => {
-                return Err(format!(
-                    "effects.joint_compliance.form: \"{other}\" (expected \"known_masses\" or \"link_moments\")"
-                ))
-            }
-        };
-        out.compliance = Some(Compliance {
-            form,
-            gravity: c.gravity_mps2,
-        });
+        out.compliance = Some(compliance(c)?);
     }
     if let Some(t) = f.thermal_drift {
-        out.thermal = Some(match t.form.as_str() {
-            "lag" => {
-                let (Some(scale), Some(tau)) = (t.scale, t.time_constant_s) else {
-                    return Err(
-                        "effects.thermal_drift: form \"lag\" needs scale and time_constant_s"
-                            .into(),
-                    );
-                };
-                finite(&scale, "effects.thermal_drift.scale")?;
-                if !(tau.is_finite() && tau > 0.0) {
-                    return Err(format!(
-                        "effects.thermal_drift.time_constant_s: {tau} (expected > 0)"
-                    ));
-                }
-                Thermal::Lag {
-                    scale,
-                    scale_std: t.scale_std.unwrap_or([0.0; 6]),
-                    time_constant: tau,
-                    time_constant_std: t.time_constant_std_s.unwrap_or(0.0),
-                }
-            }
-            "temperature" => {
-                let (Some(alpha), Some(reference_c)) = (t.alpha_per_k, t.reference_temp_c) else {
-                    return Err("effects.thermal_drift: form \"temperature\" needs alpha_per_k and reference_temp_c".into());
-                };
-                finite(&alpha, "effects.thermal_drift.alpha_per_k")?;
-                finite(&[reference_c], "effects.thermal_drift.reference_temp_c")?;
-                Thermal::Temperature {
-                    alpha,
-                    alpha_std: t.alpha_std_per_k.unwrap_or([0.0; 6]),
-                    reference_c,
-                }
-            }
-            other => {
-                return Err(format!(
-                    "effects.thermal_drift.form: \"{other}\" (expected \"lag\" or \"temperature\")"
-                ))
-            }
-        });
+        out.thermal = Some(thermal(t)?);
     }
     if let Some(s) = f.servo_lag {
         finite(&[s.tau_s, s.second_order_s2], "effects.servo_lag")?;
@@ -709,6 +569,167 @@ pub fn from_toml(value: toml::Value) -> Result<Effects, String> {
         });
     }
     Ok(out)
+}
+
+/// One joint's cyclic error, checked (`known`: the joints read before it).
+fn cyclic(c: FileCyclic, known: &[Cyclic]) -> Result<Cyclic, String> {
+    let joint = joint_index(c.joint, "effects.cyclic_error")?;
+    let n = c.orders.len();
+    let zeros = vec![0.0; n];
+    let cos_std = c.cos_std_deg.unwrap_or_else(|| zeros.clone());
+    let sin_std = c.sin_std_deg.unwrap_or(zeros);
+    if n == 0
+        || c.cos_deg.len() != n
+        || c.sin_deg.len() != n
+        || cos_std.len() != n
+        || sin_std.len() != n
+    {
+        return Err(format!(
+            "effects.cyclic_error (joint {}): orders, cos_deg, sin_deg (and their std) need one value per order",
+            c.joint
+        ));
+    }
+    if c.orders.contains(&0) || c.orders.windows(2).any(|w| w[0] >= w[1]) {
+        return Err(format!(
+            "effects.cyclic_error (joint {}): orders must be ascending and at least 1",
+            c.joint
+        ));
+    }
+    if known.iter().any(|x| x.joint == joint) {
+        return Err(format!(
+            "effects.cyclic_error: joint {} is given twice",
+            c.joint
+        ));
+    }
+    for v in [&c.cos_deg, &c.sin_deg, &cos_std, &sin_std] {
+        finite(v, "effects.cyclic_error")?;
+    }
+    Ok(Cyclic {
+        joint,
+        orders: c.orders,
+        cos: c.cos_deg.iter().map(|v| v * DEG).collect(),
+        sin: c.sin_deg.iter().map(|v| v * DEG).collect(),
+        cos_std: cos_std.iter().map(|v| v * DEG).collect(),
+        sin_std: sin_std.iter().map(|v| v * DEG).collect(),
+    })
+}
+
+/// The joint compliance, checked: known masses or link moments.
+fn compliance(c: FileCompliance) -> Result<Compliance, String> {
+    finite(&c.gravity_mps2, "effects.joint_compliance.gravity_mps2")?;
+    let form = match c.form.as_str() {
+        "known_masses" => known_masses(&c)?,
+        "link_moments" => link_moments(&c)?,
+        other => {
+            return Err(format!(
+                "effects.joint_compliance.form: \"{other}\" (expected \"known_masses\" or \"link_moments\")"
+            ))
+        }
+    };
+    Ok(Compliance {
+        form,
+        gravity: c.gravity_mps2,
+    })
+}
+
+fn known_masses(c: &FileCompliance) -> Result<ComplianceForm, String> {
+    let compliance = c
+        .compliance_rad_per_nm
+        .ok_or("effects.joint_compliance: form \"known_masses\" needs compliance_rad_per_nm")?;
+    finite(
+        &compliance,
+        "effects.joint_compliance.compliance_rad_per_nm",
+    )?;
+    let mut masses = Vec::with_capacity(c.masses.len());
+    for m in &c.masses {
+        if m.frame > 6 || !(m.mass_kg.is_finite() && m.mass_kg >= 0.0) {
+            return Err(format!(
+                "effects.joint_compliance.masses: frame {} (0..6), mass {} kg (>= 0)",
+                m.frame, m.mass_kg
+            ));
+        }
+        finite(&m.com_mm, "effects.joint_compliance.masses.com_mm")?;
+        masses.push(PointMass {
+            frame: m.frame,
+            com: Vector3::from(m.com_mm) * 1e-3,
+            mass: m.mass_kg,
+        });
+    }
+    Ok(ComplianceForm::KnownMasses {
+        compliance,
+        std: c.compliance_std_rad_per_nm.unwrap_or([0.0; 6]),
+        masses,
+    })
+}
+
+fn link_moments(c: &FileCompliance) -> Result<ComplianceForm, String> {
+    let mut terms = Vec::with_capacity(c.terms.len());
+    for t in &c.terms {
+        let joint = joint_index(t.joint, "effects.joint_compliance.terms")?;
+        let moment = MOMENTS.iter().position(|m| *m == t.moment).ok_or_else(|| {
+            format!(
+                "effects.joint_compliance.terms: moment \"{}\" (expected mass, x, y or z)",
+                t.moment
+            )
+        })?;
+        if t.link <= joint || t.link > 6 {
+            return Err(format!(
+                "effects.joint_compliance.terms: link {} of joint {} (a link after the joint, up to 6)",
+                t.link, t.joint
+            ));
+        }
+        finite(&[t.value, t.std], "effects.joint_compliance.terms")?;
+        terms.push(MomentTerm {
+            joint,
+            link: t.link,
+            moment,
+            value: t.value,
+            std: t.std,
+        });
+    }
+    Ok(ComplianceForm::LinkMoments { terms })
+}
+
+/// The thermal drift, checked: a lag or a temperature coefficient.
+fn thermal(t: FileThermal) -> Result<Thermal, String> {
+    Ok(match t.form.as_str() {
+        "lag" => {
+            let (Some(scale), Some(tau)) = (t.scale, t.time_constant_s) else {
+                return Err(
+                    "effects.thermal_drift: form \"lag\" needs scale and time_constant_s".into(),
+                );
+            };
+            finite(&scale, "effects.thermal_drift.scale")?;
+            if !(tau.is_finite() && tau > 0.0) {
+                return Err(format!(
+                    "effects.thermal_drift.time_constant_s: {tau} (expected > 0)"
+                ));
+            }
+            Thermal::Lag {
+                scale,
+                scale_std: t.scale_std.unwrap_or([0.0; 6]),
+                time_constant: tau,
+                time_constant_std: t.time_constant_std_s.unwrap_or(0.0),
+            }
+        }
+        "temperature" => {
+            let (Some(alpha), Some(reference_c)) = (t.alpha_per_k, t.reference_temp_c) else {
+                return Err("effects.thermal_drift: form \"temperature\" needs alpha_per_k and reference_temp_c".into());
+            };
+            finite(&alpha, "effects.thermal_drift.alpha_per_k")?;
+            finite(&[reference_c], "effects.thermal_drift.reference_temp_c")?;
+            Thermal::Temperature {
+                alpha,
+                alpha_std: t.alpha_std_per_k.unwrap_or([0.0; 6]),
+                reference_c,
+            }
+        }
+        other => {
+            return Err(format!(
+                "effects.thermal_drift.form: \"{other}\" (expected \"lag\" or \"temperature\")"
+            ))
+        }
+    })
 }
 
 /// A number as TOML writes it: the shortest text that reads back to the same f64.

@@ -49,171 +49,32 @@ fn convert(text: &str, path: &Path, opts: &LoadOptions) -> Result<Robot, String>
     // (velocity 0), which `Robot::validate` turns into a request for speeds.
     let patched = with_default_velocity(text);
     let doc = urdf_rs::read_from_string(&patched).map_err(|e| format!("not a valid URDF: {e}"))?;
+    let lay = layout(&doc, opts)?;
     let Layout {
         tree,
         flange_link,
-        revolute,
-        joint_number,
         pose0,
         group,
-    } = layout(&doc, opts)?;
-    let n_links = doc.links.len();
-
+        ..
+    } = &lay;
     let (dh, frames, base, flange) =
-        chain_of(&doc, &tree, &revolute, &pose0, &group, flange_link, opts)?;
-    let flange0 = pose0[flange_link];
-
-    let joints: [Joint; 6] = std::array::from_fn(|k| {
-        let joint = &doc.joints[revolute[k]];
-        let (lower, upper) = match joint.joint_type {
-            JointType::Continuous => (-TAU, TAU),
-            _ => (joint.limit.lower, joint.limit.upper),
-        };
-        let v = joint.limit.velocity;
-        Joint {
-            name: joint.name.clone(),
-            lower,
-            upper,
-            // Missing, zero or unbounded: left for `Robot::validate` to reject with its message.
-            max_speed: if v.is_finite() && v > 0.0 { v } else { 0.0 },
-            // URDF states no acceleration: the cell's, else the documented default.
-            max_acceleration: 0.0,
-        }
-    });
-
+        chain_of(&doc, tree, &lay.revolute, pose0, group, *flange_link, opts)?;
+    let flange0 = pose0[*flange_link];
+    let joints = joints(&doc, &lay.revolute);
     // Links behind a moving joint off the chain (a balancing cylinder, a parallelogram
     // linkage): each gets the chain of joints from its nearest rigid ancestor, so that its pose
     // is known for every q and its geometry joins the collision scene.
-    let mut notes = Vec::new();
-    let mut passive: Vec<PassiveLink> = Vec::new();
-    let mut passive_of: Vec<Option<usize>> = vec![None; n_links];
-    let mut drives = Drives::new(&doc, &joint_number);
-    let moving: Vec<usize> = (0..n_links)
-        .filter(|&l| group[l].is_none() && !doc.links[l].collision.is_empty())
-        .collect();
-    for (i, &l) in moving.iter().enumerate() {
-        passive_of[l] = Some(i);
-    }
-    for &l in &moving {
-        let link = &doc.links[l];
-        // Joints from the rigid ancestor down to l.
-        let mut path_joints = Vec::new();
-        let mut a = l;
-        while group[a].is_none() {
-            let j = tree.parent_joint[a].ok_or("unreachable: the root is rigid")?;
-            path_joints.push(j);
-            a = tree.link_of[doc.joints[j].parent.link.as_str()];
-        }
-        path_joints.reverse();
-        let k = group[a].ok_or("unreachable: a rigid ancestor")?;
-        let mut steps = Vec::with_capacity(path_joints.len());
-        for (n, &j) in path_joints.iter().enumerate() {
-            let joint = &doc.joints[j];
-            let mut origin = origin_frame(&joint.origin.xyz, &joint.origin.rpy)
-                .ok_or_else(|| format!("joint {}: origin is not finite", joint.name))?;
-            if n == 0 {
-                origin = frames[k].inverse().mul(&pose0[a]).mul(&origin);
-            }
-            let motion = match joint.joint_type {
-                JointType::Fixed => PassiveMotion::Fixed,
-                JointType::Revolute | JointType::Continuous => PassiveMotion::Revolute,
-                JointType::Prismatic => PassiveMotion::Prismatic,
-                ref t => {
-                    return Err(format!(
-                        "joint {} ({}) moves link {} with more than one degree of freedom; edbbgen cannot place it (make it fixed, revolute or prismatic)",
-                        joint.name,
-                        type_name(t),
-                        joint.child.link
-                    ))
-                }
-            };
-            let axis = V3::from(joint.axis.xyz.0);
-            let norm = axis.norm();
-            if motion != PassiveMotion::Fixed && !(norm.is_finite() && norm > 1e-12) {
-                return Err(format!("joint {}: axis is zero or not finite", joint.name));
-            }
-            let (source, multiplier, offset) = if motion == PassiveMotion::Fixed {
-                (None, 0.0, 0.0)
-            } else {
-                drives.of(j)?
-            };
-            steps.push(PassiveStep {
-                name: joint.name.clone(),
-                origin,
-                motion,
-                axis: if motion == PassiveMotion::Fixed {
-                    V3::z()
-                } else {
-                    axis / norm
-                },
-                joint: source,
-                multiplier,
-                offset,
-            });
-        }
-        // The nearest ancestor with a body of its own.
-        let mut parent = None;
-        let mut up = tree.link_of[doc.joints[path_joints[path_joints.len() - 1]]
-            .parent
-            .link
-            .as_str()];
-        while group[up].is_none() {
-            if let Some(pi) = passive_of[up] {
-                parent = Some(pi);
-                break;
-            }
-            let j = tree.parent_joint[up].ok_or("unreachable: the root is rigid")?;
-            up = tree.link_of[doc.joints[j].parent.link.as_str()];
-        }
-        passive.push(PassiveLink {
-            name: link.name.clone(),
-            frame: k,
-            parent,
-            steps,
-        });
-    }
-    notes.extend(drives.notes);
-
+    let Passive {
+        links: passive,
+        of_link: passive_of,
+        notes,
+    } = passive_links(&doc, &lay, &frames)?;
     // Collision geometry of every link, in document order, then by frame: links rigid with a
     // DH frame in that frame, passive links in their own.
     let urdf_dir = path.parent().unwrap_or(Path::new(""));
-    let mut shapes = Vec::new();
-    for (l, link) in doc.links.iter().enumerate() {
-        let (k, to_link, pi) = match (group[l], passive_of[l]) {
-            (Some(k), _) => (k, frames[k].inverse().mul(&pose0[l]), None),
-            (None, Some(pi)) => (passive[pi].frame, Frame::IDENTITY, Some(pi)),
-            (None, None) => continue,
-        };
-        for c in &link.collision {
-            let origin = origin_frame(&c.origin.xyz, &c.origin.rpy)
-                .ok_or_else(|| format!("link {}: collision origin is not finite", link.name))?;
-            shapes.push(LinkShape {
-                frame: k,
-                origin: to_link.mul(&origin),
-                geometry: geometry(&c.geometry, &link.name, urdf_dir, opts)?,
-                passive: pi,
-            });
-        }
-    }
-    shapes.sort_by_key(|s| (s.passive.is_some(), s.frame));
-
+    let shapes = link_shapes(&doc, &lay, &frames, (&passive, &passive_of), urdf_dir, opts)?;
     // Inertials of the same links, as point masses at their centres of mass in DH frames.
-    let mut masses = Vec::new();
-    for (l, link) in doc.links.iter().enumerate() {
-        let Some(k) = group[l] else { continue };
-        let m = link.inertial.mass.value;
-        if !(m.is_finite() && m > 0.0) {
-            continue;
-        }
-        let origin = origin_frame(&link.inertial.origin.xyz, &link.inertial.origin.rpy)
-            .ok_or_else(|| format!("link {}: inertial origin is not finite", link.name))?;
-        masses.push(super::PointMass {
-            frame: k,
-            com: frames[k].inverse().mul(&pose0[l]).mul(&origin).t,
-            mass: m,
-        });
-    }
-    masses.sort_by_key(|m| m.frame);
+    let masses = point_masses(&doc, &lay, &frames)?;
 
     let tool = match tree.link_of.get(MAP_LINK) {
         None => None,
@@ -221,7 +82,7 @@ fn convert(text: &str, path: &Path, opts: &LoadOptions) -> Result<Robot, String>
         Some(_) => {
             return Err(format!(
                 "link {MAP_LINK} (the EDBB MAP) must be fixed to the flange link {} through fixed joints",
-                doc.links[flange_link].name
+                doc.links[*flange_link].name
             ))
         }
     };
@@ -244,6 +105,217 @@ fn convert(text: &str, path: &Path, opts: &LoadOptions) -> Result<Robot, String>
         effects: Default::default(),
         digest: String::new(),
     })
+}
+
+/// The six chain joints' limits and speeds.
+fn joints(doc: &urdf_rs::Robot, revolute: &[usize]) -> [Joint; 6] {
+    std::array::from_fn(|k| {
+        let joint = &doc.joints[revolute[k]];
+        let (lower, upper) = match joint.joint_type {
+            JointType::Continuous => (-TAU, TAU),
+            _ => (joint.limit.lower, joint.limit.upper),
+        };
+        let v = joint.limit.velocity;
+        Joint {
+            name: joint.name.clone(),
+            lower,
+            upper,
+            // Missing, zero or unbounded: left for `Robot::validate` to reject with its message.
+            max_speed: if v.is_finite() && v > 0.0 { v } else { 0.0 },
+            // URDF states no acceleration: the cell's, else the documented default.
+            max_acceleration: 0.0,
+        }
+    })
+}
+
+/// The links behind a moving joint off the chain, the passive link (index) of every link that
+/// is one, and the notes on joints nothing drives.
+struct Passive {
+    links: Vec<PassiveLink>,
+    of_link: Vec<Option<usize>>,
+    notes: Vec<String>,
+}
+
+/// Each such link gets the chain of joints from its nearest rigid ancestor.
+fn passive_links(
+    doc: &urdf_rs::Robot,
+    lay: &Layout,
+    frames: &[Frame; 7],
+) -> Result<Passive, String> {
+    let Layout {
+        tree,
+        joint_number,
+        pose0,
+        group,
+        ..
+    } = lay;
+    let n_links = doc.links.len();
+    let mut notes = Vec::new();
+    let mut passive: Vec<PassiveLink> = Vec::new();
+    let mut passive_of: Vec<Option<usize>> = vec![None; n_links];
+    let mut drives = Drives::new(doc, joint_number);
+    let moving: Vec<usize> = (0..n_links)
+        .filter(|&l| group[l].is_none() && !doc.links[l].collision.is_empty())
+        .collect();
+    for (i, &l) in moving.iter().enumerate() {
+        passive_of[l] = Some(i);
+    }
+    for &l in &moving {
+        let link = &doc.links[l];
+        // Joints from the rigid ancestor down to l.
+        let mut path_joints = Vec::new();
+        let mut a = l;
+        while group[a].is_none() {
+            let j = tree.parent_joint[a].ok_or("unreachable: the root is rigid")?;
+            path_joints.push(j);
+            a = tree.link_of[doc.joints[j].parent.link.as_str()];
+        }
+        path_joints.reverse();
+        let k = group[a].ok_or("unreachable: a rigid ancestor")?;
+        let steps = passive_steps(doc, &path_joints, (&frames[k], &pose0[a]), &mut drives)?;
+        // The nearest ancestor with a body of its own.
+        let mut parent = None;
+        let mut up = tree.link_of[doc.joints[path_joints[path_joints.len() - 1]]
+            .parent
+            .link
+            .as_str()];
+        while group[up].is_none() {
+            if let Some(pi) = passive_of[up] {
+                parent = Some(pi);
+                break;
+            }
+            let j = tree.parent_joint[up].ok_or("unreachable: the root is rigid")?;
+            up = tree.link_of[doc.joints[j].parent.link.as_str()];
+        }
+        passive.push(PassiveLink {
+            name: link.name.clone(),
+            frame: k,
+            parent,
+            steps,
+        });
+    }
+    notes.extend(drives.notes);
+    Ok(Passive {
+        links: passive,
+        of_link: passive_of,
+        notes,
+    })
+}
+
+/// The steps from a passive link's rigid ancestor (its DH `frame` and its `pose` at q = 0)
+/// through `path_joints` down to the link.
+fn passive_steps(
+    doc: &urdf_rs::Robot,
+    path_joints: &[usize],
+    (frame, pose): (&Frame, &Frame),
+    drives: &mut Drives,
+) -> Result<Vec<PassiveStep>, String> {
+    let mut steps = Vec::with_capacity(path_joints.len());
+    for (n, &j) in path_joints.iter().enumerate() {
+        let joint = &doc.joints[j];
+        let mut origin = origin_frame(&joint.origin.xyz, &joint.origin.rpy)
+            .ok_or_else(|| format!("joint {}: origin is not finite", joint.name))?;
+        if n == 0 {
+            origin = frame.inverse().mul(pose).mul(&origin);
+        }
+        let motion = match joint.joint_type {
+            JointType::Fixed => PassiveMotion::Fixed,
+            JointType::Revolute | JointType::Continuous => PassiveMotion::Revolute,
+            JointType::Prismatic => PassiveMotion::Prismatic,
+            ref t => {
+                return Err(format!(
+                    "joint {} ({}) moves link {} with more than one degree of freedom; edbbgen cannot place it (make it fixed, revolute or prismatic)",
+                    joint.name,
+                    type_name(t),
+                    joint.child.link
+                ))
+            }
+        };
+        let axis = V3::from(joint.axis.xyz.0);
+        let norm = axis.norm();
+        if motion != PassiveMotion::Fixed && !(norm.is_finite() && norm > 1e-12) {
+            return Err(format!("joint {}: axis is zero or not finite", joint.name));
+        }
+        let (source, multiplier, offset) = if motion == PassiveMotion::Fixed {
+            (None, 0.0, 0.0)
+        } else {
+            drives.of(j)?
+        };
+        steps.push(PassiveStep {
+            name: joint.name.clone(),
+            origin,
+            motion,
+            axis: if motion == PassiveMotion::Fixed {
+                V3::z()
+            } else {
+                axis / norm
+            },
+            joint: source,
+            multiplier,
+            offset,
+        });
+    }
+    Ok(steps)
+}
+
+/// Collision geometry of every link, in document order, then by frame: links rigid with a DH
+/// frame in that frame, passive links in their own.
+fn link_shapes(
+    doc: &urdf_rs::Robot,
+    lay: &Layout,
+    frames: &[Frame; 7],
+    (passive, passive_of): (&[PassiveLink], &[Option<usize>]),
+    urdf_dir: &Path,
+    opts: &LoadOptions,
+) -> Result<Vec<LinkShape>, String> {
+    let Layout { pose0, group, .. } = lay;
+    let mut shapes = Vec::new();
+    for (l, link) in doc.links.iter().enumerate() {
+        let (k, to_link, pi) = match (group[l], passive_of[l]) {
+            (Some(k), _) => (k, frames[k].inverse().mul(&pose0[l]), None),
+            (None, Some(pi)) => (passive[pi].frame, Frame::IDENTITY, Some(pi)),
+            (None, None) => continue,
+        };
+        for c in &link.collision {
+            let origin = origin_frame(&c.origin.xyz, &c.origin.rpy)
+                .ok_or_else(|| format!("link {}: collision origin is not finite", link.name))?;
+            shapes.push(LinkShape {
+                frame: k,
+                origin: to_link.mul(&origin),
+                geometry: geometry(&c.geometry, &link.name, urdf_dir, opts)?,
+                passive: pi,
+            });
+        }
+    }
+    shapes.sort_by_key(|s| (s.passive.is_some(), s.frame));
+    Ok(shapes)
+}
+
+/// Inertials of the links rigid with a DH frame, as point masses at their centres of mass in
+/// DH frames.
+fn point_masses(
+    doc: &urdf_rs::Robot,
+    lay: &Layout,
+    frames: &[Frame; 7],
+) -> Result<Vec<super::PointMass>, String> {
+    let Layout { pose0, group, .. } = lay;
+    let mut masses = Vec::new();
+    for (l, link) in doc.links.iter().enumerate() {
+        let Some(k) = group[l] else { continue };
+        let m = link.inertial.mass.value;
+        if !(m.is_finite() && m > 0.0) {
+            continue;
+        }
+        let origin = origin_frame(&link.inertial.origin.xyz, &link.inertial.origin.rpy)
+            .ok_or_else(|| format!("link {}: inertial origin is not finite", link.name))?;
+        masses.push(super::PointMass {
+            frame: k,
+            com: frames[k].inverse().mul(&pose0[l]).mul(&origin).t,
+            mass: m,
+        });
+    }
+    masses.sort_by_key(|m| m.frame);
+    Ok(masses)
 }
 
 /// The DH chain of a URDF's six joints: the DH table from the joint axes at q = 0 and the

@@ -84,26 +84,110 @@ pub fn plan(
     seed: u64,
 ) -> Plan {
     let roadmap = Roadmap::new(pool, speeds);
-    let mut ext = Extremes::default();
-    let mut wps: Vec<Waypoint> = Vec::new();
-    let mut deferred: Vec<(usize, Violation)> = Vec::new();
-    let mut dropped = Vec::new();
-    let mut supports = 0;
-    let measure = |q: &[f64; 6]| Waypoint {
-        q: *q,
-        support: false,
-        transit: false,
-        blend: 0.0,
-        blend_value: 0.0,
-    };
     // Pass 1: the tour as ordered; a pose that cannot be reached safely (not even through
     // support poses) is deferred, and the tour goes on from where it is. Every leg from one
     // tour pose to the next is independent of the others, so all legs are worked out in
     // parallel first (with their own seeds); a leg is used where the tour does arrive from the
     // previous pose, and worked out again from where it is after a deferred pose.
+    let (draft, deferred) = walk_tour(ck, tour, &roadmap, speeds, seed);
+    let Draft {
+        mut wps,
+        mut dropped,
+        mut supports,
+        mut ext,
+    } = draft;
+    // Pass 2: insert each deferred pose where both moves around it pass, cheapest place first.
+    for (idx, violation) in deferred {
+        let q = tour[idx];
+        // The roadmap's poses are the pool's, measurement poses included: a chain of support
+        // poses may already pass through this pose. It is measured there; inserted next to its
+        // twin it would be a zero-length move (the cheapest place by far: it adds nothing).
+        if let Some(w) = wps.iter_mut().find(|w| w.support && w.q == q) {
+            w.support = false;
+            supports -= 1;
+            continue;
+        }
+        if let Some((i, into, out, e)) = cheapest_insertion(ck, &wps, q, &roadmap, speeds) {
+            ext.merge(&e);
+            supports += into.len() + out.len();
+            let mut seq: Vec<Waypoint> = into.into_iter().map(support).collect();
+            seq.push(measure(&q));
+            seq.extend(out.into_iter().map(support));
+            wps.splice(i + 1..i + 1, seq);
+        } else {
+            dropped.push(Dropped {
+                index: idx,
+                q,
+                violation,
+            });
+        }
+    }
+    dropped.sort_by_key(|d| d.index);
+    // Trailing support poses lead nowhere.
+    while wps.last().is_some_and(|w| w.support) {
+        wps.pop();
+        supports -= 1;
+    }
+    let exact_stops = 0;
+    let plan = Plan {
+        waypoints: wps,
+        supports,
+        dropped,
+        exact_stops,
+        extremes: ext,
+    };
+    debug_assert_eq!(plan.repeated_pose(), None, "a zero-length move in the plan");
+    plan
+}
+
+/// A measurement pose as a waypoint.
+fn measure(q: &[f64; 6]) -> Waypoint {
+    Waypoint {
+        q: *q,
+        support: false,
+        transit: false,
+        blend: 0.0,
+        blend_value: 0.0,
+    }
+}
+
+/// A support pose as a waypoint.
+fn support(v: [f64; 6]) -> Waypoint {
+    Waypoint {
+        q: v,
+        support: true,
+        transit: false,
+        blend: 0.0,
+        blend_value: 0.0,
+    }
+}
+
+/// A plan in the making: its waypoints, the poses dropped, the support poses and the extremes
+/// met.
+struct Draft {
+    wps: Vec<Waypoint>,
+    dropped: Vec<Dropped>,
+    supports: usize,
+    ext: Extremes,
+}
+
+/// Pass 1 of [`plan`]: the tour walked as ordered; returns the draft and the deferred poses
+/// (tour index, why).
+fn walk_tour(
+    ck: &Checker,
+    tour: &[[f64; 6]],
+    roadmap: &Roadmap,
+    speeds: &[f64; 6],
+    seed: u64,
+) -> (Draft, Vec<(usize, Violation)>) {
+    let mut ext = Extremes::default();
+    let mut wps: Vec<Waypoint> = Vec::new();
+    let mut deferred: Vec<(usize, Violation)> = Vec::new();
+    let mut dropped = Vec::new();
+    let mut supports = 0;
     let legs: Vec<Leg> = (1..tour.len())
         .into_par_iter()
-        .map(|idx| leg(ck, &tour[idx - 1], &tour[idx], &roadmap, speeds, seed, idx))
+        .map(|idx| leg(ck, &tour[idx - 1], &tour[idx], roadmap, speeds, seed, idx))
         .collect();
     // Where a leg fails, its pose is deferred and the tour goes on from the pose before it: those
     // legs too are worked out in parallel beforehand (the same function of the same poses and
@@ -116,7 +200,7 @@ pub fn plan(
                     ck,
                     &tour[idx - 1],
                     &tour[idx + 1],
-                    &roadmap,
+                    roadmap,
                     speeds,
                     seed,
                     idx + 1,
@@ -147,121 +231,85 @@ pub fn plan(
         {
             skip
         } else {
-            fresh = leg(ck, &last, q, &roadmap, speeds, seed, idx);
+            fresh = leg(ck, &last, q, roadmap, speeds, seed, idx);
             &fresh
         };
         match l {
             Ok((vias, e)) => {
                 ext.merge(e);
                 supports += vias.len();
-                wps.extend(vias.iter().map(|&v| Waypoint {
-                    q: v,
-                    support: true,
-                    transit: false,
-                    blend: 0.0,
-                    blend_value: 0.0,
-                }));
+                wps.extend(vias.iter().map(|&v| support(v)));
                 wps.push(measure(q));
             }
             Err(violation) => deferred.push((idx, violation.clone())),
         }
     }
-    // Pass 2: insert each deferred pose where both moves around it pass, cheapest place first.
-    for (idx, violation) in deferred {
-        let q = tour[idx];
-        // The roadmap's poses are the pool's, measurement poses included: a chain of support
-        // poses may already pass through this pose. It is measured there; inserted next to its
-        // twin it would be a zero-length move (the cheapest place by far: it adds nothing).
-        if let Some(w) = wps.iter_mut().find(|w| w.support && w.q == q) {
-            w.support = false;
-            supports -= 1;
-            continue;
-        }
-        let mut places: Vec<(f64, usize)> = (0..wps.len())
-            // Never next to a waypoint at the same pose (none is left, but a move of zero
-            // length must not be made whatever the plan holds).
-            .filter(|&i| wps[i].q != q && wps.get(i + 1).is_none_or(|b| b.q != q))
-            .map(|i| {
-                let a = &wps[i].q;
-                let added = match wps.get(i + 1) {
-                    Some(b) => {
-                        move_time(a, &q, speeds) + move_time(&q, &b.q, speeds)
-                            - move_time(a, &b.q, speeds)
-                    }
-                    None => move_time(a, &q, speeds),
-                };
-                (added, i)
-            })
-            .collect();
-        places.sort_by(|x, y| x.0.total_cmp(&y.0).then(x.1.cmp(&y.1)));
-        places.truncate(INSERT_TRIES);
-        // The places are tried in parallel; the first that works, in rank order, is taken.
-        let attempt = |(rank, &(_, i)): (usize, &(f64, usize))| {
-            let mut e = Extremes::default();
-            let a = wps[i].q;
-            let b = wps.get(i + 1).map(|w| w.q);
-            // Direct moves first; for the cheapest places also chains through the roadmap.
-            let into = if ck.line(&a, &q, &mut e).is_ok() {
-                Some(Vec::new())
-            } else if rank < INSERT_WITH_SUPPORT {
-                super::roadmap::connect(ck, &a, &q, &roadmap.index, speeds, &mut e)
-            } else {
-                None
-            }?;
-            let out = match b {
-                None => Some(Vec::new()),
-                Some(b) if ck.line(&q, &b, &mut e).is_ok() => Some(Vec::new()),
-                Some(b) if rank < INSERT_WITH_SUPPORT => {
-                    super::roadmap::connect(ck, &q, &b, &roadmap.index, speeds, &mut e)
-                }
-                Some(_) => None,
-            }?;
-            Some((i, into, out, e))
-        };
-        let found = places
-            .par_iter()
-            .enumerate()
-            .map(attempt)
-            .find_first(Option::is_some)
-            .flatten();
-        if let Some((i, into, out, e)) = found {
-            ext.merge(&e);
-            supports += into.len() + out.len();
-            let support = |v: [f64; 6]| Waypoint {
-                q: v,
-                support: true,
-                transit: false,
-                blend: 0.0,
-                blend_value: 0.0,
-            };
-            let mut seq: Vec<Waypoint> = into.into_iter().map(support).collect();
-            seq.push(measure(&q));
-            seq.extend(out.into_iter().map(support));
-            wps.splice(i + 1..i + 1, seq);
-        } else {
-            dropped.push(Dropped {
-                index: idx,
-                q,
-                violation,
-            });
-        }
-    }
-    dropped.sort_by_key(|d| d.index);
-    // Trailing support poses lead nowhere.
-    while wps.last().is_some_and(|w| w.support) {
-        wps.pop();
-        supports -= 1;
-    }
-    let exact_stops = 0;
-    let plan = Plan {
-        waypoints: wps,
-        supports,
+    let draft = Draft {
+        wps,
         dropped,
-        exact_stops,
-        extremes: ext,
+        supports,
+        ext,
     };
-    debug_assert_eq!(plan.repeated_pose(), None, "a zero-length move in the plan");
-    plan
+    (draft, deferred)
+}
+
+/// Where deferred pose `q` goes in: the cheapest of the places (after waypoint i) where both
+/// moves around it pass, with the support poses into and out of it and the extremes met.
+#[allow(clippy::type_complexity)]
+fn cheapest_insertion(
+    ck: &Checker,
+    wps: &[Waypoint],
+    q: [f64; 6],
+    roadmap: &Roadmap,
+    speeds: &[f64; 6],
+) -> Option<(usize, Vec<[f64; 6]>, Vec<[f64; 6]>, Extremes)> {
+    let mut places: Vec<(f64, usize)> = (0..wps.len())
+        // Never next to a waypoint at the same pose (none is left, but a move of zero
+        // length must not be made whatever the plan holds).
+        .filter(|&i| wps[i].q != q && wps.get(i + 1).is_none_or(|b| b.q != q))
+        .map(|i| {
+            let a = &wps[i].q;
+            let added = match wps.get(i + 1) {
+                Some(b) => {
+                    move_time(a, &q, speeds) + move_time(&q, &b.q, speeds)
+                        - move_time(a, &b.q, speeds)
+                }
+                None => move_time(a, &q, speeds),
+            };
+            (added, i)
+        })
+        .collect();
+    places.sort_by(|x, y| x.0.total_cmp(&y.0).then(x.1.cmp(&y.1)));
+    places.truncate(INSERT_TRIES);
+    // The places are tried in parallel; the first that works, in rank order, is taken.
+    let attempt = |(rank, &(_, i)): (usize, &(f64, usize))| {
+        let mut e = Extremes::default();
+        let a = wps[i].q;
+        let b = wps.get(i + 1).map(|w| w.q);
+        // Direct moves first; for the cheapest places also chains through the roadmap.
+        let into = if ck.line(&a, &q, &mut e).is_ok() {
+            Some(Vec::new())
+        } else if rank < INSERT_WITH_SUPPORT {
+            super::roadmap::connect(ck, &a, &q, &roadmap.index, speeds, &mut e)
+        } else {
+            None
+        }?;
+        let out = match b {
+            None => Some(Vec::new()),
+            Some(b) if ck.line(&q, &b, &mut e).is_ok() => Some(Vec::new()),
+            Some(b) if rank < INSERT_WITH_SUPPORT => {
+                super::roadmap::connect(ck, &q, &b, &roadmap.index, speeds, &mut e)
+            }
+            Some(_) => None,
+        }?;
+        Some((i, into, out, e))
+    };
+    places
+        .par_iter()
+        .enumerate()
+        .map(attempt)
+        .find_first(Option::is_some)
+        .flatten()
 }
 
 /// A leg of the tour: its support poses (none for a direct move) and the extremes met, or why

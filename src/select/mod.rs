@@ -274,16 +274,19 @@ fn eliminate_in_pool(
     let n0 = j.len() / m;
     let row = |i: usize| &j[i * m..(i + 1) * m];
     let mut quota = Quota::new(groups, n0);
-    let mut alive = vec![true; n0];
-    // Active rows by position; removal is swap_remove, positions carry no meaning.
-    let mut ids: Vec<usize> = (0..n0).collect();
-    let mut removed = Vec::with_capacity(n0.saturating_sub(m));
+    let active: Vec<usize> = (0..n0).collect();
+    let mut rows = Rows {
+        j,
+        m,
+        alive: vec![true; n0],
+        ids: (0..n0).collect(),
+        proj: std::array::from_fn(|_| vec![0.0; n0]),
+        removed: Vec::with_capacity(n0.saturating_sub(m)),
+        g: gram(j, m, &active),
+        active,
+    };
     let mut curve = Vec::with_capacity(n0 - m + 1);
-    let mut active: Vec<usize> = (0..n0).collect();
-    let mut g = gram(j, m, &active);
     let mut bounds = Bounds::new(m);
-    // The active rows' projections on the keyed directions, one column each, by position.
-    let mut proj: [Vec<f64>; KEYED] = std::array::from_fn(|_| vec![0.0; n0]);
     let mut keys = vec![0.0; n0];
     let mut heap: std::collections::BinaryHeap<Queued> = std::collections::BinaryHeap::new();
     let mut parts: Vec<Vec<Queued>> = Vec::new();
@@ -291,12 +294,13 @@ fn eliminate_in_pool(
     let mut period = REFRESH_MIN;
     // Step 0's spectrum, basis and keys; every later step gets its spectrum and its keys
     // together, at the end of the step before.
-    let (mut lam, mut vt) = spectrum(&g);
-    bounds.refresh(&vt, j, &ids, &mut proj);
-    bounds.update(&g, lam[m.saturating_sub(2)]);
-    let mut lows = first_pass(&bounds, &proj, &mut keys[..n0]);
+    let (mut lam, mut vt) = spectrum(&rows.g);
+    bounds.refresh(&vt, j, &rows.ids, &mut rows.proj);
+    bounds.update(&rows.g, lam[m.saturating_sub(2)]);
+    let mut lows = first_pass(&bounds, &rows.proj, &mut keys[..n0]);
     let mut age = 0;
     loop {
+        let (ids, proj) = (&rows.ids, &rows.proj);
         let n = ids.len();
         curve.push((n, cond_of(lam[0], lam[m - 1])));
         if n == m {
@@ -315,7 +319,7 @@ fn eliminate_in_pool(
         bounds.set_cut(cut);
         let mut exacts = 0;
         let mut visit = |key: f64, p: usize, best: &mut (f64, usize, usize), cut: &mut f64| {
-            if key > *cut || bounds.rules_out(&proj, p, row(ids[p])) {
+            if key > *cut || bounds.rules_out(proj, p, row(ids[p])) {
                 return;
             }
             let this = exact(p, &mut z);
@@ -336,32 +340,7 @@ fn eliminate_in_pool(
         }
         // The others whose key does not exceed the cut, likeliest first (a heap: as a rule only
         // a few come off it before a key exceeds the cut).
-        let below = |start: usize, ks: &[f64], out: &mut Vec<Queued>| {
-            out.clear();
-            for (k, &key) in ks.iter().enumerate() {
-                let p = start + k;
-                if key.partial_cmp(&cut) != Some(std::cmp::Ordering::Greater) && !guesses.holds(p) {
-                    out.push(Queued(key, p));
-                }
-            }
-        };
-        let mut list = heap.into_vec();
-        if n >= PARALLEL_BOUND {
-            let chunks = n.div_ceil(BOUND_CHUNK);
-            parts.resize_with(chunks.max(parts.len()), Vec::new);
-            keys[..n]
-                .par_chunks(BOUND_CHUNK)
-                .zip(parts[..chunks].par_iter_mut())
-                .enumerate()
-                .for_each(|(c, (ks, out))| below(c * BOUND_CHUNK, ks, out));
-            list.clear();
-            for part in &parts[..chunks] {
-                list.extend_from_slice(part);
-            }
-        } else {
-            below(0, &keys[..n], &mut list);
-        }
-        heap = std::collections::BinaryHeap::from(list);
+        heap = below_cut(heap, &keys[..n], cut, &guesses, &mut parts);
         while let Some(Queued(key, p)) = heap.pop() {
             if key > cut {
                 break;
@@ -379,7 +358,57 @@ fn eliminate_in_pool(
         // largest root of this step's secular equation for the row removed.
         eigen_coordinates(&vt, row(i), &mut z);
         let floor = second_downdated(&lam, &z);
-        // The row, then (when its group fell below its minimum) the group's other rows.
+        let forced = rows.remove(i, p, &mut quota);
+        if rows.ids.len() == m {
+            (lam, vt) = spectrum(&rows.g);
+            continue;
+        }
+        if age >= period {
+            age = 0;
+            bounds.refresh(&vt, j, &rows.ids, &mut rows.proj);
+        }
+        let n = rows.ids.len();
+        if forced {
+            // The floor above was for one removal: this step's λₘ₋₁ itself bounds every
+            // candidate's λ'max from below (interlacing).
+            (lam, vt) = spectrum(&rows.g);
+            bounds.update(&rows.g, lam[m.saturating_sub(2)] * (1.0 - 1e-12));
+            lows = first_pass(&bounds, &rows.proj, &mut keys[..n]);
+            continue;
+        }
+        // The next step's keys need no eigendecomposition of its Gram matrix: the basis may
+        // come from this step's (any orthonormal one will do), and its floor is above. So its
+        // spectrum is computed alongside them.
+        bounds.update(&rows.g, floor);
+        ((lam, vt), lows) = rayon::join(
+            || spectrum(&rows.g),
+            || first_pass(&bounds, &rows.proj, &mut keys[..n]),
+        );
+    }
+    (rows.removed, curve)
+}
+
+/// The rows of an elimination: which are alive, the active ones by position (removal is
+/// swap_remove, positions carry no meaning) with their projections on the keyed directions,
+/// one column each, the rows removed in order and the Gram matrix of the rest.
+struct Rows<'a> {
+    j: &'a [f64],
+    m: usize,
+    alive: Vec<bool>,
+    ids: Vec<usize>,
+    proj: [Vec<f64>; KEYED],
+    removed: Vec<usize>,
+    /// The alive rows at the last rebuild of `g`.
+    active: Vec<usize>,
+    g: DMatrix<f64>,
+}
+
+impl Rows<'_> {
+    /// Removes row `i` at position `p`, then (when its group fell below its minimum) the
+    /// group's other rows; whether any row went with it.
+    fn remove(&mut self, i: usize, p: usize, quota: &mut Option<Quota>) -> bool {
+        let (j, m) = (self.j, self.m);
+        let n0 = self.alive.len();
         let mut queue = vec![i];
         let mut k = 0;
         while k < queue.len() {
@@ -387,59 +416,72 @@ fn eliminate_in_pool(
             let p = if k == 0 {
                 p
             } else {
-                ids.iter()
+                self.ids
+                    .iter()
                     .position(|&x| x == r)
                     .expect("a forced row is active")
             };
-            ids.swap_remove(p);
-            for col in &mut proj {
+            self.ids.swap_remove(p);
+            for col in &mut self.proj {
                 col.swap_remove(p);
             }
-            alive[r] = false;
-            removed.push(r);
+            self.alive[r] = false;
+            self.removed.push(r);
             // Same schedule of rebuilds and downdates as the reference.
-            if rebuilds(ids.len(), m, removed.len()) {
-                active.clear();
-                active.extend((0..n0).filter(|&x| alive[x]));
-                g = gram(j, m, &active);
+            if rebuilds(self.ids.len(), m, self.removed.len()) {
+                self.active.clear();
+                let alive = &self.alive;
+                self.active.extend((0..n0).filter(|&x| alive[x]));
+                self.g = gram(j, m, &self.active);
             } else {
-                downdate(&mut g, row(r));
+                downdate(&mut self.g, &j[r * m..(r + 1) * m]);
             }
             if k == 0 {
                 if let Some(q) = quota.as_mut() {
-                    queue.extend(q.forced(r, &alive, ids.len(), m));
+                    queue.extend(q.forced(r, &self.alive, self.ids.len(), m));
                 }
             }
             k += 1;
         }
-        let forced = queue.len() > 1;
-        if ids.len() == m {
-            (lam, vt) = spectrum(&g);
-            continue;
-        }
-        if age >= period {
-            age = 0;
-            bounds.refresh(&vt, j, &ids, &mut proj);
-        }
-        let n = ids.len();
-        if forced {
-            // The floor above was for one removal: this step's λₘ₋₁ itself bounds every
-            // candidate's λ'max from below (interlacing).
-            (lam, vt) = spectrum(&g);
-            bounds.update(&g, lam[m.saturating_sub(2)] * (1.0 - 1e-12));
-            lows = first_pass(&bounds, &proj, &mut keys[..n]);
-            continue;
-        }
-        // The next step's keys need no eigendecomposition of its Gram matrix: the basis may
-        // come from this step's (any orthonormal one will do), and its floor is above. So its
-        // spectrum is computed alongside them.
-        bounds.update(&g, floor);
-        ((lam, vt), lows) = rayon::join(
-            || spectrum(&g),
-            || first_pass(&bounds, &proj, &mut keys[..n]),
-        );
+        queue.len() > 1
     }
-    (removed, curve)
+}
+
+/// The queue of the candidates whose key does not exceed `cut`, the `guesses` left out; built
+/// in the heap's own storage, in parallel chunks (`parts`) for a large pool.
+fn below_cut(
+    heap: std::collections::BinaryHeap<Queued>,
+    keys: &[f64],
+    cut: f64,
+    guesses: &Lowest,
+    parts: &mut Vec<Vec<Queued>>,
+) -> std::collections::BinaryHeap<Queued> {
+    let n = keys.len();
+    let below = |start: usize, ks: &[f64], out: &mut Vec<Queued>| {
+        out.clear();
+        for (k, &key) in ks.iter().enumerate() {
+            let p = start + k;
+            if key.partial_cmp(&cut) != Some(std::cmp::Ordering::Greater) && !guesses.holds(p) {
+                out.push(Queued(key, p));
+            }
+        }
+    };
+    let mut list = heap.into_vec();
+    if n >= PARALLEL_BOUND {
+        let chunks = n.div_ceil(BOUND_CHUNK);
+        parts.resize_with(chunks.max(parts.len()), Vec::new);
+        keys.par_chunks(BOUND_CHUNK)
+            .zip(parts[..chunks].par_iter_mut())
+            .enumerate()
+            .for_each(|(c, (ks, out))| below(c * BOUND_CHUNK, ks, out));
+        list.clear();
+        for part in &parts[..chunks] {
+            list.extend_from_slice(part);
+        }
+    } else {
+        below(0, keys, &mut list);
+    }
+    std::collections::BinaryHeap::from(list)
 }
 
 /// Every candidate's key and each chunk's lowest keys.

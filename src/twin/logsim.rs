@@ -229,88 +229,18 @@ pub fn simulate_logs(
 ) -> Result<Logs, SimError> {
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(opts.seed ^ 0x6c6f_6773);
     let end = traj.end();
-    // Pauses: their lengths and the moment the operator mounts or removes the bar.
-    let mut stops: Vec<Stop> = Vec::new();
-    let mut toggles: Vec<(usize, f64)> = Vec::new(); // (stop index, fraction)
-    for &p in &traj.pauses {
-        stops.push(Stop {
-            at: p,
-            len: uniform(&mut rng, opts.pause),
-        });
-        toggles.push((stops.len() - 1, rng.random_range(0.3..0.8)));
-    }
-    // Controller stops inside moves made with the bar (never in a dwell).
-    let mut holds_at: Vec<usize> = Vec::new();
-    let mounted_prog: Vec<(f64, f64)> = traj.windows.clone();
-    for _ in 0..opts.holds {
-        for _try in 0..1000 {
-            let w = mounted_prog[rng
-                .random_range(0..mounted_prog.len().max(1))
-                .min(mounted_prog.len().saturating_sub(1))];
-            if w.1 - w.0 < 1.0 {
-                continue;
-            }
-            let at = rng.random_range(w.0 + 0.2..w.1 - 0.2);
-            let moving = traj
-                .velocity(at)
-                .iter()
-                .map(|v| v.abs())
-                .fold(0.0, f64::max)
-                > 0.05;
-            let near_dwell = traj
-                .dwells
-                .iter()
-                .any(|d| at > d.from - 0.1 && at < d.to + 0.1);
-            let near_stop = stops.iter().any(|s| (s.at - at).abs() < 0.5);
-            if moving && !near_dwell && !near_stop {
-                stops.push(Stop {
-                    at,
-                    len: uniform(&mut rng, opts.hold_len),
-                });
-                holds_at.push(stops.len() - 1);
-                break;
-            }
-        }
-    }
+    // Pauses: their lengths and the moment the operator mounts or removes the bar; controller
+    // stops inside moves made with the bar.
+    let (stops, toggles, holds_at) = pauses_and_holds(&mut rng, traj, opts);
     let dwell_spans: Vec<(f64, f64)> = traj.dwells.iter().map(|d| (d.from, d.to)).collect();
     let clock = Clock::new(&stops, &dwell_spans, end, opts.move_scale);
     // Real-time start of each original stop.
     let stop_start = |k: usize| clock.real(stops[k].at);
-    // Mount intervals (controller clock).
-    let mut mounted_real: Vec<(f64, f64)> = Vec::new();
-    if toggles.is_empty() {
-        mounted_real.push((f64::NEG_INFINITY, f64::INFINITY));
-    } else {
-        for pair in toggles.chunks(2) {
-            let (k, f) = pair[0];
-            let on = stop_start(k) + f * stops[k].len;
-            let off = pair
-                .get(1)
-                .map_or(f64::INFINITY, |&(k, f)| stop_start(k) + f * stops[k].len);
-            mounted_real.push((on, off));
-        }
-    }
+    let mounted_real = mount_intervals(&stops, &toggles, stop_start);
     let real_end = clock.real_after(end);
-    let is_mounted = |tc: f64| mounted_real.iter().any(|&(a, b)| tc >= a && tc < b);
     let a = 1.0 + opts.drift;
     let to_bar = |tc: f64| opts.offset + a * tc;
-    // The measurement dwells (bar mounted) and their standstill with the bar on.
-    let measuring = measurement_dwells(traj).poses;
-    let standstill: Vec<(f64, f64)> = measuring
-        .iter()
-        .map(|d| {
-            // From the arrival (before a pause that precedes the dwell) to the departure
-            // (after a pause that follows it), cut to the time the bar is mounted.
-            let arrive = clock.real(d.from);
-            let leave = clock.real_after(d.to);
-            let w = mounted_real
-                .iter()
-                .find(|&&(m0, m1)| m1 > arrive && m0 < leave)
-                .copied()
-                .unwrap_or((arrive, leave));
-            (arrive.max(w.0), leave.min(w.1))
-        })
-        .collect();
+    let standstill = standstills(traj, &clock, &mounted_real);
     // Bar log gaps: random ones, and the missing poses' standstills (a little wider).
     let t_first = -opts.lead;
     let t_last = real_end + opts.tail;
@@ -340,63 +270,23 @@ pub fn simulate_logs(
         .iter()
         .filter_map(|&k| standstill.get(k.wrapping_sub(1)).copied())
         .collect();
-    // The bar's samples on its own clock.
-    let u_first = to_bar(t_first);
-    let n = ((to_bar(t_last) - u_first) * opts.bar_rate).floor() as usize + 1;
     let mut sampler = super::Sampler::new(robot, model, traj, truth, 0.0, opts.seed);
     let temp_log = truth.thermal.as_ref().is_some_and(|th| th.temp_log);
-    let mut bar = BarLog {
-        temp: temp_log.then(Vec::new),
-        ..BarLog::default()
+    let scene = BarScene {
+        clock: &clock,
+        mounted: &mounted_real,
+        gaps: &gaps,
+        junk: &junk,
+        vib: &vib,
     };
-    let mut sync = Measured {
-        temp: temp_log.then(Vec::new),
-        ..Measured::default()
-    };
-    for k in 0..n {
-        let u = u_first + k as f64 / opts.bar_rate;
-        let tc = (u - opts.offset) / a;
-        if gaps.iter().any(|&(x, y)| tc >= x && tc < y) {
-            continue;
-        }
-        let drop = opts.dropout > 0.0 && rng.random::<f64>() < opts.dropout;
-        let reading = if is_mounted(tc) {
-            let tp = clock.program(tc);
-            let (q, l) = sampler.sample(tp, tc.max(0.0));
-            let mut l = l + opts.zero;
-            for &(x, y) in &vib {
-                if tc >= x + 0.3 && tc <= y {
-                    let s = tc - x - 0.3;
-                    l += opts.vibration_amp
-                        * (-s / 0.6).exp()
-                        * (std::f64::consts::TAU * 15.0 * s).sin();
-                }
-            }
-            if !drop {
-                sync.t.push(u);
-                sync.q.push(q);
-                sync.length.push(l);
-                if let Some(t) = sync.temp.as_mut() {
-                    t.push(sampler.temperature(tc.max(0.0)));
-                }
-            }
-            Some(l)
-        } else {
-            junk_at(&junk, tc).map(|l| l + 1e-6 * super::gauss(&mut rng))
-        };
-        if let (Some(l), false) = (reading, drop) {
-            bar.t.push(u);
-            bar.length.push(l);
-            if let Some(t) = bar.temp.as_mut() {
-                t.push(sampler.temperature(tc.max(0.0)));
-            }
-        }
-    }
-    // The synchronous recording's time counts from the bar log's first sample.
-    let first = bar.t.first().copied().unwrap_or(u_first);
-    for t in sync.t.iter_mut() {
-        *t -= first;
-    }
+    let (bar, sync) = sample_bar(
+        &scene,
+        &mut sampler,
+        &mut rng,
+        opts,
+        (t_first, t_last),
+        temp_log,
+    );
     // The controller's joint log.
     let nj = ((t_last - t_first) * opts.joint_rate).floor() as usize + 1;
     let mut joints = JointLog::default();
@@ -433,6 +323,188 @@ pub fn simulate_logs(
                 .collect(),
         },
     })
+}
+
+/// The operator's pauses (with the moment in each, a fraction, at which the bar is mounted or
+/// removed) and the controller's stops inside moves made with the bar (never in a dwell): the
+/// stops, the (stop, fraction) toggles and the stops that are holds.
+fn pauses_and_holds(
+    rng: &mut impl Rng,
+    traj: &Trajectory,
+    opts: &LogOptions,
+) -> (Vec<Stop>, Vec<(usize, f64)>, Vec<usize>) {
+    let mut stops: Vec<Stop> = Vec::new();
+    let mut toggles: Vec<(usize, f64)> = Vec::new(); // (stop index, fraction)
+    for &p in &traj.pauses {
+        stops.push(Stop {
+            at: p,
+            len: uniform(rng, opts.pause),
+        });
+        toggles.push((stops.len() - 1, rng.random_range(0.3..0.8)));
+    }
+    // Controller stops inside moves made with the bar (never in a dwell).
+    let mut holds_at: Vec<usize> = Vec::new();
+    let mounted_prog: Vec<(f64, f64)> = traj.windows.clone();
+    for _ in 0..opts.holds {
+        for _try in 0..1000 {
+            let w = mounted_prog[rng
+                .random_range(0..mounted_prog.len().max(1))
+                .min(mounted_prog.len().saturating_sub(1))];
+            if w.1 - w.0 < 1.0 {
+                continue;
+            }
+            let at = rng.random_range(w.0 + 0.2..w.1 - 0.2);
+            let moving = traj
+                .velocity(at)
+                .iter()
+                .map(|v| v.abs())
+                .fold(0.0, f64::max)
+                > 0.05;
+            let near_dwell = traj
+                .dwells
+                .iter()
+                .any(|d| at > d.from - 0.1 && at < d.to + 0.1);
+            let near_stop = stops.iter().any(|s| (s.at - at).abs() < 0.5);
+            if moving && !near_dwell && !near_stop {
+                stops.push(Stop {
+                    at,
+                    len: uniform(rng, opts.hold_len),
+                });
+                holds_at.push(stops.len() - 1);
+                break;
+            }
+        }
+    }
+    (stops, toggles, holds_at)
+}
+
+/// Mount intervals (controller clock): from each mounting toggle to the removal after it.
+fn mount_intervals(
+    stops: &[Stop],
+    toggles: &[(usize, f64)],
+    stop_start: impl Fn(usize) -> f64,
+) -> Vec<(f64, f64)> {
+    let mut mounted_real: Vec<(f64, f64)> = Vec::new();
+    if toggles.is_empty() {
+        mounted_real.push((f64::NEG_INFINITY, f64::INFINITY));
+    } else {
+        for pair in toggles.chunks(2) {
+            let (k, f) = pair[0];
+            let on = stop_start(k) + f * stops[k].len;
+            let off = pair
+                .get(1)
+                .map_or(f64::INFINITY, |&(k, f)| stop_start(k) + f * stops[k].len);
+            mounted_real.push((on, off));
+        }
+    }
+    mounted_real
+}
+
+/// The measurement dwells' standstills with the bar on (controller clock).
+fn standstills(traj: &Trajectory, clock: &Clock, mounted_real: &[(f64, f64)]) -> Vec<(f64, f64)> {
+    let measuring = measurement_dwells(traj).poses;
+    measuring
+        .iter()
+        .map(|d| {
+            // From the arrival (before a pause that precedes the dwell) to the departure
+            // (after a pause that follows it), cut to the time the bar is mounted.
+            let arrive = clock.real(d.from);
+            let leave = clock.real_after(d.to);
+            let w = mounted_real
+                .iter()
+                .find(|&&(m0, m1)| m1 > arrive && m0 < leave)
+                .copied()
+                .unwrap_or((arrive, leave));
+            (arrive.max(w.0), leave.min(w.1))
+        })
+        .collect()
+}
+
+/// What the bar log is made of, on the controller's clock: when the bar is mounted, where its
+/// log has gaps, what it reads in someone's hands and where it vibrates.
+struct BarScene<'a> {
+    clock: &'a Clock,
+    mounted: &'a [(f64, f64)],
+    gaps: &'a [(f64, f64)],
+    junk: &'a [Segment],
+    vib: &'a [(f64, f64)],
+}
+
+/// The bar's samples on its own clock over [t_first, t_last] (controller clock), and the
+/// synchronous recording of the same samples, its time counted from the bar log's first.
+fn sample_bar(
+    scene: &BarScene,
+    sampler: &mut super::Sampler<'_>,
+    rng: &mut impl Rng,
+    opts: &LogOptions,
+    (t_first, t_last): (f64, f64),
+    temp_log: bool,
+) -> (BarLog, Measured) {
+    let BarScene {
+        clock,
+        mounted,
+        gaps,
+        junk,
+        vib,
+    } = scene;
+    let is_mounted = |tc: f64| mounted.iter().any(|&(a, b)| tc >= a && tc < b);
+    let a = 1.0 + opts.drift;
+    let to_bar = |tc: f64| opts.offset + a * tc;
+    let u_first = to_bar(t_first);
+    let n = ((to_bar(t_last) - u_first) * opts.bar_rate).floor() as usize + 1;
+    let mut bar = BarLog {
+        temp: temp_log.then(Vec::new),
+        ..BarLog::default()
+    };
+    let mut sync = Measured {
+        temp: temp_log.then(Vec::new),
+        ..Measured::default()
+    };
+    for k in 0..n {
+        let u = u_first + k as f64 / opts.bar_rate;
+        let tc = (u - opts.offset) / a;
+        if gaps.iter().any(|&(x, y)| tc >= x && tc < y) {
+            continue;
+        }
+        let drop = opts.dropout > 0.0 && rng.random::<f64>() < opts.dropout;
+        let reading = if is_mounted(tc) {
+            let tp = clock.program(tc);
+            let (q, l) = sampler.sample(tp, tc.max(0.0));
+            let mut l = l + opts.zero;
+            for &(x, y) in vib.iter() {
+                if tc >= x + 0.3 && tc <= y {
+                    let s = tc - x - 0.3;
+                    l += opts.vibration_amp
+                        * (-s / 0.6).exp()
+                        * (std::f64::consts::TAU * 15.0 * s).sin();
+                }
+            }
+            if !drop {
+                sync.t.push(u);
+                sync.q.push(q);
+                sync.length.push(l);
+                if let Some(t) = sync.temp.as_mut() {
+                    t.push(sampler.temperature(tc.max(0.0)));
+                }
+            }
+            Some(l)
+        } else {
+            junk_at(junk, tc).map(|l| l + 1e-6 * super::gauss(rng))
+        };
+        if let (Some(l), false) = (reading, drop) {
+            bar.t.push(u);
+            bar.length.push(l);
+            if let Some(t) = bar.temp.as_mut() {
+                t.push(sampler.temperature(tc.max(0.0)));
+            }
+        }
+    }
+    // The synchronous recording's time counts from the bar log's first sample.
+    let first = bar.t.first().copied().unwrap_or(u_first);
+    for t in sync.t.iter_mut() {
+        *t -= first;
+    }
+    (bar, sync)
 }
 
 /// A program's dwells sorted into measurement poses and settling dwells.

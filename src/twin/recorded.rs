@@ -239,10 +239,56 @@ fn stop_and_measure(
     }
     // The measurement poses are the program's dwells; edbbgen's header list, when present, is
     // a check that they are the poses it was compiled for, at this fixture and tool.
+    let from_dwells = check_poses(p, &traj, &tpl, instruction)?;
+    let sm = logs::stop_and_measure(&tpl, bar).map_err(|e| refuse(Input::BarLog, e))?;
+    let m = readings(&tpl, &sm, bar);
+    let used: usize = sm
+        .readings
+        .iter()
+        .map(|&(_, j)| sm.plateaus[j].last_row - sm.plateaus[j].first_row + 1)
+        .sum();
+    let mut summary: Vec<String> = from_dwells.into_iter().collect();
+    summary.push(matched_line(bar_name, &sm, &tpl));
+    let spreads: Vec<f64> = sm
+        .readings
+        .iter()
+        .map(|&(_, j)| sm.plateaus[j].spread)
+        .collect();
+    if let Some(worst) = spreads.iter().copied().reduce(f64::max) {
+        summary.push(format!(
+            "plateau spread: median {} µm, largest {} µm",
+            fmt_fixed(median(&spreads).unwrap_or(worst) * 1e6, 2),
+            fmt_fixed(worst * 1e6, 2)
+        ));
+    }
+    let extra = RunExtra {
+        bar_log: bar_name.to_string(),
+        program: None,
+        joint_log: None,
+        form: "stop_and_measure",
+        plateaus: Some(sm.report),
+        missing: Some(sm.missing),
+        clock: sm.clock,
+        length_zero_mm: to_mm(sm.zero),
+        length_zero_std_mm: to_mm(sm.zero_std),
+        rows_unused: bar.len() - used,
+        samples_per_row: None,
+    };
+    Ok((m, extra, summary))
+}
+
+/// Checks the dwells against the header's measure list; without one, a note of the poses
+/// taken from the dwells (and the dwells left out).
+fn check_poses(
+    p: &Program,
+    traj: &Trajectory,
+    tpl: &logs::Template,
+    instruction: &str,
+) -> Result<Option<String>, Refusal> {
     let mut from_dwells = None;
     match logs::measure_list(p.parsed).map_err(|e| refuse(Input::Program, e))? {
         None => {
-            let sorted = logsim::measurement_dwells(&traj);
+            let sorted = logsim::measurement_dwells(traj);
             let mut left_out = String::new();
             if !sorted.settling.is_empty() {
                 left_out += &format!(
@@ -266,7 +312,7 @@ fn stop_and_measure(
         Some(list) => {
             if list.len() != tpl.slots.len() {
                 return Err(refuse(
-            Input::Program,
+                    Input::Program,
                     format!(
                         "the header lists {} measurement poses, the program dwells at {} with the bar mounted",
                         list.len(),
@@ -277,7 +323,7 @@ fn stop_and_measure(
             for (k, (l, s)) in list.iter().zip(&tpl.slots).enumerate() {
                 if (l - s.length).abs() > 2e-6 {
                     return Err(refuse(
-            Input::Program,
+                        Input::Program,
                         format!(
                             "pose {}: the header says L {} mm, its joints give {} mm with this fixture and tool: wrong --fixture or --tool?",
                             k + 1,
@@ -289,7 +335,12 @@ fn stop_and_measure(
             }
         }
     }
-    let sm = logs::stop_and_measure(&tpl, bar).map_err(|e| refuse(Input::BarLog, e))?;
+    Ok(from_dwells)
+}
+
+/// The matched plateaus as static readings: their time, pose, mean, scatter and samples, and
+/// the mean temperature over each where the bar logs one.
+fn readings(tpl: &logs::Template, sm: &logs::StopAndMeasure, bar: &BarLog) -> Measured {
     let mut m = Measured {
         form: Form::Static { timed: true },
         std: Some(Vec::new()),
@@ -313,14 +364,13 @@ fn stop_and_measure(
             v.push(r.iter().sum::<f64>() / r.len() as f64);
         }
     }
-    let used: usize = sm
-        .readings
-        .iter()
-        .map(|&(_, j)| sm.plateaus[j].last_row - sm.plateaus[j].first_row + 1)
-        .sum();
+    m
+}
+
+/// The summary's line on the match: the poses matched and missing, the clock and the zero.
+fn matched_line(bar_name: &str, sm: &logs::StopAndMeasure, tpl: &logs::Template) -> String {
     let unmatched = sm.report.iter().filter(|r| r.pose.is_none()).count();
-    let mut summary: Vec<String> = from_dwells.into_iter().collect();
-    summary.push(format!(
+    format!(
         "{}: {} of {} poses matched to plateaus{}{}; clock offset {} s (the program's time, its first pause taken out), drift {} ppm; bar reads nominal + {} mm",
         bar_name,
         sm.readings.len(),
@@ -359,33 +409,7 @@ fn stop_and_measure(
             None => fmt_fixed(sm.clock.drift_ppm, 0),
         },
         fmt_fixed(to_mm(sm.zero), 3)
-    ));
-    let spreads: Vec<f64> = sm
-        .readings
-        .iter()
-        .map(|&(_, j)| sm.plateaus[j].spread)
-        .collect();
-    if let Some(worst) = spreads.iter().copied().reduce(f64::max) {
-        summary.push(format!(
-            "plateau spread: median {} µm, largest {} µm",
-            fmt_fixed(median(&spreads).unwrap_or(worst) * 1e6, 2),
-            fmt_fixed(worst * 1e6, 2)
-        ));
-    }
-    let extra = RunExtra {
-        bar_log: bar_name.to_string(),
-        program: None,
-        joint_log: None,
-        form: "stop_and_measure",
-        plateaus: Some(sm.report),
-        missing: Some(sm.missing),
-        clock: sm.clock,
-        length_zero_mm: to_mm(sm.zero),
-        length_zero_std_mm: to_mm(sm.zero_std),
-        rows_unused: bar.len() - used,
-        samples_per_row: None,
-    };
-    Ok((m, extra, summary))
+    )
 }
 
 fn continuous(

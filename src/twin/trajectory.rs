@@ -88,7 +88,6 @@ impl Trajectory {
         program: &Parsed,
     ) -> Result<Trajectory, SimError> {
         let lim = Limits::of(robot);
-        let vmax = lim.speed;
         // The moves: targets (rad), cruise times, a blend written at the end, the bar in place.
         let mut poses: Vec<[f64; 6]> = Vec::new();
         let mut cruise: Vec<f64> = Vec::new();
@@ -101,7 +100,7 @@ impl Trajectory {
         let mut cur_axes = [0.0; 6];
         for (k, l) in program.lines.iter().enumerate() {
             match &l.step {
-                step @ Step::Move {
+                Step::Move {
                     target,
                     axes,
                     blend,
@@ -112,31 +111,7 @@ impl Trajectory {
                     let c = match poses.last() {
                         None => 0.0,
                         Some(cur) => {
-                            let eq7 = timing::eq7(cur, &target, &vmax);
-                            // A move whose speed is left to the controller runs at the axes'
-                            // maximum; a standstill takes no time.
-                            let commanded = program.duration(&cur_axes, step, &vmax).unwrap_or(eq7);
-                            if eq7 > 0.0 && !(commanded.is_finite() && commanded > 0.0) {
-                                return Err(SimError::Program {
-                                    line: l.line,
-                                    msg: "move without a usable feed".into(),
-                                });
-                            }
-                            // A whole-move time word (RAPID `\T`, URScript `t`) states the
-                            // ramps too: its cruise is what leaves them room (as `verify`).
-                            let c = match (program.timing.move_time, word) {
-                                (MoveTime::Total, Timing::Duration(_)) => timing::cruise_of(
-                                    commanded,
-                                    timing::accel_time(cur, &target, &lim.accel),
-                                ),
-                                _ => commanded,
-                            };
-                            // The controller never runs an axis above its maximum speed.
-                            if eq7 > 0.0 {
-                                c.max(eq7)
-                            } else {
-                                0.0
-                            }
+                            move_cruise(program, &lim, l, word, (cur, &cur_axes), &target)?
                         }
                     };
                     events.push(Event::Move(poses.len()));
@@ -162,17 +137,7 @@ impl Trajectory {
             return Err(SimError::Empty("the program has no moves".into()));
         };
         // The corners that blend, as `verify` counts them.
-        let n = poses.len();
-        let blended: Vec<bool> = (0..n)
-            .map(|j| {
-                blend_written[j]
-                    && mounted_at[j]
-                    && flows_on[j]
-                    && j > 0
-                    && j + 1 < n
-                    && mounted_at[j + 1]
-            })
-            .collect();
+        let blended = blended_corners(&blend_written, &mounted_at, &flows_on);
         let timings = timing::moves(
             &poses,
             &cruise,
@@ -180,46 +145,7 @@ impl Trajectory {
             &lim,
             program.timing.blend_acceleration,
         );
-        let mut segs: Vec<Seg> = Vec::with_capacity(n);
-        let mut t_end = 0.0f64;
-        let mut pauses: Vec<f64> = Vec::new();
-        let mut dwells: Vec<Dwell> = Vec::new();
-        // The program's time starts at the first move (the approach's target).
-        let mut started = false;
-        let mut last_q = start;
-        for e in &events {
-            match *e {
-                Event::Move(0) => started = true,
-                Event::Move(k) => {
-                    let overlap = if blended[k - 1] {
-                        timings[k - 1].overlap_next
-                    } else {
-                        0.0
-                    };
-                    let seg = Seg {
-                        t0: t_end - overlap,
-                        timing: timings[k],
-                        delta: std::array::from_fn(|i| poses[k][i] - poses[k - 1][i]),
-                    };
-                    t_end = t_end.max(seg.end());
-                    segs.push(seg);
-                    last_q = poses[k];
-                }
-                Event::Dwell(s, line) => {
-                    let from = t_end;
-                    t_end += s.max(0.0);
-                    if started {
-                        dwells.push(Dwell {
-                            from,
-                            to: t_end,
-                            q: last_q,
-                            line,
-                        });
-                    }
-                }
-                Event::Pause => pauses.push(t_end),
-            }
-        }
+        let (segs, t_end, pauses, dwells) = place_events(&events, &poses, &blended, &timings);
         let mut prefix = Vec::with_capacity(segs.len() + 1);
         let mut acc = start;
         prefix.push(acc);
@@ -311,4 +237,106 @@ impl Trajectory {
             .iter()
             .position(|&(a, b)| t >= a - 1e-9 && t <= b + 1e-9)
     }
+}
+/// A move's cruise time (s) from `cur` (the controller axes `cur_axes`) to `target` (rad), as
+/// the controller runs it: the commanded time, never above an axis's maximum speed.
+fn move_cruise(
+    program: &Parsed,
+    lim: &Limits,
+    l: &crate::dialect::Line,
+    word: &Timing,
+    (cur, cur_axes): (&[f64; 6], &[f64; 6]),
+    target: &[f64; 6],
+) -> Result<f64, SimError> {
+    let vmax = lim.speed;
+    let step = &l.step;
+    let eq7 = timing::eq7(cur, target, &vmax);
+    // A move whose speed is left to the controller runs at the axes' maximum; a standstill
+    // takes no time.
+    let commanded = program.duration(cur_axes, step, &vmax).unwrap_or(eq7);
+    if eq7 > 0.0 && !(commanded.is_finite() && commanded > 0.0) {
+        return Err(SimError::Program {
+            line: l.line,
+            msg: "move without a usable feed".into(),
+        });
+    }
+    // A whole-move time word (RAPID `\T`, URScript `t`) states the ramps too: its cruise is
+    // what leaves them room (as `verify`).
+    let c = match (program.timing.move_time, word) {
+        (MoveTime::Total, Timing::Duration(_)) => {
+            timing::cruise_of(commanded, timing::accel_time(cur, target, &lim.accel))
+        }
+        _ => commanded,
+    };
+    // The controller never runs an axis above its maximum speed.
+    Ok(if eq7 > 0.0 { c.max(eq7) } else { 0.0 })
+}
+
+/// The corners that blend: a blend written, into a move that follows directly, the bar in
+/// place on both.
+fn blended_corners(blend_written: &[bool], mounted_at: &[bool], flows_on: &[bool]) -> Vec<bool> {
+    let n = blend_written.len();
+    (0..n)
+        .map(|j| {
+            blend_written[j]
+                && mounted_at[j]
+                && flows_on[j]
+                && j > 0
+                && j + 1 < n
+                && mounted_at[j + 1]
+        })
+        .collect()
+}
+
+/// The moves and dwells on the program's clock: the segments, the end time, the pauses and
+/// the dwells (those after the first move).
+fn place_events(
+    events: &[Event],
+    poses: &[[f64; 6]],
+    blended: &[bool],
+    timings: &[MoveTiming],
+) -> (Vec<Seg>, f64, Vec<f64>, Vec<Dwell>) {
+    let n = poses.len();
+    let start = poses[0];
+    let mut segs: Vec<Seg> = Vec::with_capacity(n);
+    let mut t_end = 0.0f64;
+    let mut pauses: Vec<f64> = Vec::new();
+    let mut dwells: Vec<Dwell> = Vec::new();
+    // The program's time starts at the first move (the approach's target).
+    let mut started = false;
+    let mut last_q = start;
+    for e in events {
+        match *e {
+            Event::Move(0) => started = true,
+            Event::Move(k) => {
+                let overlap = if blended[k - 1] {
+                    timings[k - 1].overlap_next
+                } else {
+                    0.0
+                };
+                let seg = Seg {
+                    t0: t_end - overlap,
+                    timing: timings[k],
+                    delta: std::array::from_fn(|i| poses[k][i] - poses[k - 1][i]),
+                };
+                t_end = t_end.max(seg.end());
+                segs.push(seg);
+                last_q = poses[k];
+            }
+            Event::Dwell(s, line) => {
+                let from = t_end;
+                t_end += s.max(0.0);
+                if started {
+                    dwells.push(Dwell {
+                        from,
+                        to: t_end,
+                        q: last_q,
+                        line,
+                    });
+                }
+            }
+            Event::Pause => pauses.push(t_end),
+        }
+    }
+    (segs, t_end, pauses, dwells)
 }

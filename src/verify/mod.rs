@@ -290,19 +290,7 @@ pub fn rebuild(
 ) -> Result<(Summary, Vec<Executed>), Failure> {
     // The joint values only mean what the mapping says: a program written for another
     // mapping (a wrong J2/J3 coupling, sign or offset) is refused before its poses are read.
-    if let Some(declared) = parsed.header_value("controller") {
-        let in_force = parsed.map.describe();
-        if declared != in_force {
-            return Err(fail(
-                0,
-                0.0,
-                Reason::Program,
-                format!(
-                    "the program was written for the controller axes \"{declared}\", but the mapping in force is \"{in_force}\" (the cell's [controller] section, else the dialect's default)"
-                ),
-            ));
-        }
-    }
+    check_controller(parsed)?;
     let (motions, mount_at, blended, total) = timed_motions(robot, parsed, dialect)?;
     let n = motions.len();
     let free = ck.unmounted();
@@ -371,51 +359,9 @@ pub fn rebuild(
         }
         // The corner at the end of this move: the whole region the controller may execute.
         if blended[j] {
-            let (a, b) = (&motions[j - 1], &motions[j + 1]);
-            let len = |x: &[f64; 6], y: &[f64; 6]| {
-                (0..6).map(|i| (x[i] - y[i]).powi(2)).sum::<f64>().sqrt()
-            };
-            let value = m.blend.unwrap_or(0.0);
-            let at_corner = |v: Violation| Failure {
-                line: m.line,
-                time,
-                violation: Violation {
-                    reason: v.reason,
-                    detail: format!(
-                        "in the corner region of its blend ({} {}{}): {}",
-                        dialect.corner.instruction,
-                        fmt_fixed(value, 3),
-                        if dialect.corner.unit.is_empty() {
-                            String::new()
-                        } else {
-                            format!(" {}", dialect.corner.unit)
-                        },
-                        v.detail
-                    ),
-                },
-            };
-            let r = blend::region(
-                ck,
-                &dialect.corner,
-                m.corner,
-                &a.target,
-                &m.target,
-                &b.target,
-                value,
-                (len(&a.axes, &m.axes), len(&m.axes, &b.axes)),
-            )
-            .map_err(|why| {
-                at_corner(Violation {
-                    reason: Reason::Program,
-                    detail: why.to_string(),
-                })
-            })?;
-            let (e1, e2) = r.edges();
-            let mut e = Extremes::default();
-            ck.patch(&r.corner, &e1, &e2, &mut e)
-                .map_err(|(_, v)| at_corner(v))?;
+            let (e, middle) = check_corner(ck, dialect, &motions, j, time)?;
             ext.merge(&e);
-            note_clear(&r.point(0.5, 0.5), &mut min_clear);
+            note_clear(&middle, &mut min_clear);
             blends += 1;
         }
     }
@@ -443,6 +389,79 @@ pub fn rebuild(
         },
         executed,
     ))
+}
+
+/// Refuses a program written for another controller mapping than the one in force.
+fn check_controller(parsed: &Parsed) -> Result<(), Failure> {
+    if let Some(declared) = parsed.header_value("controller") {
+        let in_force = parsed.map.describe();
+        if declared != in_force {
+            return Err(fail(
+                0,
+                0.0,
+                Reason::Program,
+                format!(
+                    "the program was written for the controller axes \"{declared}\", but the mapping in force is \"{in_force}\" (the cell's [controller] section, else the dialect's default)"
+                ),
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// Checks the corner at the end of motion `j` (at `time`): the whole region the controller may
+/// execute. Returns the extremes met and the region's middle.
+fn check_corner(
+    ck: &Checker,
+    dialect: &Dialect,
+    motions: &[Motion],
+    j: usize,
+    time: f64,
+) -> Result<(Extremes, [f64; 6]), Failure> {
+    let m = &motions[j];
+    let (a, b) = (&motions[j - 1], &motions[j + 1]);
+    let len =
+        |x: &[f64; 6], y: &[f64; 6]| (0..6).map(|i| (x[i] - y[i]).powi(2)).sum::<f64>().sqrt();
+    let value = m.blend.unwrap_or(0.0);
+    let at_corner = |v: Violation| Failure {
+        line: m.line,
+        time,
+        violation: Violation {
+            reason: v.reason,
+            detail: format!(
+                "in the corner region of its blend ({} {}{}): {}",
+                dialect.corner.instruction,
+                fmt_fixed(value, 3),
+                if dialect.corner.unit.is_empty() {
+                    String::new()
+                } else {
+                    format!(" {}", dialect.corner.unit)
+                },
+                v.detail
+            ),
+        },
+    };
+    let r = blend::region(
+        ck,
+        &dialect.corner,
+        m.corner,
+        &a.target,
+        &m.target,
+        &b.target,
+        value,
+        (len(&a.axes, &m.axes), len(&m.axes, &b.axes)),
+    )
+    .map_err(|why| {
+        at_corner(Violation {
+            reason: Reason::Program,
+            detail: why.to_string(),
+        })
+    })?;
+    let (e1, e2) = r.edges();
+    let mut e = Extremes::default();
+    ck.patch(&r.corner, &e1, &e2, &mut e)
+        .map_err(|(_, v)| at_corner(v))?;
+    Ok((e, r.point(0.5, 0.5)))
 }
 
 /// The program's estimated duration as `verify` times it (each move with its ramps at the robot's
@@ -484,63 +503,7 @@ fn timed_motions(
                 let q = target.map(|d| d * DEG);
                 let cruise = match prev {
                     None => 0.0,
-                    Some((p, from_axes)) => {
-                        let min_time = move_time(&p, &q, &speeds);
-                        // A standstill (the same target again, e.g. a pause for a load
-                        // change) takes no time at any speed.
-                        let standstill = (min_time == 0.0).then_some(0.0);
-                        let duration = parsed
-                            .duration(&from_axes, step, &speeds)
-                            .or(standstill)
-                            .ok_or_else(|| {
-                                fail(
-                                    l.line,
-                                    0.0,
-                                    Reason::JointSpeed,
-                                    "the move's speed is left to the controller: only the approach (the first move) may do that".into(),
-                                )
-                            })?;
-                        // A whole-move time (RAPID `\T`, URScript `t`) must leave room for the ramps.
-                        let (min_time, what) = match (dialect.move_time, step) {
-                            (
-                                MoveTime::Total,
-                                Step::Move {
-                                    timing: crate::dialect::Timing::Duration(_),
-                                    ..
-                                },
-                            ) => (
-                                timing::move_time(&p, &q, &lim, 1.0),
-                                "at its maximum speed and acceleration",
-                            ),
-                            _ => (min_time, "at its maximum speed"),
-                        };
-                        if duration < min_time * (1.0 - 1e-6) {
-                            return Err(fail(
-                                l.line,
-                                0.0,
-                                Reason::JointSpeed,
-                                format!(
-                                    "move takes {} s but the slowest axis needs {} s {what}",
-                                    fmt_fixed(duration, 3),
-                                    fmt_fixed(min_time, 3)
-                                ),
-                            ));
-                        }
-                        // What the time word states: at the cruise (the ramps on top), or the
-                        // whole move (its cruise is what leaves the ramps room).
-                        match (dialect.move_time, step) {
-                            (
-                                MoveTime::Total,
-                                Step::Move {
-                                    timing: crate::dialect::Timing::Duration(_),
-                                    ..
-                                },
-                            ) => {
-                                timing::cruise_of(duration, timing::accel_time(&p, &q, &lim.accel))
-                            }
-                            _ => duration,
-                        }
-                    }
+                    Some(from) => cruise_time(parsed, dialect, (&speeds, &lim), l, from, q)?,
                 };
                 let flows_on = matches!(
                     parsed.lines.get(k + 1).map(|n| &n.step),
@@ -555,26 +518,7 @@ fn timed_motions(
                 // corner models' values are in their own units and bound other things.
                 let tcp = corner.unwrap_or(dialect.corner.kind) == CornerKind::TcpDistance;
                 if let (Some(b), Some(stated), true) = (blend, stated_blend, tcp) {
-                    // The header prints 0.1 mm; the program text the blend itself. A TCP blend
-                    // that overrides the dialect's own corner model (FANUC `CR` in a `CNT`
-                    // dialect) is written in whole millimetres: the stated blend rounded up.
-                    let allowed = if corner.is_some() {
-                        (stated - 1e-9).ceil()
-                    } else {
-                        stated + 0.05
-                    };
-                    if *b > allowed + 1e-9 {
-                        return Err(fail(
-                            l.line,
-                            0.0,
-                            Reason::Program,
-                            format!(
-                                "the move blends its corner by {} mm, more than the {} mm corner blend the program header states",
-                                fmt_fixed(*b, 3),
-                                fmt_fixed(stated, 1)
-                            ),
-                        ));
-                    }
+                    check_blend(l.line, *b, stated, corner.is_some())?;
                 }
                 motions.push(Motion {
                     line: l.line,
@@ -624,9 +568,107 @@ fn timed_motions(
         motions.iter_mut().for_each(|m| m.mounted = true);
         mount_at.push(1);
     }
-    // The corners that blend: into a move that follows directly, the bar in place on both.
+    let blended = blended_corners(&motions);
+    let total = time_motions(&mut motions, &blended, &lim, dialect);
+    Ok((motions, mount_at, blended, total))
+}
+
+/// A move's time at its cruise speed from `from` = (target, controller axes) to `q`, checked
+/// against the robot's speeds (and accelerations, where the time word states the whole move).
+fn cruise_time(
+    parsed: &Parsed,
+    dialect: &Dialect,
+    (speeds, lim): (&[f64; 6], &Limits),
+    l: &crate::dialect::Line,
+    (p, from_axes): ([f64; 6], [f64; 6]),
+    q: [f64; 6],
+) -> Result<f64, Failure> {
+    let step = &l.step;
+    let min_time = move_time(&p, &q, speeds);
+    // A standstill (the same target again, e.g. a pause for a load change) takes no time at
+    // any speed.
+    let standstill = (min_time == 0.0).then_some(0.0);
+    let duration = parsed
+        .duration(&from_axes, step, speeds)
+        .or(standstill)
+        .ok_or_else(|| {
+            fail(
+                l.line,
+                0.0,
+                Reason::JointSpeed,
+                "the move's speed is left to the controller: only the approach (the first move) may do that".into(),
+            )
+        })?;
+    // A whole-move time (RAPID `\T`, URScript `t`) must leave room for the ramps.
+    let (min_time, what) = match (dialect.move_time, step) {
+        (
+            MoveTime::Total,
+            Step::Move {
+                timing: crate::dialect::Timing::Duration(_),
+                ..
+            },
+        ) => (
+            timing::move_time(&p, &q, lim, 1.0),
+            "at its maximum speed and acceleration",
+        ),
+        _ => (min_time, "at its maximum speed"),
+    };
+    if duration < min_time * (1.0 - 1e-6) {
+        return Err(fail(
+            l.line,
+            0.0,
+            Reason::JointSpeed,
+            format!(
+                "move takes {} s but the slowest axis needs {} s {what}",
+                fmt_fixed(duration, 3),
+                fmt_fixed(min_time, 3)
+            ),
+        ));
+    }
+    // What the time word states: at the cruise (the ramps on top), or the whole move (its
+    // cruise is what leaves the ramps room).
+    Ok(match (dialect.move_time, step) {
+        (
+            MoveTime::Total,
+            Step::Move {
+                timing: crate::dialect::Timing::Duration(_),
+                ..
+            },
+        ) => timing::cruise_of(duration, timing::accel_time(&p, &q, &lim.accel)),
+        _ => duration,
+    })
+}
+
+/// Refuses a TCP blend of `b` mm on line `line` beyond the header's `stated` corner blend
+/// (`overrides`: the move overrides the dialect's own corner model).
+fn check_blend(line: usize, b: f64, stated: f64, overrides: bool) -> Result<(), Failure> {
+    // The header prints 0.1 mm; the program text the blend itself. A TCP blend that overrides
+    // the dialect's own corner model (FANUC `CR` in a `CNT` dialect) is written in whole
+    // millimetres: the stated blend rounded up.
+    let allowed = if overrides {
+        (stated - 1e-9).ceil()
+    } else {
+        stated + 0.05
+    };
+    if b > allowed + 1e-9 {
+        return Err(fail(
+            line,
+            0.0,
+            Reason::Program,
+            format!(
+                "the move blends its corner by {} mm, more than the {} mm corner blend the program header states",
+                fmt_fixed(b, 3),
+                fmt_fixed(stated, 1)
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// The corners that blend: into a move that follows directly, the bar in place on both.
+fn blended_corners(motions: &[Motion]) -> Vec<bool> {
     let n = motions.len();
-    let blended: Vec<bool> = (0..n)
+    (0..n)
         .map(|j| {
             let m = &motions[j];
             m.blend.is_some()
@@ -636,22 +678,25 @@ fn timed_motions(
                 && j + 1 < n
                 && motions[j + 1].mounted
         })
-        .collect();
-    // The times: each move with its ramps (scaled where the controller blends), the blends'
-    // overlaps off the total, as the compiler estimates them.
+        .collect()
+}
+
+/// The times: each move with its ramps (scaled where the controller blends), the blends'
+/// overlaps off the total, as the compiler estimates them; the dwells on top. Sets each
+/// motion's duration and returns the total.
+fn time_motions(motions: &mut [Motion], blended: &[bool], lim: &Limits, dialect: &Dialect) -> f64 {
     let poses: Vec<[f64; 6]> = motions.iter().map(|m| m.target).collect();
     let cruise: Vec<f64> = motions.iter().map(|m| m.cruise).collect();
     let (durations, total) = timing::program(
         &poses,
         &cruise,
-        &blended,
-        &lim,
+        blended,
+        lim,
         dialect.corner.blend_acceleration,
     );
     for (m, d) in motions.iter_mut().zip(&durations) {
         m.duration = *d;
     }
     // The dwells: standstills at the moves' targets, on top of the moves.
-    let total = total + motions.iter().map(|m| m.dwell_after).sum::<f64>();
-    Ok((motions, mount_at, blended, total))
+    total + motions.iter().map(|m| m.dwell_after).sum::<f64>()
 }

@@ -210,10 +210,12 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
         End,
     }
     let mut sec = Sec::Start;
-    let mut items: Vec<Item> = Vec::new();
-    let mut next_no = 1;
-    let mut moved = false;
-    let mut remark: Option<String> = None;
+    let mut main = Main {
+        next_no: 1,
+        moved: false,
+        remark: None,
+        items: Vec::new(),
+    };
     let mut positions: Vec<Position> = Vec::new();
     let mut open_p: Option<Position> = None;
     let mut end_line = 0;
@@ -289,53 +291,7 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
                     }
                 }
             }
-            Sec::Mn => {
-                let (no, rest) = t
-                    .split_once(':')
-                    .ok_or_else(|| perr(line, "an /MN line is 'n:  instruction ;'"))?;
-                let no: usize = no
-                    .trim()
-                    .parse()
-                    .map_err(|_| perr(line, format!("'{}' is not a line number", no.trim())))?;
-                if no != next_no {
-                    return Err(perr(line, format!("line number {no}, expected {next_no}")));
-                }
-                // The number with the indent before it: renumbered when lines are inserted.
-                let line_at = offset_in(text, raw);
-                out.positions
-                    .line_numbers
-                    .push((line_at..offset_in(text, t) + t.find(':').unwrap_or(0), no));
-                next_no += 1;
-                let instr = rest
-                    .trim_end()
-                    .strip_suffix(';')
-                    .ok_or_else(|| perr(line, "an /MN line ends with ';'"))?
-                    .trim();
-                if instr.is_empty() {
-                    continue;
-                }
-                if let Some(r) = instr.strip_prefix('!') {
-                    if r.chars().count() > 32 {
-                        return Err(perr(
-                            line,
-                            format!(
-                                "a remark holds at most 32 characters, this one {}",
-                                r.chars().count()
-                            ),
-                        ));
-                    }
-                    if !moved {
-                        push_header(&mut out.header, r);
-                    }
-                    remark = Some(r.trim().to_string());
-                    continue;
-                }
-                let comment = remark.take();
-                if let Some(item) = instruction(text, raw, line, instr, comment)? {
-                    moved |= matches!(item, Item::Move(_));
-                    items.push(item);
-                }
-            }
+            Sec::Mn => main.line(&mut out, text, raw, line)?,
             Sec::Pos => pos_line(text, line, t, &mut open_p, &mut positions)?,
         }
     }
@@ -345,6 +301,89 @@ pub fn parse(text: &str, map: &ControllerMap) -> Result<Parsed, ParseError> {
             "the program does not end with /END",
         ));
     }
+    assemble(out, main.items, &positions, map, end_line)
+}
+
+/// The `/MN` section as it is read: the next line number, whether a move came yet (remarks
+/// before the first are the header's), the remark waiting for its motion, the instructions.
+struct Main {
+    next_no: usize,
+    moved: bool,
+    remark: Option<String>,
+    items: Vec<Item>,
+}
+
+impl Main {
+    /// The `/MN` line `raw` (line number `line`).
+    fn line(
+        &mut self,
+        out: &mut Parsed,
+        text: &str,
+        raw: &str,
+        line: usize,
+    ) -> Result<(), ParseError> {
+        let t = raw.trim();
+        let (no, rest) = t
+            .split_once(':')
+            .ok_or_else(|| perr(line, "an /MN line is 'n:  instruction ;'"))?;
+        let no: usize = no
+            .trim()
+            .parse()
+            .map_err(|_| perr(line, format!("'{}' is not a line number", no.trim())))?;
+        if no != self.next_no {
+            return Err(perr(
+                line,
+                format!("line number {no}, expected {}", self.next_no),
+            ));
+        }
+        // The number with the indent before it: renumbered when lines are inserted.
+        let line_at = offset_in(text, raw);
+        out.positions
+            .line_numbers
+            .push((line_at..offset_in(text, t) + t.find(':').unwrap_or(0), no));
+        self.next_no += 1;
+        let instr = rest
+            .trim_end()
+            .strip_suffix(';')
+            .ok_or_else(|| perr(line, "an /MN line ends with ';'"))?
+            .trim();
+        if instr.is_empty() {
+            return Ok(());
+        }
+        if let Some(r) = instr.strip_prefix('!') {
+            if r.chars().count() > 32 {
+                return Err(perr(
+                    line,
+                    format!(
+                        "a remark holds at most 32 characters, this one {}",
+                        r.chars().count()
+                    ),
+                ));
+            }
+            if !self.moved {
+                push_header(&mut out.header, r);
+            }
+            self.remark = Some(r.trim().to_string());
+            return Ok(());
+        }
+        let comment = self.remark.take();
+        if let Some(item) = instruction(text, raw, line, instr, comment)? {
+            self.moved |= matches!(item, Item::Move(_));
+            self.items.push(item);
+        }
+        Ok(())
+    }
+}
+
+/// The program from its `/MN` instructions in order, each motion's joints from `/POS`, and the
+/// final `/END` step.
+fn assemble(
+    mut out: Parsed,
+    items: Vec<Item>,
+    positions: &[Position],
+    map: &ControllerMap,
+    end_line: usize,
+) -> Result<Parsed, ParseError> {
     for it in items {
         match it {
             Item::Step(l) => out.lines.push(l),
