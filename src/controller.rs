@@ -143,6 +143,23 @@ fn bad(msg: impl Into<String>) -> ControllerError {
 }
 
 impl ControllerMap {
+    /// The mapping without a dialect (compensated targets): the cell's `[controller]` over
+    /// model joints (deg, J1..J6, no coupling unless the cell says so), else the identity.
+    pub fn plain(
+        spec: Option<&ControllerSpec>,
+        robot: &crate::robot::Robot,
+    ) -> Result<ControllerMap, ControllerError> {
+        let defaults = ControllerDefaults {
+            units: Units::Deg,
+            units_configurable: true,
+            axis_names: ["J1", "J2", "J3", "J4", "J5", "J6"].map(str::to_string),
+            axis_names_configurable: true,
+            j3_coupling: Coupling::Factor(0),
+            j3_coupling_parallel_arm: None,
+        };
+        ControllerMap::resolve(spec, &defaults, "targets", robot)
+    }
+
     /// Model joints are controller axes (RS274/NGC's default).
     pub fn identity(units: Units, names: [&str; 6]) -> Self {
         ControllerMap {

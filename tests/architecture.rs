@@ -108,6 +108,107 @@ fn no_module_imports_in_a_circle() {
     );
 }
 
+/// The compiler's stages: what the code map's "never depend on a stage" rules name.
+const STAGES: &[&str] = &[
+    "sample", "select", "order", "safety", "pipeline", "emit", "verify",
+];
+
+/// The layering rules of the code map (ARCHITECTURE.md, each module's **Never:** line), as
+/// (module, what it must not import, the rule's words).
+fn never_rules() -> Vec<(&'static str, Vec<&'static str>, &'static str)> {
+    let stages_and = |more: &[&'static str]| -> Vec<&'static str> {
+        STAGES.iter().chain(more).copied().collect()
+    };
+    vec![
+        (
+            "units",
+            stages_and(&["robot", "model", "cell", "cli", "report"]),
+            "the base of everything",
+        ),
+        (
+            "robot",
+            stages_and(&["cell", "calibrate", "twin", "diagnose", "report", "cli"]),
+            "depend on later stages",
+        ),
+        (
+            "model",
+            stages_and(&["cell", "calibrate", "twin", "report", "cli"]),
+            "the model is the robot's, not a stage's",
+        ),
+        (
+            "controller",
+            stages_and(&["cell"]),
+            "depend on the cell module or any stage",
+        ),
+        ("timing", STAGES.to_vec(), "depend on a stage"),
+        (
+            "cell",
+            STAGES.to_vec(),
+            "know about stages (it imports nothing from the pipeline)",
+        ),
+        (
+            "calibrate",
+            vec!["pipeline", "report", "cli"],
+            "import `pipeline` (the pipeline imports `calibrate::predict`)",
+        ),
+        (
+            "compensate",
+            vec!["pipeline", "report", "cli"],
+            "import `pipeline`, `report` or `cli`",
+        ),
+        (
+            "plot",
+            vec!["report", "cli", "pipeline"],
+            "figures from numbers, no reports or stages",
+        ),
+    ]
+}
+
+#[test]
+fn the_layering_the_code_map_states_holds() {
+    let graph = imports();
+    let map = std::fs::read_to_string(root().join("ARCHITECTURE.md")).unwrap();
+    let mut broken = Vec::new();
+    for (module, forbidden, rule) in never_rules() {
+        assert!(
+            graph.contains_key(module) || module == "units",
+            "{module}: no such module"
+        );
+        let deps = graph.get(module).cloned().unwrap_or_default();
+        for dep in forbidden {
+            if deps.contains(dep) {
+                broken.push(format!(
+                    "{module} imports {dep}: the code map says never {rule}"
+                ));
+            }
+        }
+    }
+    // Nothing but the binary imports the command line; only the command line and nothing in
+    // the library renders a report page.
+    for (module, deps) in &graph {
+        if module != "cli" && deps.contains("cli") {
+            broken.push(format!("{module} imports cli"));
+        }
+        if !matches!(module.as_str(), "cli" | "report") && deps.contains("report") {
+            broken.push(format!(
+                "{module} imports report (pages are drawn by the CLI's call)"
+            ));
+        }
+    }
+    // The rules quoted from the code map are still in it.
+    for rule in [
+        "depend on the cell module or any stage",
+        "import `pipeline`, `report` or `cli`",
+    ] {
+        assert!(map.contains(rule), "ARCHITECTURE.md no longer says: {rule}");
+    }
+    assert!(broken.is_empty(), "{}", broken.join("\n"));
+    // The check can fail: a graph with a forbidden edge is caught.
+    assert!(graph
+        .get("pipeline")
+        .is_some_and(|d| d.contains("calibrate")));
+}
+
 /// The code outside `src/dialect/` (not its tests), file by file.
 fn code_outside_dialects() -> Vec<(std::path::PathBuf, String)> {
     let mut out = Vec::new();
@@ -306,4 +407,23 @@ fn no_function_in_src_is_over_150_lines() {
         "functions over {MAX_FN_LINES} lines (split them at their steps into named functions):\n{}",
         offenders.join("\n")
     );
+}
+
+/// The command line parses, calls the library and prints: no file of it but the flag
+/// definitions (`args.rs`) grows past 400 lines.
+#[test]
+fn no_command_line_file_but_args_is_over_400_lines() {
+    let mut long = Vec::new();
+    for e in std::fs::read_dir(root().join("src/cli")).unwrap() {
+        let path = e.unwrap().path();
+        let name = path.file_name().unwrap().to_string_lossy().into_owned();
+        if name == "args.rs" || path.extension().is_none_or(|x| x != "rs") {
+            continue;
+        }
+        let n = std::fs::read_to_string(&path).unwrap().lines().count();
+        if n > 400 {
+            long.push(format!("src/cli/{name}: {n} lines"));
+        }
+    }
+    assert!(long.is_empty(), "move domain logic to the library:\n{}", long.join("\n"));
 }

@@ -41,6 +41,7 @@
 //! never explains the recorded data worse than the nominal one.
 
 pub mod delivered;
+pub mod files;
 pub mod header;
 mod parts;
 pub mod plot;

@@ -703,8 +703,8 @@ pub struct CompensateArgs {
     pub output: Option<PathBuf>,
     /// The tool point to compensate, in the flange frame, mm, optionally with its orientation
     /// (fixed-axis X-Y-Z, deg) [default: each robot file's MAP].
-    #[arg(long, value_name = "X,Y,Z[,RX,RY,RZ]", allow_hyphen_values = true)]
-    pub tcp: Option<String>,
+    #[arg(long, value_name = "X,Y,Z[,RX,RY,RZ]", allow_hyphen_values = true, value_parser = tcp_frame)]
+    pub tcp: Option<crate::robot::Frame>,
     /// Cell file: its `[controller]` section maps the joint values (targets, program, mastering)
     /// to the controller's axes.
     #[arg(long, value_name = "CELL.toml")]
@@ -824,6 +824,29 @@ pub struct PlaceArgs {
     /// PREFIX-K.cell.toml.
     #[arg(long, value_name = "DIR_or_PREFIX")]
     pub write_cell: Option<PathBuf>,
+}
+
+/// `--tcp X,Y,Z[,RX,RY,RZ]` (mm, deg): the tool frame in the flange frame (clap's error
+/// otherwise, exit 2).
+fn tcp_frame(s: &str) -> Result<crate::robot::Frame, String> {
+    use crate::units::{DEG, MM};
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|x| x.trim().parse::<f64>().ok().filter(|x| x.is_finite()))
+        .collect::<Option<_>>()
+        .ok_or_else(|| format!("'{s}' is not a list of numbers"))?;
+    match v.len() {
+        3 => Ok(crate::robot::Frame::translation(
+            nalgebra::Vector3::new(v[0], v[1], v[2]) * MM,
+        )),
+        6 => Ok(crate::robot::Frame::from_xyz_rpy(
+            [v[0] * MM, v[1] * MM, v[2] * MM],
+            [v[3] * DEG, v[4] * DEG, v[5] * DEG],
+        )),
+        n => Err(format!(
+            "'{s}' has {n} values, expected X,Y,Z or X,Y,Z,RX,RY,RZ (mm, deg)"
+        )),
+    }
 }
 
 /// A noise figure in µm: positive and finite (clap's error otherwise, exit 2).

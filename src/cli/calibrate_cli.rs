@@ -12,33 +12,10 @@ use crate::compensate::drift;
 use crate::diagnose::Run;
 use crate::model::MeasurementModel;
 use crate::robot::{self, LoadOptions, Robot};
-use crate::twin::recorded::{self, FromLogs};
-use crate::twin::{self, Measured};
+use crate::twin::recorded;
 use crate::units::{DEG, MM};
 use nalgebra::Vector3;
 use std::path::Path;
-
-/// `--effects`: auto, none, or a comma-separated list of library effects, `NAME[:JOINT]`.
-pub(super) fn parse_effects(s: &str) -> Result<Effects, Error> {
-    Effects::parse(s).map_err(|e| usage(format!("--effects: {e}")))
-}
-
-/// `--length-offset`: a length in mm (the reading minus the ball-centre distance), or `free`.
-pub(super) fn parse_length_offset(s: Option<&str>) -> Result<LengthOffset, Error> {
-    LengthOffset::parse(s).map_err(|e| usage(format!("--length-offset: {e}")))
-}
-
-fn is_urdf(path: &Path) -> bool {
-    path.extension()
-        .and_then(|e| e.to_str())
-        .is_some_and(|e| e.eq_ignore_ascii_case("urdf") || e.eq_ignore_ascii_case("xml"))
-}
-
-fn is_toml(path: &Path) -> bool {
-    path.extension()
-        .and_then(|e| e.to_str())
-        .is_some_and(|e| e.eq_ignore_ascii_case("toml"))
-}
 
 pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
     let fixtures = check_runs(a)?;
@@ -69,7 +46,7 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
             .ok_or_else(|| usage("the program header's MAP is not X, Y, Z mm: give --tool"))?,
         (None, None) => robot.tool.unwrap_or_else(Vector3::zeros),
     };
-    let mut c = read_campaign(a, &robot, &programs, &fixtures, map)?;
+    let mut c = logruns::read_campaign(a, &robot, &programs, &fixtures, map)?;
     let model = MeasurementModel::new(&robot, c.fixtures[0], map);
     let first = c.sources[0].bar;
     // --baseline: the fit starts from the previous calibration and states what moved since.
@@ -208,8 +185,8 @@ fn check_runs(a: &CalibrateArgs) -> Result<Vec<Vector3<f64>>, Error> {
         a.plot.as_deref(),
         a.html.as_deref(),
     ])?;
-    let urdf = is_urdf(&a.robot);
-    match (urdf, is_urdf(&a.output), is_toml(&a.output)) {
+    let urdf = robot::is_urdf(&a.robot);
+    match (urdf, robot::is_urdf(&a.output), robot::is_toml(&a.output)) {
         (true, true, _) | (false, _, true) => {}
         (true, _, _) => {
             return Err(usage(format!(
@@ -230,12 +207,13 @@ fn check_runs(a: &CalibrateArgs) -> Result<Vec<Vector3<f64>>, Error> {
 /// The calibration options the flags give (effects, what is known, length offset, resolution,
 /// noise, prior), or the usage error of the first bad one.
 fn calibrate_options(a: &CalibrateArgs) -> Result<CalibrateOptions, Error> {
-    let effects = parse_effects(&a.effects)?;
+    let effects = Effects::parse(&a.effects).map_err(|e| usage(format!("--effects: {e}")))?;
     let mut opts = CalibrateOptions {
         effects,
         fixture_known: a.fixture_known,
         tool_known: a.tool_known,
-        length_offset: parse_length_offset(a.length_offset.as_deref())?,
+        length_offset: LengthOffset::parse(a.length_offset.as_deref())
+            .map_err(|e| usage(format!("--length-offset: {e}")))?,
         write_effects: !a.geometry_only,
         joint_resolution: match a.joint_resolution {
             Some(g) if !(g.is_finite() && (0.0..=10.0).contains(&g)) => {
@@ -281,101 +259,6 @@ fn read_baseline(a: &CalibrateArgs) -> Result<Option<(drift::Calibrated, String,
     })
 }
 
-/// The runs of a campaign as read: per run its readings, the hash of its input, its fixture,
-/// its label, its files and, for a run from logs, how it was read.
-struct Campaign<'a> {
-    data: Vec<Measured>,
-    hashes: Vec<String>,
-    fixtures: Vec<Vector3<f64>>,
-    labels: Vec<String>,
-    sources: Vec<logruns::RunFiles<'a>>,
-    from_logs: Vec<Option<FromLogs>>,
-}
-
-/// Every run of the flags (`--measured` first, then `--bar-log`) read for `robot` with its
-/// `programs`, the flags' `fixtures` (m) and the campaign's MAP `map` (m).
-fn read_campaign<'a>(
-    a: &'a CalibrateArgs,
-    robot: &Robot,
-    programs: &'a [logruns::Program],
-    fixtures: &[Vector3<f64>],
-    map: Vector3<f64>,
-) -> Result<Campaign<'a>, Error> {
-    let runs_n = a.measured.len() + a.bar_log.len();
-    let fixture_flag = |k: usize| -> Option<Vector3<f64>> {
-        match fixtures.len() {
-            0 => None,
-            1 => Some(fixtures[0]),
-            _ => Some(fixtures[k]),
-        }
-    };
-    let program_of = |k: usize| match programs.len() {
-        0 => None,
-        1 => Some(&programs[0]),
-        _ => Some(&programs[k]),
-    };
-    // As for a measured file: one run alone must carry the robot, a campaign's run may be
-    // short.
-    let min = if runs_n == 1 { calibrate::MIN_ROWS } else { 1 };
-    let mut data: Vec<Measured> = Vec::with_capacity(runs_n);
-    let mut hashes: Vec<String> = Vec::with_capacity(runs_n);
-    let mut run_fixtures: Vec<Vector3<f64>> = Vec::with_capacity(runs_n);
-    let mut labels: Vec<String> = Vec::with_capacity(runs_n);
-    let mut sources: Vec<logruns::RunFiles> = Vec::with_capacity(runs_n);
-    let mut from_logs: Vec<Option<FromLogs>> = Vec::with_capacity(runs_n);
-    for (k, path) in a.measured.iter().enumerate() {
-        let text = read_input(path, "measured data", crate::files::Kind::Measured)?;
-        let m = twin::parse_csv(&text, min).map_err(|e| file_err(path, e))?;
-        data.push(m);
-        hashes.push(robot::sha256_hex(text.as_bytes()));
-        run_fixtures.push(fixture_flag(k).unwrap_or_else(Vector3::zeros));
-        labels.push(name(path));
-        sources.push(logruns::RunFiles {
-            bar: path,
-            program: None,
-            joint_log: None,
-        });
-        from_logs.push(None);
-    }
-    for (i, bar) in a.bar_log.iter().enumerate() {
-        let k = a.measured.len() + i;
-        let joint_log = a.joint_log.get(i).map(|p| p.as_path());
-        let run = logruns::read_run(robot, bar, program_of(i), joint_log, fixture_flag(k), map)?;
-        if run.measured.len() < min {
-            return Err(file_err(
-                bar,
-                format!(
-                    "{} readings, fewer than the {min} the fit needs{}",
-                    run.measured.len(),
-                    if runs_n == 1 {
-                        " (one per parameter at least)"
-                    } else {
-                        ""
-                    }
-                ),
-            ));
-        }
-        data.push(run.measured);
-        hashes.push(run.sha256);
-        run_fixtures.push(run.fixture);
-        labels.push(run.label);
-        sources.push(logruns::RunFiles {
-            bar,
-            program: program_of(i).map(|p| p.path.as_path()),
-            joint_log,
-        });
-        from_logs.push(Some(run.from_logs));
-    }
-    Ok(Campaign {
-        data,
-        hashes,
-        fixtures: run_fixtures,
-        labels,
-        sources,
-        from_logs,
-    })
-}
-
 /// The calibrated robot file's text rendered from `cal` over the robot file `robot_text`, with
 /// a URDF's sidecar file of effects (its path and text) where it has effects.
 fn robot_files(
@@ -384,54 +267,23 @@ fn robot_files(
     robot_text: &str,
     load_opts: &LoadOptions,
     cal: &calibrate::Calibration,
-    c: &Campaign,
+    c: &logruns::Campaign,
     drift: Option<&drift::Drift>,
 ) -> Result<(String, Option<std::path::PathBuf>, Option<String>), Error> {
-    let urdf = is_urdf(&a.robot);
-    // Everything is rendered before the first file is written: a failure leaves no file.
     let mut header = calibrate::header::lines(robot, cal, &c.hashes, &c.labels);
     if let (Some(d), Some(p)) = (drift, &a.baseline) {
         header.push(format!("since {}: {}", name(p), d.verdict));
     }
-    let p = cal.params();
-    let effects = cal.file.effects.clone();
-    let effects_text = robot::effects::to_toml(&effects, &cal.file.reference);
-    // A URDF cannot hold the effects: they go to a sidecar file beside it, named in its header.
-    let sidecar = (urdf && !effects_text.is_empty()).then(|| sidecar_path(&a.output));
-    if let Some(side) = &sidecar {
-        let name = side
-            .file_name()
-            .map(|n| n.to_string_lossy().into_owned())
-            .unwrap_or_default();
-        header.push(format!("{} {name}", robot::effects::SIDECAR_MARK));
-    }
-    let calibrated = if urdf {
-        robot::urdf::calibrated(
-            robot_text, &a.robot, load_opts, robot, &p.dh, &p.map, &header,
-        )?
-    } else {
-        robot::dh::calibrated(robot_text, &a.robot, &p.dh, &p.map, &header, &effects_text)?
+    let input = calibrate::files::Input {
+        robot,
+        text: robot_text,
+        path: &a.robot,
+        urdf: robot::is_urdf(&a.robot),
+        load_opts,
     };
-    // The URDF loads to a DH table of its own (its common normals may point the other way):
-    // the effects go to the sidecar referred to that table's frames.
-    let effects_text = if sidecar.is_some() {
-        let (b, dh, f) =
-            robot::urdf::dh_chain(&calibrated, load_opts).map_err(|e| file_err(&a.output, e))?;
-        let moved = effects.reframed((&robot.base, &p.dh, &robot.flange), (&b, &dh, &f));
-        robot::effects::to_toml(&moved, &cal.file.reference)
-    } else {
-        effects_text
-    };
-    let sidecar_text = sidecar.as_ref().map(|_| {
-        format!(
-            "# The effects of {} (edbbgen calibrate): the URDF names this file; keep the two together.\n{effects_text}",
-            a.output
-                .file_name()
-                .map(|n| n.to_string_lossy().into_owned())
-                .unwrap_or_default()
-        )
-    });
-    Ok((calibrated, sidecar, sidecar_text))
+    let f = calibrate::files::render(&input, cal, header, &a.output)?;
+    let (sidecar, sidecar_text) = f.sidecar.unzip();
+    Ok((f.robot, sidecar, sidecar_text))
 }
 
 /// `--html`: the calibration page of `cal` for `robot` and the campaign `c` (MAP `map`, the
@@ -440,7 +292,7 @@ fn html_report(
     a: &CalibrateArgs,
     robot: &Robot,
     cal: &calibrate::Calibration,
-    c: &Campaign,
+    c: &logruns::Campaign,
     map: &Vector3<f64>,
     baseline_sha: Option<&str>,
     drift: Option<&drift::Drift>,
@@ -463,13 +315,4 @@ fn html_report(
         }
         None => None,
     })
-}
-
-/// The sidecar file of a calibrated URDF: `robot.cal.urdf` → `robot.cal.effects.toml`.
-pub(super) fn sidecar_path(urdf: &Path) -> std::path::PathBuf {
-    let stem = urdf
-        .file_stem()
-        .map(|s| s.to_string_lossy().into_owned())
-        .unwrap_or_else(|| "robot".into());
-    urdf.with_file_name(format!("{stem}.effects.toml"))
 }

@@ -12,51 +12,19 @@ use crate::compensate::offsets::{self, JointOffsets};
 use crate::compensate::program::{self, Outcome};
 use crate::compensate::setup;
 use crate::compensate::{self, targets, Compensator, Limits, Report};
-use crate::controller::{ControllerDefaults, ControllerMap, Coupling, Units};
+use crate::controller::ControllerMap;
 use crate::robot::effects::ThermalState;
 use crate::robot::{self, Frame, LoadOptions, Robot};
 use crate::units::{fmt_fixed, DEG, MM};
 use nalgebra::Vector3;
 use std::path::Path;
 
-/// `--tcp X,Y,Z[,RX,RY,RZ]` (mm, deg) → the tool frame in the flange frame.
-fn parse_tcp(s: &str) -> Result<Frame, Error> {
-    let v = numbers("--tcp", s, None)?;
-    match v.len() {
-        3 => Ok(Frame::translation(Vector3::new(v[0], v[1], v[2]) * MM)),
-        6 => Ok(Frame::from_xyz_rpy(
-            [v[0] * MM, v[1] * MM, v[2] * MM],
-            [v[3] * DEG, v[4] * DEG, v[5] * DEG],
-        )),
-        n => Err(usage(format!(
-            "--tcp: '{s}' has {n} values, expected X,Y,Z or X,Y,Z,RX,RY,RZ (mm, deg)"
-        ))),
-    }
-}
-
-/// The mapping without a dialect: the cell's `[controller]` over model joints (deg, J1..J6,
-/// no coupling unless the cell says so), else the identity.
-fn plain_map(
-    spec: Option<&crate::controller::ControllerSpec>,
-    robot: &Robot,
-) -> Result<ControllerMap, crate::controller::ControllerError> {
-    let defaults = ControllerDefaults {
-        units: Units::Deg,
-        units_configurable: true,
-        axis_names: ["J1", "J2", "J3", "J4", "J5", "J6"].map(str::to_string),
-        axis_names_configurable: true,
-        j3_coupling: Coupling::Factor(0),
-        j3_coupling_parallel_arm: None,
-    };
-    ControllerMap::resolve(spec, &defaults, "targets", robot)
-}
-
 /// `edbbgen compensate`: the flags resolved, the targets or the program compensated, and the
 /// files written; the exit code.
 pub fn compensate(a: &CompensateArgs) -> Result<i32, Error> {
     // The command line first: nothing is read before it is sound.
     let input = check_input(a)?;
-    let tcp = a.tcp.as_deref().map(parse_tcp).transpose()?;
+    let tcp = a.tcp;
     let spec = match &a.cell {
         Some(p) => Some(crate::cell::load(p)?),
         None => None,
@@ -125,7 +93,7 @@ pub fn compensate(a: &CompensateArgs) -> Result<i32, Error> {
 
     // The joint zero offsets: the calibration report's, else the two files' θ.
     let joint_offsets = joint_offsets(a, report_json.as_ref(), &nominal, &calibrated, &mut notes)?;
-    let predicted = predicted_accuracy(report_json.as_ref(), tcp.is_some(), &mut notes);
+    let predicted = setup::predicted_accuracy(report_json.as_ref(), tcp.is_some(), &mut notes);
     let poses =
         crate::calibrate::predict::workspace(&calibrated, crate::calibrate::WORKSPACE_POSES, 1);
     let offsets_rad = joint_offsets.map_or([0.0; 6], |o| o.delta);
@@ -158,7 +126,7 @@ pub fn compensate(a: &CompensateArgs) -> Result<i32, Error> {
             &comp,
             &crate::timing::Limits::of(&nominal),
             &note,
-            approach_signs(approach),
+            approach.signs(),
         )
         .map_err(|e| file_err(path, e))?
         {
@@ -298,7 +266,7 @@ fn resolve_map(
             Some(s) => controller_map(s, a.cell.as_deref(), d, nominal)?,
             None => controller_map(&crate::cell::CellSpec::default(), None, d, nominal)?,
         },
-        None => plain_map(cell_spec, nominal).map_err(|e| Error::File {
+        None => ControllerMap::plain(cell_spec, nominal).map_err(|e| Error::File {
             path: a
                 .cell
                 .as_ref()
@@ -320,16 +288,11 @@ fn resolve_map(
 
 /// `--calibration`: the calibration report as JSON, or none.
 fn read_calibration(a: &CompensateArgs) -> Result<Option<serde_json::Value>, Error> {
-    Ok(match &a.calibration {
-        Some(p) => {
-            let text = read_input(p, "calibration report", crate::files::Kind::Config)?;
-            Some(
-                serde_json::from_str::<serde_json::Value>(&text)
-                    .map_err(|e| file_err(p, format!("not JSON: {e}")))?,
-            )
-        }
-        None => None,
-    })
+    let read = |p: &Path| -> Result<serde_json::Value, Error> {
+        let text = read_input(p, "calibration report", crate::files::Kind::Config)?;
+        serde_json::from_str(&text).map_err(|e| file_err(p, format!("not JSON: {e}")))
+    };
+    a.calibration.as_deref().map(read).transpose()
 }
 
 /// A payload: its mass (kg) and, where given, its centre (m, flange frame).
@@ -378,39 +341,6 @@ fn joint_offsets(
             }
         },
     })
-}
-
-/// The calibration report's predicted accuracy (RMS, p95, µm) where it states one; notes say
-/// what it does not cover (another tool point given with `tcp_given`) or that it is missing.
-fn predicted_accuracy(
-    report_json: Option<&serde_json::Value>,
-    tcp_given: bool,
-    notes: &mut Vec<String>,
-) -> Option<(f64, f64)> {
-    let predicted = report_json.and_then(|v| {
-        Some((
-            v.pointer("/predicted_position_std_um/workspace_rms")?
-                .as_f64()?,
-            v.pointer("/predicted_position_std_um/workspace_p95")?
-                .as_f64()?,
-        ))
-    });
-    if predicted.is_some() && tcp_given {
-        notes.push("the calibration's predicted uncertainty is the MAP's: at another tool point the flange's orientation uncertainty adds, times their distance".into());
-    }
-    if predicted.is_none() {
-        notes.push("the calibration's predicted accuracy is not known here: give --calibration REPORT.json".into());
-    }
-    predicted
-}
-
-/// The direction each joint approaches its target from: +1, −1, or 0 when not known.
-fn approach_signs(approach: targets::Approach) -> [f64; 6] {
-    match approach {
-        targets::Approach::Positive => [1.0; 6],
-        targets::Approach::Negative => [-1.0; 6],
-        targets::Approach::Order | targets::Approach::Unknown => [0.0; 6],
-    }
 }
 
 /// Tells on stderr which moves of the program at `path` cannot be compensated.

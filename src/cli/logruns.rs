@@ -1,17 +1,22 @@
 //! `--bar-log` (with `--program`, and/or `--joint-log`) for `calibrate` and `diagnose`: the
 //! files of one run → their texts read and parsed, the fixture and MAP checked against the
 //! program's header → [`twin::recorded::read`] → one run's [`Measured`] data and how it was
-//! read ([`FromLogs`]). Shared by the two subcommands.
+//! read ([`FromLogs`]). Shared by the two subcommands; and `calibrate`'s campaign: every run
+//! of its flags read.
 
+use super::args::CalibrateArgs;
 use super::common::{file_err, header_xyz, name, program_dialect, read_input};
 use super::{usage, Error};
-use crate::calibrate::resync::{self, ResyncError};
+use crate::calibrate::{
+    self,
+    resync::{self, ResyncError},
+};
 use crate::dialect::Parsed;
 use crate::logs;
 use crate::model::MeasurementModel;
 use crate::robot::{self, Robot};
 use crate::twin::recorded::{self, FromLogs, Input, Refusal};
-use crate::twin::Measured;
+use crate::twin::{self, Measured};
 use crate::units::{fmt_fixed, to_mm};
 use nalgebra::Vector3;
 use std::path::{Path, PathBuf};
@@ -216,4 +221,99 @@ pub(super) fn on_own_geometry(
             ResyncError::Logs { refusal, .. } => files.error(refusal),
         },
     )
+}
+
+/// The runs of a campaign as read: per run its readings, the hash of its input, its fixture,
+/// its label, its files and, for a run from logs, how it was read.
+pub(super) struct Campaign<'a> {
+    pub data: Vec<Measured>,
+    pub hashes: Vec<String>,
+    pub fixtures: Vec<Vector3<f64>>,
+    pub labels: Vec<String>,
+    pub sources: Vec<RunFiles<'a>>,
+    pub from_logs: Vec<Option<FromLogs>>,
+}
+
+/// Every run of the flags (`--measured` first, then `--bar-log`) read for `robot` with its
+/// `programs`, the flags' `fixtures` (m) and the campaign's MAP `map` (m).
+pub(super) fn read_campaign<'a>(
+    a: &'a CalibrateArgs,
+    robot: &Robot,
+    programs: &'a [Program],
+    fixtures: &[Vector3<f64>],
+    map: Vector3<f64>,
+) -> Result<Campaign<'a>, Error> {
+    let runs_n = a.measured.len() + a.bar_log.len();
+    let fixture_flag = |k: usize| -> Option<Vector3<f64>> {
+        match fixtures.len() {
+            0 => None,
+            1 => Some(fixtures[0]),
+            _ => Some(fixtures[k]),
+        }
+    };
+    let program_of = |k: usize| match programs.len() {
+        0 => None,
+        1 => Some(&programs[0]),
+        _ => Some(&programs[k]),
+    };
+    // As for a measured file: one run alone must carry the robot, a campaign's run may be
+    // short.
+    let min = if runs_n == 1 { calibrate::MIN_ROWS } else { 1 };
+    let mut data: Vec<Measured> = Vec::with_capacity(runs_n);
+    let mut hashes: Vec<String> = Vec::with_capacity(runs_n);
+    let mut run_fixtures: Vec<Vector3<f64>> = Vec::with_capacity(runs_n);
+    let mut labels: Vec<String> = Vec::with_capacity(runs_n);
+    let mut sources: Vec<RunFiles> = Vec::with_capacity(runs_n);
+    let mut from_logs: Vec<Option<FromLogs>> = Vec::with_capacity(runs_n);
+    for (k, path) in a.measured.iter().enumerate() {
+        let text = read_input(path, "measured data", crate::files::Kind::Measured)?;
+        let m = twin::parse_csv(&text, min).map_err(|e| file_err(path, e))?;
+        data.push(m);
+        hashes.push(robot::sha256_hex(text.as_bytes()));
+        run_fixtures.push(fixture_flag(k).unwrap_or_else(Vector3::zeros));
+        labels.push(name(path));
+        sources.push(RunFiles {
+            bar: path,
+            program: None,
+            joint_log: None,
+        });
+        from_logs.push(None);
+    }
+    for (i, bar) in a.bar_log.iter().enumerate() {
+        let k = a.measured.len() + i;
+        let joint_log = a.joint_log.get(i).map(|p| p.as_path());
+        let run = read_run(robot, bar, program_of(i), joint_log, fixture_flag(k), map)?;
+        if run.measured.len() < min {
+            return Err(file_err(
+                bar,
+                format!(
+                    "{} readings, fewer than the {min} the fit needs{}",
+                    run.measured.len(),
+                    if runs_n == 1 {
+                        " (one per parameter at least)"
+                    } else {
+                        ""
+                    }
+                ),
+            ));
+        }
+        data.push(run.measured);
+        hashes.push(run.sha256);
+        run_fixtures.push(run.fixture);
+        labels.push(run.label);
+        sources.push(RunFiles {
+            bar,
+            program: program_of(i).map(|p| p.path.as_path()),
+            joint_log,
+        });
+        from_logs.push(Some(run.from_logs));
+    }
+    Ok(Campaign {
+        data,
+        hashes,
+        fixtures: run_fixtures,
+        labels,
+        sources,
+        from_logs,
+    })
 }

@@ -129,3 +129,27 @@ pub fn effects(calibrated: &mut Robot, tcp: &Frame, s: &Setup) -> Result<Vec<Str
     }
     Ok(notes)
 }
+
+/// The calibration report's predicted accuracy (RMS, p95, µm) where it states one; notes say
+/// what it does not cover (another tool point given with `tcp_given`) or that it is missing.
+pub fn predicted_accuracy(
+    report_json: Option<&serde_json::Value>,
+    tcp_given: bool,
+    notes: &mut Vec<String>,
+) -> Option<(f64, f64)> {
+    let predicted = report_json.and_then(|v| {
+        Some((
+            v.pointer("/predicted_position_std_um/workspace_rms")?
+                .as_f64()?,
+            v.pointer("/predicted_position_std_um/workspace_p95")?
+                .as_f64()?,
+        ))
+    });
+    if predicted.is_some() && tcp_given {
+        notes.push("the calibration's predicted uncertainty is the MAP's: at another tool point the flange's orientation uncertainty adds, times their distance".into());
+    }
+    if predicted.is_none() {
+        notes.push("the calibration's predicted accuracy is not known here: give --calibration REPORT.json".into());
+    }
+    predicted
+}

@@ -58,6 +58,15 @@ pub enum Approach {
 }
 
 impl Approach {
+    /// The direction each joint approaches its target from: +1, −1, or 0 when not known.
+    pub fn signs(self) -> [f64; 6] {
+        match self {
+            Approach::Positive => [1.0; 6],
+            Approach::Negative => [-1.0; 6],
+            Approach::Order | Approach::Unknown => [0.0; 6],
+        }
+    }
+
     pub fn parse(s: &str) -> Option<Approach> {
         match s {
             "order" => Some(Approach::Order),

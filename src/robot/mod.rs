@@ -226,6 +226,20 @@ impl LoadError {
     }
 }
 
+/// True for a URDF robot file (`.urdf`, `.xml`), by its extension.
+pub fn is_urdf(path: &Path) -> bool {
+    path.extension()
+        .and_then(|e| e.to_str())
+        .is_some_and(|e| e.eq_ignore_ascii_case("urdf") || e.eq_ignore_ascii_case("xml"))
+}
+
+/// True for a DH robot file (`.dh.toml`, any `.toml`), by its extension.
+pub fn is_toml(path: &Path) -> bool {
+    path.extension()
+        .and_then(|e| e.to_str())
+        .is_some_and(|e| e.eq_ignore_ascii_case("toml"))
+}
+
 /// Loads a robot from a `.urdf` or a `.dh.toml` (any `.toml`) file.
 pub fn load(path: &Path, opts: &LoadOptions) -> Result<Robot, LoadError> {
     let text = crate::files::read_text(path, crate::files::Kind::Robot).map_err(|e| match e {
