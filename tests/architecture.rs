@@ -170,8 +170,9 @@ fn the_layering_the_code_map_states_holds() {
     let map = std::fs::read_to_string(root().join("ARCHITECTURE.md")).unwrap();
     let mut broken = Vec::new();
     for (module, forbidden, rule) in never_rules() {
+        let src = root().join("src");
         assert!(
-            graph.contains_key(module) || module == "units",
+            src.join(module).is_dir() || src.join(format!("{module}.rs")).is_file(),
             "{module}: no such module"
         );
         let deps = graph.get(module).cloned().unwrap_or_default();
@@ -425,5 +426,9 @@ fn no_command_line_file_but_args_is_over_400_lines() {
             long.push(format!("src/cli/{name}: {n} lines"));
         }
     }
-    assert!(long.is_empty(), "move domain logic to the library:\n{}", long.join("\n"));
+    assert!(
+        long.is_empty(),
+        "move domain logic to the library:\n{}",
+        long.join("\n")
+    );
 }

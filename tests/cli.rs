@@ -55,13 +55,11 @@ fn manual_pages_for_the_compiler_and_each_subcommand() {
     assert_eq!(r.code, 0, "{}", r.stderr);
     assert!(r.stdout.contains(".TH edbbgen 1"));
     assert!(r.stdout.contains("fixture"));
-    for page in [&r.stdout] {
-        assert!(page.contains(".SH EXAMPLES"), "compiler: EXAMPLES");
-        assert!(
-            page.contains(".SH \"EXIT STATUS\""),
-            "compiler: EXIT STATUS"
-        );
-    }
+    assert!(r.stdout.contains(".SH EXAMPLES"), "compiler: EXAMPLES");
+    assert!(
+        r.stdout.contains(".SH \"EXIT STATUS\""),
+        "compiler: EXIT STATUS"
+    );
     for sub in SUBCOMMANDS {
         let r = edbbgen(["man", sub]);
         let page = r.stdout.replace("\\-", "-");

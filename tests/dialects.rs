@@ -840,7 +840,7 @@ fn twin_of(c: &Cell, d: &str, text: &str) -> edbbgen::twin::Trajectory {
 
 #[test]
 fn the_dialects_subcommand_lists_every_bundled_dialect() {
-    let r = edbbgen(["dialects", "-q"]);
+    let r = edbbgen(["dialects"]);
     assert_eq!(r.code, 0, "{}", r.stderr);
     for d in DIALECTS {
         assert!(

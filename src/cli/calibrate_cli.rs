@@ -130,8 +130,13 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
             p.display()
         );
     }
-    // The set-up only, with the nominal geometry: a result, told apart from a calibration.
-    Ok(if cal.setup_only() { 3 } else { 0 })
+    // The set-up only, with the nominal geometry: a result, told apart from a calibration; its
+    // exit code explains itself on stderr, with -q too.
+    if cal.setup_only() {
+        eprintln!("calibrate: {}", cal.report.verdict);
+        return Ok(3);
+    }
+    Ok(0)
 }
 
 /// The run and output flags checked before anything is read (a URDF robot calibrates to a URDF,
