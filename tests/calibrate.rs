@@ -176,7 +176,6 @@ fn round_trip(
         out.display().to_string(),
         "--json".into(),
         json.display().to_string(),
-        "-q".into(),
     ];
     args.extend(extra.iter().map(|s| s.to_string()));
     let r = edbbgen(&args);
@@ -347,7 +346,6 @@ fn a_cyclic_error_of_a_joint_short_of_a_turn_goes_into_its_zero_with_an_honest_u
         out.to_str().unwrap(),
         "--json",
         json.to_str().unwrap(),
-        "-q",
     ]);
     assert_eq!(r.code, 0, "{}", r.stderr);
     let report: serde_json::Value =
@@ -394,7 +392,7 @@ fn the_quick_start_fits_joint_1_with_the_orders_its_range_determines_and_predict
     );
     let s = |p: &Path| p.to_str().unwrap().to_string();
     let dh = s(&nj130_dh());
-    let r = edbbgen([&dh, "--cell", &s(&cell), "-o", &s(&nc), "-q"]);
+    let r = edbbgen([&dh, "--cell", &s(&cell), "-o", &s(&nc)]);
     assert_eq!(r.code, 0, "{}", r.stderr);
     let r = edbbgen([
         "simulate",
@@ -417,7 +415,6 @@ fn the_quick_start_fits_joint_1_with_the_orders_its_range_determines_and_predict
         &s(&out),
         "--json",
         &s(&json),
-        "-q",
     ]);
     assert_eq!(r.code, 0, "{}", r.stderr);
     let report: serde_json::Value =
@@ -1015,7 +1012,6 @@ fn calibrated_dh_file_of_a_fixed_dataset_is_golden() {
         html.to_str().unwrap(),
         "--plot",
         svg.to_str().unwrap(),
-        "-q",
     ]);
     assert_eq!(r.code, 0, "{}", r.stderr);
     crate::snapshots::assert_golden("calibrated@nj130", &std::fs::read_to_string(out).unwrap());

@@ -258,7 +258,7 @@ fn every_effect_of_the_library_from_another_simulator_calibrates_within_10_um_as
             &case.recording.csv(),
             &format!("case{k}"),
             case.given_fixture * 1e3,
-            &["--tool", "60,30,120", "-q"],
+            &["--tool", "60,30,120"],
         );
         assert_eq!(code, 0, "{name}: {}", run.stderr);
         sane(&report, name);
@@ -372,7 +372,7 @@ fn a_fixture_slipping_once_mid_run_and_spikes_are_found_and_reported() {
         &case.recording.csv(),
         "slip",
         case.given_fixture * 1e3,
-        &["--tool", "60,30,120", "-q"],
+        &["--tool", "60,30,120"],
     );
     assert_eq!(code, 0, "{}", run.stderr);
     sane(&report, "slip");
@@ -732,7 +732,7 @@ fn nothing_determined_is_said_and_exits_1_writing_no_robot() {
         &csv,
         "still",
         Vector3::new(258.0, 1468.0, 708.0),
-        &["-q"],
+        &[],
     );
     assert_eq!(code, 1, "{}", run.stderr);
     assert_eq!(run.stderr.trim().lines().count(), 1, "{}", run.stderr);
@@ -981,7 +981,7 @@ fn the_static_form_reads_std_n_and_temperature_and_time_effects_are_refused_with
             text,
             "static",
             w.given_anchor * 1e3,
-            &["--length-offset", "free", "--effects", effects, "-q"],
+            &["--length-offset", "free", "--effects", effects],
         );
         assert_eq!(c, code, "{effects}: {}", run.stderr);
         if code == 2 {
@@ -1062,7 +1062,6 @@ fn a_campaign_may_hold_a_short_run_and_a_known_zero_is_used() {
         out.to_str().unwrap(),
         "--json",
         json.to_str().unwrap(),
-        "-q",
     ]);
     assert_eq!(r.code, 0, "{}", r.stderr);
     let report: Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();

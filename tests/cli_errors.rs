@@ -194,7 +194,6 @@ fn negative_coordinates_are_accepted_in_every_form() {
         "20",
         "--max-candidates",
         "600",
-        "-q",
         "-o",
         out.to_str().unwrap(),
     ];

@@ -526,7 +526,6 @@ fn the_compensated_targets_file_is_golden_and_every_refusal_names_its_reason() {
         t.to_str().unwrap(),
         "-o",
         out.to_str().unwrap(),
-        "-q",
     ]);
     assert_eq!(r.code, 0, "{}", r.stderr);
     let joints = std::fs::read_to_string(&out).unwrap();
@@ -549,7 +548,6 @@ fn the_compensated_targets_file_is_golden_and_every_refusal_names_its_reason() {
         p.to_str().unwrap(),
         "-o",
         pout.to_str().unwrap(),
-        "-q",
     ]);
     assert_eq!(r.code, 0, "{}", r.stderr);
     let poses = std::fs::read_to_string(&pout).unwrap();
@@ -569,7 +567,6 @@ fn the_compensated_targets_file_is_golden_and_every_refusal_names_its_reason() {
         x.to_str().unwrap(),
         "-o",
         xout.to_str().unwrap(),
-        "-q",
     ]);
     assert_eq!(r.code, 0, "{}", r.stderr);
     let positions = std::fs::read_to_string(&xout).unwrap();
@@ -764,7 +761,6 @@ fn a_users_program_in_every_dialect_is_rewritten_with_compensated_joints_and_gol
             input.to_str().unwrap(),
             "-o",
             out.to_str().unwrap(),
-            "-q",
         ]);
         assert_eq!(r.code, 0, "{d}: {}", r.stderr);
         let text = std::fs::read_to_string(&out).unwrap();
@@ -973,7 +969,6 @@ fn compiled_programs_of_every_dialect_compensated_still_verify_in_their_cells() 
                 c.cell_path.to_str().unwrap(),
                 "--json",
                 json.to_str().unwrap(),
-                "-q",
             ]);
             assert_eq!(r.code, 0, "{d}@{case}: {}", r.stderr);
             // A pose planned at the joint margin's edge may cross it by the compensation:
@@ -990,7 +985,6 @@ fn compiled_programs_of_every_dialect_compensated_still_verify_in_their_cells() 
                 out.display().to_string(),
                 "--cell".into(),
                 c.cell_path.display().to_string(),
-                "-q".into(),
             ];
             if !beyond.is_empty() {
                 assert!(
@@ -1126,7 +1120,6 @@ fn on_a_twin_the_truth_robot_reaches_the_nominal_targets_as_predicted() {
         json.to_str().unwrap(),
         "--effects",
         "none",
-        "-q",
     ]);
     assert_eq!(r.code, 0, "{}", r.stderr);
     let report: serde_json::Value =
@@ -1195,7 +1188,6 @@ fn on_a_twin_the_truth_robot_reaches_the_nominal_targets_as_predicted() {
             rj.to_str().unwrap(),
             "--html",
             html.to_str().unwrap(),
-            "-q",
         ]);
         assert_eq!(r.code, 0, "{kind}: {}", r.stderr);
         if kind == "joints" {

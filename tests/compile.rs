@@ -12,7 +12,6 @@ fn compile(robot: &std::path::Path, extra: &[&str], out: &std::path::Path) -> Ru
         "258,1468,708".into(),
         "-o".into(),
         out.display().to_string(),
-        "-q".into(),
     ];
     args.extend(extra.iter().map(|s| s.to_string()));
     edbbgen(&args)
@@ -187,7 +186,6 @@ fn measures_every_selected_pose_in_one_round(name: &str, mut args: Vec<String>) 
         out.display().to_string(),
         "--json".into(),
         report.display().to_string(),
-        "-q".into(),
     ]);
     let r = edbbgen(&args);
     assert_eq!(r.code, 0, "{name}: {}", r.stderr);

@@ -30,7 +30,6 @@ fn compile(
         "600".into(),
         "--dialect".into(),
         dialect.into(),
-        "-q".into(),
         "-o".into(),
         out.display().to_string(),
     ];
@@ -77,7 +76,6 @@ fn rapid_couples_j3_to_j2_on_a_parallel_arm_robot_and_says_so() {
         "600".into(),
         "--dialect".into(),
         "rapid".into(),
-        "-q".into(),
         "-o".into(),
         rapid.display().to_string(),
         "--json".into(),

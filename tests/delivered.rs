@@ -27,7 +27,6 @@ fn compiled_program(dir: &std::path::Path) -> Vec<([f64; 6], bool)> {
         "258,1468,708",
         "-o",
         prog.to_str().unwrap(),
-        "-q",
     ]);
     assert_eq!(r.code, 0, "{}", r.stderr);
     let parsed = edbbgen::verify::gcode::parse(&std::fs::read_to_string(&prog).unwrap()).unwrap();
@@ -229,7 +228,7 @@ fn one_effect_robots_of_another_simulator_get_the_accuracy_calibrate_predicted()
             &case.recording.csv(),
             &format!("d{k}"),
             case.given_fixture * 1e3,
-            &["--tool", "60,30,120", "-q"],
+            &["--tool", "60,30,120"],
         );
         assert_eq!(code, 0, "{name}: {}", run.stderr);
         sane(&report, name);
@@ -375,7 +374,7 @@ fn a_program_compensated_for_a_backlash_lands_every_measurement_pose_from_either
         &case.recording.csv(),
         "prog",
         case.given_fixture * 1e3,
-        &["--tool", "60,30,120", "-q"],
+        &["--tool", "60,30,120"],
     );
     assert_eq!(code, 0, "{}", run.stderr);
     assert!(report["effects"]

@@ -242,7 +242,6 @@ fn every_dialect_of_a_stop_and_measure_program_is_golden_and_reads_back_its_dwel
             path.to_str().unwrap(),
             "--cell",
             c.cell_path.to_str().unwrap(),
-            "-q",
         ]);
         assert_eq!(r.code, 0, "{label}: {}", r.stderr);
         assert!(
@@ -429,7 +428,6 @@ fn the_cli_verifies_the_written_programs() {
                 path.to_str().unwrap(),
                 "--cell",
                 c.cell_path.to_str().unwrap(),
-                "-q",
             ]);
             assert_eq!(r.code, 0, "{d}@{}: {}", c.case, r.stderr);
             assert!(r.stdout.contains(": ok: "), "{}", r.stdout);
@@ -685,7 +683,6 @@ fn check_mode_works_for_every_dialect() {
                 "-o",
                 path.to_str().unwrap(),
                 "--check",
-                "-q",
             ])
         };
         // The CLI writes exactly what the library wrote from the one plan.
@@ -735,7 +732,6 @@ fn a_user_template_extending_a_dialect_is_written_and_read_back_through_it() {
         tpl.to_str().unwrap(),
         "-o",
         out.to_str().unwrap(),
-        "-q",
     ]);
     assert_eq!(r.code, 0, "{}", r.stderr);
     let text = std::fs::read_to_string(&out).unwrap();
@@ -802,7 +798,6 @@ fn simulate_runs_every_dialect() {
             truth.to_str().unwrap(),
             "-o",
             csv.to_str().unwrap(),
-            "-q",
         ]);
         assert_eq!(r.code, 0, "{d}: {}", r.stderr);
         rows.push((*d, std::fs::read_to_string(&csv).unwrap().lines().count()));

@@ -45,7 +45,6 @@ fn verify_takes_the_bar_range_margins_and_blend_from_the_header_in_every_dialect
             "20".into(),
             "--dialect".into(),
             dialect.to_string(),
-            "-q".into(),
             "-o".into(),
             out.display().to_string(),
         ]);
@@ -117,7 +116,6 @@ fn a_header_that_states_less_than_the_program_does_fails() {
         "258,1468,708".into(),
         "--step".into(),
         "20".into(),
-        "-q".into(),
         "-o".into(),
         out.display().to_string(),
     ]);
@@ -159,7 +157,6 @@ fn a_tcp_blend_above_the_header_s_corner_blend_fails() {
         "20".into(),
         "--dialect".into(),
         "krl".into(),
-        "-q".into(),
         "-o".into(),
         out.display().to_string(),
     ]);
@@ -196,7 +193,6 @@ fn verify_reads_the_header_s_joint_accelerations_and_names_a_difference() {
         "258,1468,708".into(),
         "--step".into(),
         "20".into(),
-        "-q".into(),
         "-o".into(),
         out.display().to_string(),
     ]);

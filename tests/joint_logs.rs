@@ -83,7 +83,6 @@ fn run_case(dir: &Path, c: &LogCase) -> (f64, f64, Value) {
         out.to_str().unwrap(),
         "--json",
         json.to_str().unwrap(),
-        "-q",
     ]);
     assert_eq!(r.code, 0, "{}: {}", c.name, r.stderr);
     let report: Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
@@ -95,7 +94,7 @@ fn run_case(dir: &Path, c: &LogCase) -> (f64, f64, Value) {
         &sync.csv(),
         &format!("{tag}.sync"),
         fixture,
-        &["--tool", "60,30,120", "-q"],
+        &["--tool", "60,30,120"],
     );
     assert_eq!(code, 0, "{}: {}", c.name, run.stderr);
     let one_clock = realised(&truth, &sync_out, c.seed);

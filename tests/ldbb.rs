@@ -99,7 +99,6 @@ fn analyse(dir: &Path, loaded: &Path, setup: &Path, extra: &[&str]) -> serde_jso
         setup.display().to_string(),
         "--json".into(),
         json.display().to_string(),
-        "-q".into(),
     ];
     args.extend(extra.iter().map(|s| s.to_string()));
     let r = edbbgen(&args);
@@ -269,7 +268,6 @@ fn acceptance_on_simulated_loaded_circles() {
             loaded.to_str().unwrap(),
             "--seed",
             &(k + 1).to_string(),
-            "-q",
         ]);
         assert_eq!(r.code, 0, "{case}: {}", r.stderr);
         let report = analyse(dir.path(), &loaded, &setup_path, &[]);
@@ -567,7 +565,6 @@ fn ldbb_circle(setup: &Path, out: &Path, extra: &[&str]) -> Run {
         setup.display().to_string(),
         "-o".into(),
         out.display().to_string(),
-        "-q".into(),
     ];
     args.extend(extra.iter().map(|s| s.to_string()));
     edbbgen(&args)
@@ -662,7 +659,6 @@ fn ldbb_circle_program_is_verified_read_back_golden_and_interpreted() {
         "tool0",
         "--cell",
         root().join("examples/ldbb/cell.toml").to_str().unwrap(),
-        "-q",
     ]);
     assert_eq!(v.code, 0, "{}{}", v.stdout, v.stderr);
     // LinuxCNC's interpreter reads it as written.
@@ -747,7 +743,6 @@ fn report_json_is_golden_and_the_html_draws_in_a_browser() {
         loaded.to_str().unwrap(),
         "--reference",
         lt.to_str().unwrap(),
-        "-q",
     ]);
     assert_eq!(r.code, 0, "{}", r.stderr);
     let (page, svg) = (dir.path().join("ldbb.html"), dir.path().join("ldbb.svg"));
@@ -840,7 +835,6 @@ fn bad_input_is_one_line_naming_file_and_place() {
         &s(&truth),
         "-o",
         &s(&loaded),
-        "-q",
     ]);
     assert_eq!(r.code, 0, "{}", r.stderr);
     let csv = std::fs::read_to_string(&loaded).unwrap();
@@ -853,7 +847,6 @@ fn bad_input_is_one_line_naming_file_and_place() {
             s(setup),
             "--json".into(),
             s(&json),
-            "-q".into(),
         ]
     };
     let write = |name: &str, text: &str| -> PathBuf {

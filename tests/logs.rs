@@ -268,7 +268,6 @@ fn simulated_run(
         bar.display().to_string(),
         "--joint-log".into(),
         joints.display().to_string(),
-        "-q".into(),
     ];
     args.extend(extra.iter().map(|s| s.to_string()));
     let r = edbbgen(&args);
@@ -448,7 +447,6 @@ fn a_joint_log_synchronises_to_a_fraction_of_a_millisecond() {
         &offset.to_string(),
         "--clock-drift",
         "150",
-        "-q",
     ]);
     assert_eq!(r.code, 0, "{}", r.stderr);
     let (a, b) = (

@@ -303,7 +303,6 @@ fn measure_and_calibrate(
         "-9.5",
         "--clock-drift",
         "60",
-        "-q",
     ]
     .map(String::from)
     .to_vec();

@@ -28,7 +28,6 @@ fn place(dir: &Path, tag: &str, extra: &[&str]) -> (Value, String) {
         nj130_cell().display().to_string(),
         "--json".into(),
         json.display().to_string(),
-        "-q".into(),
     ];
     args.extend(extra.iter().map(|s| s.to_string()));
     let r = edbbgen(&args);
@@ -250,7 +249,6 @@ fn a_three_fixture_campaign_beats_the_best_single_fixture_and_calibrate_confirms
             "20",
             "--max-candidates",
             "600",
-            "-q",
         ]);
         assert_eq!(r.code, 0, "{}", r.stderr);
         let text = std::fs::read_to_string(&prog).unwrap();
@@ -309,7 +307,6 @@ fn a_three_fixture_campaign_beats_the_best_single_fixture_and_calibrate_confirms
             out.display().to_string(),
             "--json".into(),
             json.display().to_string(),
-            "-q".into(),
         ]);
         let res = edbbgen(&args);
         assert_eq!(res.code, 0, "{}", res.stderr);
@@ -363,7 +360,6 @@ fn the_report_is_golden_and_the_same_on_any_thread_count_and_draws_in_a_browser(
                 json.to_str().unwrap(),
                 "--html",
                 html.to_str().unwrap(),
-                "-q",
             ],
             &[("RAYON_NUM_THREADS", threads)],
         );
@@ -417,7 +413,6 @@ fn a_urdf_robot_places_and_names_its_obstacles() {
         "1",
         "--json",
         json.to_str().unwrap(),
-        "-q",
     ]);
     assert_eq!(r.code, 0, "{}", r.stderr);
     let v: Value = serde_json::from_str(&std::fs::read_to_string(json).unwrap()).unwrap();
@@ -448,7 +443,6 @@ fn bad_input_exits_2_with_one_line_and_writes_nothing() {
         robot.display().to_string(),
         "--json".into(),
         json.display().to_string(),
-        "-q".into(),
     ];
     // A cell whose obstacles leave no room: a slab over the whole front of the robot.
     let crowded = dir.path().join("crowded.toml");

@@ -28,7 +28,6 @@ fn compile_and_verify(robot: &Path, cell: &Path, fast: &[&str]) -> String {
         cell.display().to_string(),
         "-o".into(),
         out.display().to_string(),
-        "-q".into(),
     ];
     args.extend(fast.iter().map(|s| s.to_string()));
     let r = edbbgen(&args);
@@ -376,7 +375,6 @@ fn a_urdf_without_joint_speeds_asks_for_them_or_takes_them_from_the_cell() {
         "20",
         "-o",
         out.to_str().unwrap(),
-        "-q",
     ]);
     assert_eq!(r.code, 0, "{}", r.stderr);
 }
@@ -432,7 +430,6 @@ fn random_cells_verify_clean_or_fail_with_a_clear_reason() {
                 "300".into(),
                 "-o".into(),
                 out.display().to_string(),
-                "-q".into(),
             ];
             let c = edbbgen(&args);
             match c.code {

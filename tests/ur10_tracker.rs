@@ -80,7 +80,6 @@ fn calibrate_args(
         out.display().to_string(),
         "--json".into(),
         json.display().to_string(),
-        "-q".into(),
     ]);
     args
 }

@@ -85,7 +85,6 @@ fn no_dialect_writes_a_zero_length_move_at_the_reported_fixtures() {
                 "600".into(),
                 "--dialect".into(),
                 dialect.into(),
-                "-q".into(),
                 "-o".into(),
                 out.display().to_string(),
             ];
