@@ -210,25 +210,35 @@ fn the_layering_the_code_map_states_holds() {
         .is_some_and(|d| d.contains("calibrate")));
 }
 
-/// The code outside `src/dialect/` (not its tests), file by file.
-fn code_outside_dialects() -> Vec<(std::path::PathBuf, String)> {
+/// Every `.rs` file under `dir`, at any depth.
+fn rust_files(dir: &std::path::Path) -> Vec<std::path::PathBuf> {
     let mut out = Vec::new();
-    let mut stack = vec![root().join("src")];
+    let mut stack = vec![dir.to_path_buf()];
     while let Some(dir) = stack.pop() {
         for e in std::fs::read_dir(&dir).unwrap() {
             let path = e.unwrap().path();
             if path.is_dir() {
-                if !path.ends_with("dialect") {
-                    stack.push(path);
-                }
+                stack.push(path);
             } else if path.extension().is_some_and(|x| x == "rs") {
-                let text = std::fs::read_to_string(&path).unwrap();
-                let code = text.split("#[cfg(test)]").next().unwrap_or("").to_string();
-                out.push((path, code));
+                out.push(path);
             }
         }
     }
     out
+}
+
+/// The code outside `src/dialect/` (not its tests), file by file.
+fn code_outside_dialects() -> Vec<(std::path::PathBuf, String)> {
+    let dialects = root().join("src/dialect");
+    rust_files(&root().join("src"))
+        .into_iter()
+        .filter(|p| !p.starts_with(&dialects))
+        .map(|path| {
+            let text = std::fs::read_to_string(&path).unwrap();
+            let code = text.split("#[cfg(test)]").next().unwrap_or("").to_string();
+            (path, code)
+        })
+        .collect()
 }
 
 #[test]
@@ -377,22 +387,13 @@ fn no_function_in_src_is_over_150_lines() {
         ]
     );
 
-    let src = root().join("src");
     let mut lengths = Vec::new();
-    let mut stack = vec![src.clone()];
-    while let Some(dir) = stack.pop() {
-        for e in std::fs::read_dir(&dir).unwrap() {
-            let path = e.unwrap().path();
-            if path.is_dir() {
-                stack.push(path);
-            } else if path.extension().is_some_and(|x| x == "rs") {
-                let text = std::fs::read_to_string(&path).unwrap();
-                let rel = path.strip_prefix(root()).unwrap();
-                let file = rel.to_string_lossy().replace('\\', "/");
-                for (line, name, n) in function_lengths(&text) {
-                    lengths.push((file.clone(), line, name, n));
-                }
-            }
+    for path in rust_files(&root().join("src")) {
+        let text = std::fs::read_to_string(&path).unwrap();
+        let rel = path.strip_prefix(root()).unwrap();
+        let file = rel.to_string_lossy().replace('\\', "/");
+        for (line, name, n) in function_lengths(&text) {
+            lengths.push((file.clone(), line, name, n));
         }
     }
     lengths.sort();
