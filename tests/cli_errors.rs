@@ -176,7 +176,7 @@ fn negative_values_reach_the_value_check() {
     for (flag, value, needle) in [
         ("--margin", "-1", "--margin: -1 mm must be between"),
         ("--blend", "-5", "--blend: -5 mm is outside"),
-        ("--step", "-5", "--step: '-5'"),
+        ("--step", "-5", "'-5' for '--step <DEG>'"),
         ("--ball", "-25", "--ball"),
     ] {
         check_rejected(&[nj, "--fixture", "258,1468,708", flag, value], needle);

@@ -202,7 +202,7 @@ fn the_comparison_of_two_reports_is_golden() {
     assert_eq!(d.held_at_baseline, ["d3"]);
     assert!(
         d.verdict
-            .starts_with("joint 2 zero moved 0.012 deg +/- 0.001 deg"),
+            .starts_with("joint 2 zero moved 0.012 deg ± 0.001 deg"),
         "{}",
         d.verdict
     );
@@ -400,10 +400,10 @@ fn end_to_end_a_full_baseline_then_a_short_check_program_finds_a_moved_zero() {
         "{}",
         after["drift"]
     );
-    // "joint 2 zero moved 0.0096 deg +/- 0.0004 deg": the truth (0.01 deg) within 3 sigma.
+    // "joint 2 zero moved 0.0096 deg ± 0.0004 deg": the truth (0.01 deg) within 3 sigma.
     let (est, sigma) = verdict
         .strip_prefix("joint 2 zero moved ")
-        .and_then(|s| s.split_once(" deg +/- "))
+        .and_then(|s| s.split_once(" deg ± "))
         .and_then(|(e, r)| {
             Some((
                 e.parse::<f64>().ok()?,

@@ -246,7 +246,7 @@ fn diagnose_finds_the_trackers_noise_on_static_readings_and_structure_far_above_
     let (out, v) = run(&["--noise", "20"]);
     assert_eq!(v["noise_source"], "given", "{out}");
     assert_eq!(v["noise_um"].as_f64().unwrap(), 20.0, "{out}");
-    assert!(out.contains("reading noise ~20.00 µm (as given)"), "{out}");
+    assert!(out.contains("reading noise ~20.0 µm (as given)"), "{out}");
     let r = edbbgen([
         "diagnose",
         robot.to_str().unwrap(),

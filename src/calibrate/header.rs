@@ -4,7 +4,7 @@
 
 use super::Calibration;
 use crate::robot::{self, Robot};
-use crate::units::fmt_fixed;
+use crate::units::{fmt_fixed, length_um};
 use nalgebra::Vector3;
 
 /// The comment lines on top of the calibrated file: where it came from and how good it is.
@@ -48,10 +48,10 @@ pub fn lines(
         ));
     }
     h.push(format!(
-        "residual RMS {} µm nominal -> {} µm calibrated; bar noise {} µm (lag-1 autocorrelation {})",
-        fmt_fixed(r.rms_before_um, 3),
-        fmt_fixed(r.rms_after_um, 3),
-        fmt_fixed(r.noise_um, 3),
+        "residual RMS {} nominal -> {} calibrated; bar noise {} (lag-1 autocorrelation {})",
+        length_um(r.rms_before_um),
+        length_um(r.rms_after_um),
+        length_um(r.noise_um),
         fmt_fixed(r.residual_lag1, 2)
     ));
     h.push(format!(
@@ -60,9 +60,9 @@ pub fn lines(
         r.determined.join(", ")
     ));
     h.push(format!(
-        "validation, held out: {} µm RMS nominal -> {} µm calibrated ({} rows)",
-        fmt_fixed(r.validation.heldout_rms_um.nominal, 3),
-        fmt_fixed(r.validation.heldout_rms_um.calibrated, 3),
+        "validation, held out: {} RMS nominal -> {} calibrated ({} rows)",
+        length_um(r.validation.heldout_rms_um.nominal),
+        length_um(r.validation.heldout_rms_um.calibrated),
         r.validation.rows
     ));
     for g in r.segments.iter().filter(|g| g.cause != "run start") {
@@ -80,10 +80,10 @@ pub fn lines(
     let p = &r.predicted_position_std_um;
     if !cal.setup_only() {
         h.push(format!(
-        "predicted MAP position uncertainty (1 sigma, after rigid registration): {} µm RMS where measured, {} µm RMS and {} µm p95 over the joint space",
-        fmt_fixed(p.measured_region_rms, 2),
-        fmt_fixed(p.workspace_rms, 2),
-        fmt_fixed(p.workspace_p95, 2)
+        "predicted MAP position uncertainty (1 sigma, after rigid registration): {} RMS where measured, {} RMS and {} p95 over the joint space",
+        length_um(p.measured_region_rms),
+        length_um(p.workspace_rms),
+        length_um(p.workspace_p95)
         ));
     }
     for e in &r.effect_sizes {
@@ -92,8 +92,8 @@ pub fn lines(
             None => e.effect.to_string(),
         };
         h.push(format!(
-            "effect {name}: {} µm RMS over the joint space ({}); {}",
-            fmt_fixed(e.workspace_rms_um, 2),
+            "effect {name}: {} RMS over the joint space ({}); {}",
+            length_um(e.workspace_rms_um),
             e.at,
             if e.delivered {
                 "in the [effects] of this robot"

@@ -60,7 +60,7 @@ use crate::diagnose::{
 use crate::model::{MeasurementModel, Params, N_PARAMS};
 use crate::robot::Robot;
 use crate::twin::effects::Effect;
-use crate::units::{fmt_fixed, DEG, MM};
+use crate::units::{fmt_fixed, length_mm, length_um, DEG, MM};
 use serde::Serialize;
 
 /// Which effects the calibration fits together with the geometry.
@@ -799,8 +799,8 @@ fn assemble(
         let reason = verdict.trim_start_matches("not calibrated: ");
         verdict = match s.geometry_within_um {
             Some(x) => format!(
-                "geometry confirmed within {} µm of nominal; set-up fitted (written with the nominal geometry): {reason}",
-                fmt_fixed(x, 1)
+                "geometry confirmed within {} of nominal; set-up fitted (written with the nominal geometry): {reason}",
+                length_um(x)
             ),
             None => format!(
                 "geometry not determined (nominal kept); set-up fitted (written with the nominal geometry): {reason}"
@@ -855,7 +855,7 @@ fn assemble(
                 calibrated: round(held_out.calibrated * 1e6, 3),
             },
             split: format!(
-                "{} contiguous blocks of each run's rows in the order taken, the same block of every run held out together and predicted by the model fitted to the others (linearised at the fit to all rows); nominal: the nominal robot with the set-up (tool point, fixtures, length zeros) fitted",
+                "{} contiguous blocks of each run's rows in the order taken, the same block of every run held out together and predicted by the model fitted to the others (linearised at the fit to all rows); nominal: the nominal robot with the set-up (MAP, fixtures, length zeros) fitted",
                 held_out.folds
             ),
             rows: held_out.rows,
@@ -882,7 +882,7 @@ fn assemble(
     }
 }
 
-/// "x, y, z" (mm), each with "+/- u" where determined: the uncertainty to two significant
+/// "x, y, z" (mm), each with "± u" where determined: the uncertainty to two significant
 /// digits and the value to the same place (at most 0.1 µm), else to 0.01 mm.
 fn xyz_with_std(v: &[f64; 3], sd: &[Option<f64>; 3]) -> String {
     v.iter()
@@ -890,7 +890,7 @@ fn xyz_with_std(v: &[f64; 3], sd: &[Option<f64>; 3]) -> String {
         .map(|(x, u)| match u {
             Some(u) if *u > 0.0 => {
                 let d = (1 - u.log10().floor() as i32).clamp(0, 4) as usize;
-                format!("{} +/- {}", fmt_fixed(*x, d), fmt_fixed(*u, d))
+                format!("{} ± {}", fmt_fixed(*x, d), fmt_fixed(*u, d))
             }
             _ => fmt_fixed(*x, 2),
         })
@@ -920,8 +920,8 @@ fn data_lines(r: &Report) -> String {
     use crate::diagnose::noise::NoiseSource as N;
     let noise = match r.noise_source {
         N::Unknown => "unknown".to_string(),
-        N::Neighbours => format!("<= {} µm", fmt_fixed(r.noise_um, 3)),
-        _ => format!("{} µm", fmt_fixed(r.noise_um, 3)),
+        N::Neighbours => format!("≤ {}", length_um(r.noise_um)),
+        _ => length_um(r.noise_um),
     };
     let how = match r.noise_source {
         N::Sequence | N::Unknown => String::new(),
@@ -941,9 +941,9 @@ fn data_lines(r: &Report) -> String {
         fmt_fixed(r.residual_lag1, 2)
     );
     s += &format!(
-        "nominal model: RMS {} µm; calibrated: RMS {} µm\n",
-        fmt_fixed(r.rms_before_um, 3),
-        fmt_fixed(r.rms_after_um, 3)
+        "nominal model: RMS {}; calibrated: RMS {}\n",
+        length_um(r.rms_before_um),
+        length_um(r.rms_after_um)
     );
     s
 }
@@ -978,9 +978,9 @@ fn model_lines(r: &Report, s: &mut String) {
             (false, _) => "NOT in the robot file",
         };
         *s += &format!(
-            "  {name}: {} µm RMS, {} µm p95 over the joint space ({}); {carried}\n",
-            fmt_fixed(e.workspace_rms_um, 2),
-            fmt_fixed(e.workspace_p95_um, 2),
+            "  {name}: {} RMS, {} p95 over the joint space ({}); {carried}\n",
+            length_um(e.workspace_rms_um),
+            length_um(e.workspace_p95_um),
             e.at
         );
     }
@@ -1005,20 +1005,20 @@ fn setup_lines(r: &Report, s: &mut String) {
     let t = &r.tool;
     if t.moved_mm > 0.0 {
         *s += &format!(
-            "tool point (MAP): {}, {}, {} mm (given {}, {}, {}; moved {} mm)\n",
+            "MAP: {}, {}, {} mm (given {}, {}, {}; moved {})\n",
             fmt_fixed(t.fitted_mm[0], 3),
             fmt_fixed(t.fitted_mm[1], 3),
             fmt_fixed(t.fitted_mm[2], 3),
             fmt_fixed(t.given_mm[0], 3),
             fmt_fixed(t.given_mm[1], 3),
             fmt_fixed(t.given_mm[2], 3),
-            fmt_fixed(t.moved_mm, 3)
+            length_mm(t.moved_mm)
         );
     }
     for run in &r.runs {
         if let Some(f) = run.fixture_fitted_mm {
             *s += &format!(
-                "fixture of {}: {}, {}, {} mm (given {}, {}, {}; moved {} mm)\n",
+                "fixture of {}: {}, {}, {} mm (given {}, {}, {}; moved {})\n",
                 run.measured,
                 fmt_fixed(f[0], 3),
                 fmt_fixed(f[1], 3),
@@ -1026,7 +1026,7 @@ fn setup_lines(r: &Report, s: &mut String) {
                 fmt_fixed(run.fixture_mm[0], 3),
                 fmt_fixed(run.fixture_mm[1], 3),
                 fmt_fixed(run.fixture_mm[2], 3),
-                fmt_fixed(run.fixture_moved_mm.unwrap_or(0.0), 4)
+                length_mm(run.fixture_moved_mm.unwrap_or(0.0))
             );
         }
         if run.length_offset_std_mm.is_some() {
@@ -1058,25 +1058,25 @@ fn setup_lines(r: &Report, s: &mut String) {
 fn prediction_lines(r: &Report, s: &mut String) {
     let p = &r.predicted_position_std_um;
     *s += &format!(
-        "predicted MAP position uncertainty (1 sigma, after rigid registration): {} µm RMS where measured; {} µm RMS, {} µm p95 over the joint space\n",
-        fmt_fixed(p.measured_region_rms, 2),
-        fmt_fixed(p.workspace_rms, 2),
-        fmt_fixed(p.workspace_p95, 2)
+        "predicted MAP position uncertainty (1 sigma, after rigid registration): {} RMS where measured; {} RMS, {} p95 over the joint space\n",
+        length_um(p.measured_region_rms),
+        length_um(p.workspace_rms),
+        length_um(p.workspace_p95)
     );
     if r.delivered.content == "geometry only" {
         *s += &format!(
-            "the robot file carries the geometry only: the prediction includes the effects left out (the model with them: {} µm RMS over the joint space)\n",
-            fmt_fixed(p.model_workspace_rms, 2)
+            "the robot file carries the geometry only: the prediction includes the effects left out (the model with them: {} RMS over the joint space)\n",
+            length_um(p.model_workspace_rms)
         );
     }
     *s += &format!(
-        "validation (held out): {} µm RMS nominal, {} µm RMS calibrated\n",
-        fmt_fixed(r.validation.heldout_rms_um.nominal, 3),
-        fmt_fixed(r.validation.heldout_rms_um.calibrated, 3)
+        "validation (held out): {} RMS nominal, {} RMS calibrated\n",
+        length_um(r.validation.heldout_rms_um.nominal),
+        length_um(r.validation.heldout_rms_um.calibrated)
     );
     if let Some(w) = &r.reading_weights {
         *s += &format!(
-            "readings weighted by their own uncertainty: joints logged to {} deg; rounding {} µm RMS, up to {} µm per reading{}\n",
+            "readings weighted by their own uncertainty: joints logged to {} deg; rounding {} RMS, up to {} per reading{}\n",
             w.joint_resolution_deg
                 .first()
                 .map(|g| {
@@ -1085,17 +1085,17 @@ fn prediction_lines(r: &Report, s: &mut String) {
                     v.join("/")
                 })
                 .unwrap_or_default(),
-            fmt_fixed(w.rounding_rms_um, 1),
-            fmt_fixed(w.rounding_max_um, 1),
+            length_um(w.rounding_rms_um),
+            length_um(w.rounding_max_um),
             match w.instrument_noise_um {
-                Some(n) => format!(", instrument noise {} µm", fmt_fixed(n, 1)),
+                Some(n) => format!(", instrument noise {}", length_um(n)),
                 None => String::new(),
             }
         );
     }
     if let Some(set) = r.setup.as_ref().filter(|s| s.delivered) {
         *s += &format!(
-            "set-up with the nominal geometry: tool point {} mm{}; held out {} µm RMS\n",
+            "set-up with the nominal geometry: MAP {} mm{}; held out {} RMS\n",
             xyz_with_std(&set.tool_mm, &set.tool_std_mm),
             set.fixtures_mm
                 .iter()
@@ -1103,7 +1103,7 @@ fn prediction_lines(r: &Report, s: &mut String) {
                 .enumerate()
                 .map(|(k, (f, sd))| format!(", fixture {} {} mm", k + 1, xyz_with_std(f, sd)))
                 .collect::<String>(),
-            fmt_fixed(set.heldout_rms_um, 1)
+            length_um(set.heldout_rms_um)
         );
     }
 }

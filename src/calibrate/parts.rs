@@ -16,7 +16,7 @@ use crate::model::{MeasurementModel, Status, MAP};
 use crate::robot::effects::ThermalState;
 use crate::robot::Robot;
 use crate::twin::effects::Effect;
-use crate::units::{fmt_fixed, DEG, MM};
+use crate::units::{fmt_fixed, length_um, DEG, MM};
 use nalgebra::Vector3;
 
 /// What the residual says, and every warning of the report in order.
@@ -71,9 +71,9 @@ pub(super) fn diagnostics(
     let structure = (noise.known() && rms_after > 1.25 * noise_hf) || f.rho > rho_limit;
     if !noise.known() {
         warnings.push(format!(
-            "the reading noise is {}: whether the residual (RMS {} µm) holds more than noise is not decided",
+            "the reading noise is {}: whether the residual (RMS {}) holds more than noise is not decided",
             noise.source.describe(noise.within_deg),
-            fmt_fixed(rms_after * 1e6, 3)
+            length_um(rms_after * 1e6)
         ));
     }
     if structure {
@@ -82,9 +82,9 @@ pub(super) fn diagnostics(
             _ => "",
         };
         warnings.push(format!(
-            "structure above the noise is left in the residual (RMS {} µm against {} µm of reading noise ({}), lag-1 autocorrelation {}): the model misses an effect, and the geometry absorbs part of it{hint}",
-            fmt_fixed(rms_after * 1e6, 3),
-            fmt_fixed(noise_hf * 1e6, 3),
+            "structure above the noise is left in the residual (RMS {} against {} of reading noise ({}), lag-1 autocorrelation {}): the model misses an effect, and the geometry absorbs part of it{hint}",
+            length_um(rms_after * 1e6),
+            length_um(noise_hf * 1e6),
             noise.source.describe(noise.within_deg),
             fmt_fixed(f.rho, 2)
         ));
@@ -105,9 +105,9 @@ pub(super) fn diagnostics(
                 _ => "; fit the effects with --effects auto",
             };
             warnings.push(format!(
-                "the logged temperature changed by {} K during the runs: about {} µm of thermal growth at the MAP's {} mm reach (steel, {} per K), which the model leaves to the geometry{hint}",
+                "the logged temperature changed by {} K during the runs: about {} of thermal growth at the MAP's {} mm reach (steel, {} per K), which the model leaves to the geometry{hint}",
                 fmt_fixed(dt, 2),
-                fmt_fixed(growth * 1e6, 1),
+                length_um(growth * 1e6),
                 fmt_fixed(reach * 1e3, 0),
                 STEEL_EXPANSION
             ));
@@ -195,9 +195,9 @@ fn fixture_check(problem: &Problem, est: &Estimate, free: &[Param]) -> Option<St
     let n = problem.kept().max(1) as f64;
     (bic1 < bic0 - 10.0 && rss1 < 0.9 * rss0).then(|| {
         format!(
-            "the fixture position looks off: estimating it lowers the residual from {} µm to {} µm RMS; check --fixture, or leave out --fixture-known",
-            fmt_fixed((rss0 / n).sqrt() * 1e6, 3),
-            fmt_fixed((rss1 / n).sqrt() * 1e6, 3)
+            "the fixture position looks off: estimating it lowers the residual from {} to {} RMS; check --fixture, or leave out --fixture-known",
+            length_um((rss0 / n).sqrt() * 1e6),
+            length_um((rss1 / n).sqrt() * 1e6)
         )
     })
 }
@@ -246,10 +246,10 @@ fn extrapolated(problem: &Problem, est: &Estimate, u: &Uncertainty) -> Option<St
         })
         .collect();
     Some(format!(
-        "a cyclic error is extrapolated beyond the range measured ({}): harmonics of the next orders, as large as those fitted, that the data cannot exclude put {} µm RMS into the prediction over the joint space ({} µm where measured); measure the joint over more of its turn to bound them",
+        "a cyclic error is extrapolated beyond the range measured ({}): harmonics of the next orders, as large as those fitted, that the data cannot exclude put {} RMS into the prediction over the joint space ({} where measured); measure the joint over more of its turn to bound them",
         joints.join(", "),
-        fmt_fixed(m.workspace_rms, 2),
-        fmt_fixed(m.measured_region_rms, 2)
+        length_um(m.workspace_rms),
+        length_um(m.measured_region_rms)
     ))
 }
 
@@ -495,27 +495,27 @@ pub(super) fn verdict(
         (
             false,
             format!(
-                "not calibrated: held out, the calibrated robot predicts the readings no better than the nominal one ({} µm against {} µm RMS); the data show no deviation the geometry explains: check the set-up (--tool, --fixture, --length-offset){effects_hint} or measure over a wider range",
-                fmt_fixed(heldout_cal * 1e6, 3),
-                fmt_fixed(heldout_nom * 1e6, 3)
+                "not calibrated: held out, the calibrated robot predicts the readings no better than the nominal one ({} against {} RMS); the data show no deviation the geometry explains: check the set-up (--tool, --fixture, --length-offset){effects_hint} or measure over a wider range",
+                length_um(heldout_cal * 1e6),
+                length_um(heldout_nom * 1e6)
             ),
         )
     } else if u.space_rms >= WRITE_SHARE * u.nominal_prior_rms * 1e6 {
         (
             false,
             format!(
-                "not calibrated: its predicted position uncertainty over the joint space ({} µm RMS, mostly from the parameters these data cannot determine) is not under half of what the priors say of the nominal robot ({} µm); measure over a wider range of every joint",
-                fmt_fixed(u.space_rms, 2),
-                fmt_fixed(u.nominal_prior_rms * 1e6, 2)
+                "not calibrated: its predicted position uncertainty over the joint space ({} RMS, mostly from the parameters these data cannot determine) is not under half of what the priors say of the nominal robot ({}); measure over a wider range of every joint",
+                length_um(u.space_rms),
+                length_um(u.nominal_prior_rms * 1e6)
             ),
         )
     } else {
         (
             true,
             format!(
-                "calibrated: held out, the calibrated robot predicts the readings to {} µm RMS against {} µm for the nominal one",
-                fmt_fixed(heldout_cal * 1e6, 3),
-                fmt_fixed(heldout_nom * 1e6, 3)
+                "calibrated: held out, the calibrated robot predicts the readings to {} RMS against {} for the nominal one",
+                length_um(heldout_cal * 1e6),
+                length_um(heldout_nom * 1e6)
             ),
         )
     }
@@ -685,8 +685,8 @@ pub(super) fn delivered(
                 None => effect.name().to_string(),
             };
             not_delivered.push(format!(
-                "{name}: left out of the robot file (--geometry-only); {} µm RMS over the joint space ({})",
-                fmt_fixed(size.workspace_rms_um, 2),
+                "{name}: left out of the robot file (--geometry-only); {} RMS over the joint space ({})",
+                length_um(size.workspace_rms_um),
                 size.at
             ));
             if size.acts_on == "pose" {

@@ -4,7 +4,7 @@
 
 use super::Calibration;
 use crate::plot::{break_gaps, envelope, run_axis, Figure, Panel, PlotError, Series};
-use crate::units::fmt_fixed;
+use crate::units::length_um;
 
 /// Pixel columns of a panel: long runs are reduced to a min/max envelope at this width.
 const COLUMNS: usize = 900;
@@ -27,10 +27,10 @@ pub fn residuals(c: &Calibration) -> Figure {
             let rms = (r.iter().map(|v| v * v).sum::<f64>() / r.len().max(1) as f64).sqrt();
             panels.push(Panel {
                 title: format!(
-                    "run {} ({}), {what} model: RMS {} µm",
+                    "run {} ({}), {what} model: RMS {}",
                     k + 1,
                     run.measured,
-                    fmt_fixed(rms * 1e6, 3)
+                    length_um(rms * 1e6)
                 ),
                 x_label: x_label.into(),
                 y_label: "measured − model [µm]".into(),
@@ -66,9 +66,9 @@ pub fn uncertainty(c: &Calibration) -> Figure {
         title: String::new(),
         panels: vec![Panel {
             title: format!(
-                "predicted MAP position uncertainty over the joint space: RMS {} µm, p95 {} µm",
-                fmt_fixed(c.report.predicted_position_std_um.workspace_rms, 2),
-                fmt_fixed(c.report.predicted_position_std_um.workspace_p95, 2)
+                "predicted MAP position uncertainty over the joint space: RMS {}, p95 {}",
+                length_um(c.report.predicted_position_std_um.workspace_rms),
+                length_um(c.report.predicted_position_std_um.workspace_p95)
             ),
             x_label: "share of random joint poses [%]".into(),
             y_label: "1σ position uncertainty [µm]".into(),

@@ -12,7 +12,7 @@ use crate::robot::kinematics::chain_frames;
 use crate::robot::Robot;
 use crate::twin::effects::gravity_torques;
 use crate::twin::effects::Effect;
-use crate::units::fmt_fixed;
+use crate::units::length_um;
 use nalgebra::{DMatrix, DVector};
 use predict::JointTerms;
 
@@ -437,9 +437,9 @@ pub(super) fn confounding(
             None => e.name().to_string(),
         };
         format!(
-            "the data barely tell the {name} from the geometry: fitted together, the geometry's predicted uncertainty is {} µm RMS over the joint space; were the effect known, it would be {} µm. Measuring over a wider range of the joint separates them",
-            fmt_fixed(full * 1e6, 2),
-            fmt_fixed(without * 1e6, 2)
+            "the data barely tell the {name} from the geometry: fitted together, the geometry's predicted uncertainty is {} RMS over the joint space; were the effect known, it would be {}. Measuring over a wider range of the joint separates them",
+            length_um(full * 1e6),
+            length_um(without * 1e6)
         )
     })
 }

@@ -130,23 +130,23 @@ pub struct CellArgs {
     pub cell: Option<PathBuf>,
     /// MAP (tool ball centre) in the flange frame, mm [default: the robot file's tool, else the
     /// flange origin].
-    #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true)]
-    pub tool: Option<String>,
+    #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true, value_parser = xyz)]
+    pub tool: Option<Xyz>,
     /// Usable bar length range (ball-centre distance), mm [default: 300..520].
-    #[arg(long, value_name = "MIN..MAX")]
-    pub bar: Option<String>,
+    #[arg(long, value_name = "MIN..MAX", value_parser = range)]
+    pub bar: Option<Range>,
     /// Diameter of the EDBB's balls, mm: their centres can come no closer than this [default: 25].
-    #[arg(long, value_name = "MM")]
-    pub ball: Option<String>,
+    #[arg(long, value_name = "MM", value_parser = number)]
+    pub ball: Option<f64>,
     /// Floor height in the robot base frame, mm [default: 0].
-    #[arg(long, value_name = "MM", allow_hyphen_values = true)]
-    pub floor: Option<String>,
+    #[arg(long, value_name = "MM", allow_hyphen_values = true, value_parser = number)]
+    pub floor: Option<f64>,
     /// Safety margin: minimum clearance between any two bodies, mm [default: 10].
-    #[arg(long, value_name = "MM")]
-    pub margin: Option<String>,
+    #[arg(long, value_name = "MM", value_parser = number)]
+    pub margin: Option<f64>,
     /// Distance kept from every joint limit by poses and motions, deg [default: 1].
-    #[arg(long, value_name = "DEG")]
-    pub joint_margin: Option<String>,
+    #[arg(long, value_name = "DEG", value_parser = number)]
+    pub joint_margin: Option<f64>,
     /// URDF: the link that ends the chain [default: flange, tool0, or the chain's last link].
     #[arg(long, value_name = "LINK")]
     pub flange: Option<String>,
@@ -168,16 +168,16 @@ pub struct CompileArgs {
     #[arg(value_name = "ROBOT", required = true)]
     pub robot: Option<PathBuf>,
     /// Fixture ball centre in the robot base frame, mm [default: the cell file's].
-    #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true)]
-    pub fixture: Option<String>,
+    #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true, value_parser = xyz)]
+    pub fixture: Option<Xyz>,
     /// Output program.
     #[arg(short, long, value_name = "PATH.nc", required = true)]
     pub output: Option<PathBuf>,
     #[command(flatten)]
     pub cell: CellArgs,
     /// Joint grid step, degrees: one value for all joints or six comma-separated values.
-    #[arg(long, value_name = "DEG", default_value = "10")]
-    pub step: String,
+    #[arg(long, value_name = "DEG", default_value = "10", value_parser = steps)]
+    pub step: Steps,
     /// Keep at most this many valid poses for pruning (a seeded uniform subset).
     #[arg(long, value_name = "N", default_value_t = crate::pipeline::DEFAULT_MAX_CANDIDATES)]
     pub max_candidates: usize,
@@ -185,31 +185,31 @@ pub struct CompileArgs {
     #[arg(long, value_name = "N")]
     pub poses: Option<usize>,
     /// Corner blend distance at the MAP, mm.
-    #[arg(long, value_name = "MM", default_value = "10")]
-    pub blend: String,
+    #[arg(long, value_name = "MM", default_value = "10", value_parser = number)]
+    pub blend: f64,
     /// What the tour minimises: each move with its acceleration ramps (trapezoid), or Eq. 7 (the
     /// slowest joint at its maximum speed, the paper's).
     #[arg(long, value_name = "COST", default_value = "trapezoid", value_parser = ["trapezoid", "eq7"])]
     pub tour_cost: String,
     /// The bar's noise per reading, µm: what the predicted calibration uncertainty assumes.
-    #[arg(long, value_name = "UM", default_value = "1.0")]
-    pub bar_noise: String,
+    #[arg(long, value_name = "UM", default_value = "1.0", value_parser = number)]
+    pub bar_noise: f64,
     /// The bar's sample rate, Hz: readings along every move made with the bar.
-    #[arg(long, value_name = "HZ", default_value = "50")]
-    pub bar_rate: String,
+    #[arg(long, value_name = "HZ", default_value = "50", value_parser = number)]
+    pub bar_rate: f64,
     /// Stop-and-measure: an exact stop and a dwell of S seconds at every measurement pose, for
     /// controllers without a synchronous joint log (calibrate reads the bar's own log with
     /// --bar-log and --program); rounded to 0.01 s.
-    #[arg(long, value_name = "S")]
-    pub dwell: Option<String>,
+    #[arg(long, value_name = "S", value_parser = number)]
+    pub dwell: Option<f64>,
     /// A short check program: the poses are chosen for these parameters only (names such as
     /// theta2,a3), or for a calibration report's (calibrate --json, e.g. of a --baseline
     /// run): the parameters its drift section found moved, then the six joint zeros.
     #[arg(long, value_name = "PARAMS|REPORT.json")]
     pub focus: Option<String>,
     /// Start configuration, degrees: the tour starts at the selected pose nearest to it.
-    #[arg(long, value_name = "Q1,..,Q6", allow_hyphen_values = true)]
-    pub start: Option<String>,
+    #[arg(long, value_name = "Q1,..,Q6", allow_hyphen_values = true, value_parser = joints)]
+    pub start: Option<Joints>,
     /// Output dialect: ngc, sinumerik, krl, rapid, urscript, fanuc (`edbbgen dialects`).
     #[arg(long, value_name = "NAME", default_value = "ngc")]
     pub dialect: String,
@@ -249,8 +249,8 @@ pub struct VerifyArgs {
     #[arg(value_name = "PROGRAM.nc")]
     pub program: PathBuf,
     /// Fixture ball centre, mm [default: the cell file's, else the program header's].
-    #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true)]
-    pub fixture: Option<String>,
+    #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true, value_parser = xyz)]
+    pub fixture: Option<Xyz>,
     /// The program's dialect [default: from the file extension, else from its text].
     #[arg(long, value_name = "NAME")]
     pub dialect: Option<String>,
@@ -272,16 +272,16 @@ pub struct ModelArgs {
     #[arg(value_name = "ROBOT")]
     pub robot: PathBuf,
     /// Fixture ball centre in the robot base frame, mm [default: the cell file's].
-    #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true)]
-    pub fixture: Option<String>,
+    #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true, value_parser = xyz)]
+    pub fixture: Option<Xyz>,
     #[command(flatten)]
     pub cell: CellArgs,
     /// Size of the random pose set the analysis uses.
     #[arg(long, value_name = "N", default_value_t = 400)]
     pub samples: usize,
     /// The bar's noise per reading, µm: what the predicted calibration uncertainty assumes.
-    #[arg(long, value_name = "UM", default_value = "1.0")]
-    pub bar_noise: String,
+    #[arg(long, value_name = "UM", default_value = "1.0", value_parser = number)]
+    pub bar_noise: f64,
     /// Write the report as JSON (schema edbbgen.model/1) to FILE; `-`, or the flag alone, prints it
     /// on stdout in place of the summary.
     #[arg(long, value_name = "FILE", num_args = 0..=1, default_missing_value = "-")]
@@ -306,21 +306,21 @@ pub struct SimulateArgs {
     #[arg(short, long, value_name = "MEASURED.csv")]
     pub output: PathBuf,
     /// Fixture ball centre, mm [default: the program's header].
-    #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true)]
-    pub fixture: Option<String>,
+    #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true, value_parser = xyz)]
+    pub fixture: Option<Xyz>,
     /// MAP in the flange frame, mm [default: the program's header, else the robot file's tool].
-    #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true)]
-    pub tool: Option<String>,
+    #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true, value_parser = xyz)]
+    pub tool: Option<Xyz>,
     /// Cell file: its `[controller]` section maps the program's axes to the model's joints
     /// (the twin needs nothing else from it).
     #[arg(long, value_name = "CELL.toml")]
     pub cell: Option<PathBuf>,
     /// The bar's sample rate, Hz.
-    #[arg(long, value_name = "HZ", default_value = "50")]
-    pub bar_rate: String,
+    #[arg(long, value_name = "HZ", default_value = "50", value_parser = number)]
+    pub bar_rate: f64,
     /// The former spelling of --bar-rate (still read, with a warning).
-    #[arg(long, value_name = "HZ", hide = true)]
-    pub rate: Option<String>,
+    #[arg(long, value_name = "HZ", hide = true, value_parser = number)]
+    pub rate: Option<f64>,
     /// Noise seed.
     #[arg(long, value_name = "N", default_value_t = 1)]
     pub seed: u64,
@@ -334,48 +334,48 @@ pub struct SimulateArgs {
     #[arg(long, value_name = "JOINTS.csv", requires = "bar_log")]
     pub joint_log: Option<PathBuf>,
     /// The joint log's rate, Hz.
-    #[arg(long, value_name = "HZ", default_value = "100")]
-    pub joint_rate: String,
+    #[arg(long, value_name = "HZ", default_value = "100", value_parser = number)]
+    pub joint_rate: f64,
     /// The bar's clock: t_bar = OFFSET + (1 + DRIFT·1e-6)·t_controller, s.
     #[arg(
         long,
         value_name = "S",
         default_value = "0",
         allow_hyphen_values = true
-    )]
-    pub clock_offset: String,
+    , value_parser = number)]
+    pub clock_offset: f64,
     /// The bar's clock drift against the controller's, ppm.
     #[arg(
         long,
         value_name = "PPM",
         default_value = "0",
         allow_hyphen_values = true
-    )]
-    pub clock_drift: String,
+    , value_parser = number)]
+    pub clock_drift: f64,
     /// How long the operator takes at each pause (mounting, removing the bar), s: uniform.
-    #[arg(long, value_name = "MIN..MAX", default_value = "5..20")]
-    pub pause: String,
+    #[arg(long, value_name = "MIN..MAX", default_value = "5..20", value_parser = range)]
+    pub pause: Range,
     /// The bar's reading minus the ball-centre distance (a bar whose zero is not it), mm.
     #[arg(
         long,
         value_name = "MM",
         default_value = "0",
         allow_hyphen_values = true
-    )]
-    pub bar_zero: String,
+    , value_parser = number)]
+    pub bar_zero: f64,
     /// Random gaps (0.5..3 s) in the bar log.
     #[arg(long, value_name = "N", default_value_t = 0)]
     pub gaps: usize,
     /// Probability that a bar sample is lost.
-    #[arg(long, value_name = "P", default_value = "0")]
-    pub dropout: String,
+    #[arg(long, value_name = "P", default_value = "0", value_parser = number)]
+    pub dropout: f64,
     /// Poses (1-based, in dwell order) whose plateau the bar log loses.
     #[arg(long, value_name = "K,..")]
     pub missing: Option<String>,
     /// The controller's moves take this many times the program's time (acceleration ramps, a
     /// speed override); dwells are exact.
-    #[arg(long, value_name = "F", default_value = "1")]
-    pub move_scale: String,
+    #[arg(long, value_name = "F", default_value = "1", value_parser = number)]
+    pub move_scale: f64,
     /// Controller stops (0.5..3 s) in moves made with the bar: plateaus of no pose.
     #[arg(long, value_name = "N", default_value_t = 0)]
     pub holds: usize,
@@ -397,11 +397,11 @@ pub struct DiagnoseArgs {
     #[arg(value_name = "ROBOT")]
     pub robot: PathBuf,
     /// Fixture ball centre in the robot base frame, mm [default with --program: its header's].
-    #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true)]
-    pub fixture: Option<String>,
+    #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true, value_parser = xyz)]
+    pub fixture: Option<Xyz>,
     /// MAP in the flange frame, mm [default: the program header's, else the robot file's tool].
-    #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true)]
-    pub tool: Option<String>,
+    #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true, value_parser = xyz)]
+    pub tool: Option<Xyz>,
     /// Measured EDBB data (CSV contract).
     #[arg(
         long,
@@ -446,20 +446,20 @@ pub struct CircleArgs {
     #[arg(value_name = "ROBOT")]
     pub robot: PathBuf,
     /// Fixture ball centre (circle centre) in the robot base frame, mm.
-    #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true)]
-    pub fixture: String,
+    #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true, value_parser = xyz)]
+    pub fixture: Xyz,
     /// MAP in the flange frame, mm [default: the robot file's tool].
-    #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true)]
-    pub tool: Option<String>,
+    #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true, value_parser = xyz)]
+    pub tool: Option<Xyz>,
     /// Output program.
     #[arg(short, long, value_name = "CIRCLE.nc")]
     pub output: PathBuf,
     /// Circle diameter, mm (ISO 230-4 test of the paper: 700).
-    #[arg(long, value_name = "MM", default_value = "700")]
-    pub diameter: String,
+    #[arg(long, value_name = "MM", default_value = "700", value_parser = number)]
+    pub diameter: f64,
     /// MAP speed along the circle, mm/s.
-    #[arg(long, value_name = "MM_S", default_value = "50")]
-    pub speed: String,
+    #[arg(long, value_name = "MM_S", default_value = "50", value_parser = number)]
+    pub speed: f64,
     /// Quiet: no progress and no summary; warnings and errors only (on stderr). Output asked for
     /// by a flag (a file, `--emit`, `--json -`) is still written.
     #[arg(short, long)]
@@ -490,8 +490,8 @@ pub struct LdbbArgs {
     #[arg(long, value_name = "REPORT.html")]
     pub html: Option<PathBuf>,
     /// Angle grid the runs are resampled onto, deg (must divide 360).
-    #[arg(long, value_name = "DEG", default_value = "1")]
-    pub grid_step: String,
+    #[arg(long, value_name = "DEG", default_value = "1", value_parser = number)]
+    pub grid_step: f64,
     /// The sine the kinematic remainder subtracts: linear (b = 1, the centring offset's) or
     /// nonlinear (the paper's Eq. 9 with b free).
     #[arg(long, value_name = "MODEL", default_value = "linear", value_parser = ["linear", "nonlinear"])]
@@ -525,20 +525,20 @@ pub struct LdbbCircleArgs {
     #[arg(long, value_name = "CELL.toml")]
     pub cell: Option<PathBuf>,
     /// Angle between programmed points along the circle, deg.
-    #[arg(long, value_name = "DEG", default_value = "0.5")]
-    pub step: String,
+    #[arg(long, value_name = "DEG", default_value = "0.5", value_parser = number)]
+    pub step: f64,
     /// Corner blend distance at the tool ball, mm.
-    #[arg(long, value_name = "MM", default_value = "0.5")]
-    pub blend: String,
+    #[arg(long, value_name = "MM", default_value = "0.5", value_parser = number)]
+    pub blend: f64,
     /// The LVDT's range either side of the nominal bar length, mm.
-    #[arg(long, value_name = "MM", default_value = "2")]
-    pub stroke: String,
+    #[arg(long, value_name = "MM", default_value = "2", value_parser = number)]
+    pub stroke: f64,
     /// Safety margin: minimum clearance between any two bodies, mm [default: the cell's, 10].
-    #[arg(long, value_name = "MM")]
-    pub margin: Option<String>,
+    #[arg(long, value_name = "MM", value_parser = number)]
+    pub margin: Option<f64>,
     /// Distance kept from every joint limit, deg [default: the cell's, 1].
-    #[arg(long, value_name = "DEG")]
-    pub joint_margin: Option<String>,
+    #[arg(long, value_name = "DEG", value_parser = number)]
+    pub joint_margin: Option<f64>,
     /// Output dialect (a bundled template, `edbbgen dialects` lists them).
     #[arg(long, value_name = "NAME", default_value = "ngc")]
     pub dialect: String,
@@ -596,8 +596,8 @@ pub struct CalibrateArgs {
     /// Fixture ball centre of the run, mm, robot base frame; repeat in pairs with --measured
     /// (then --bar-log), or give it once for every run [default for a --bar-log run: its
     /// program's header].
-    #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true)]
-    pub fixture: Vec<String>,
+    #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true, value_parser = xyz)]
+    pub fixture: Vec<Xyz>,
     /// A run without a synchronous joint log: the bar's own log (t_s,length_mm on its clock);
     /// with --program (stop-and-measure: its plateaus matched to the program's poses) or
     /// --joint-log (continuous: the clocks synchronised). Repeatable: one run each.
@@ -611,8 +611,8 @@ pub struct CalibrateArgs {
     #[arg(long, value_name = "JOINTS.csv")]
     pub joint_log: Vec<PathBuf>,
     /// MAP in the flange frame, mm [default: the robot file's tool].
-    #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true)]
-    pub tool: Option<String>,
+    #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true, value_parser = xyz)]
+    pub tool: Option<Xyz>,
     /// The calibrated robot: a .dh.toml for a DH robot, a .urdf for a URDF robot.
     #[arg(short, long, value_name = "CALIBRATED.dh.toml|CALIBRATED.urdf")]
     pub output: PathBuf,
@@ -648,7 +648,7 @@ pub struct CalibrateArgs {
     /// micrometre).
     #[arg(long)]
     pub fixture_known: bool,
-    /// Hold the tool point (MAP) at the given position (--tool or the robot file's) instead of
+    /// Hold the MAP at the given position (--tool or the robot file's) instead of
     /// estimating it.
     #[arg(long)]
     pub tool_known: bool,
@@ -657,10 +657,10 @@ pub struct CalibrateArgs {
     #[arg(long, value_name = "MM|free", allow_hyphen_values = true)]
     pub length_offset: Option<String>,
     /// Standard uncertainty of a length and an angle of the robot before calibration, mm,deg,
-    /// and optionally of the given set-up (fixture, tool point, length zero), mm: what a
+    /// and optionally of the given set-up (fixture, MAP, length zero), mm: what a
     /// parameter's calibrated uncertainty is judged against [default: 1,0.05,10].
-    #[arg(long, value_name = "MM,DEG[,SETUP_MM]", allow_hyphen_values = true)]
-    pub prior: Option<String>,
+    #[arg(long, value_name = "MM,DEG[,SETUP_MM]", allow_hyphen_values = true, value_parser = prior)]
+    pub prior: Option<Prior>,
     /// One reading's noise, µm (the instrument's specification, or its spread at standstill):
     /// what the residual is judged against [default: from the data: repeated or neighbouring
     /// poses of static readings, the high-frequency part of a continuous recording].
@@ -701,7 +701,7 @@ pub struct CompensateArgs {
     /// The compensated targets (CSV) or program.
     #[arg(short, long, value_name = "OUT")]
     pub output: Option<PathBuf>,
-    /// The tool point to compensate, in the flange frame, mm, optionally with its orientation
+    /// The TCP to compensate, in the flange frame, mm, optionally with its orientation
     /// (fixed-axis X-Y-Z, deg) [default: each robot file's MAP].
     #[arg(long, value_name = "X,Y,Z[,RX,RY,RZ]", allow_hyphen_values = true, value_parser = tcp_frame)]
     pub tcp: Option<crate::robot::Frame>,
@@ -741,7 +741,7 @@ pub struct CompensateArgs {
     #[arg(long, value_name = "S")]
     pub elapsed: Option<f64>,
     /// A payload different from the calibration's: mass (kg) and its centre in the flange
-    /// frame (mm; default the tool point), for a joint compliance identified with a mass
+    /// frame (mm; default the TCP), for a joint compliance identified with a mass
     /// model (form known_masses).
     #[arg(long, value_name = "KG[,X,Y,Z]")]
     pub payload: Option<String>,
@@ -769,8 +769,8 @@ pub struct PlaceArgs {
     #[arg(value_name = "ROBOT")]
     pub robot: PathBuf,
     /// The fixture to compare with, mm [default: the cell file's, if it has one].
-    #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true)]
-    pub fixture: Option<String>,
+    #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true, value_parser = xyz)]
+    pub fixture: Option<Xyz>,
     #[command(flatten)]
     pub cell: CellArgs,
     /// The box searched, mm, robot base frame [default: the reachable volume in front of the
@@ -779,14 +779,14 @@ pub struct PlaceArgs {
     pub region: Option<String>,
     /// Radius of the fixture's stand, a column from the floor to the ball, mm; 0 = no stand
     /// (a fixture on a bracket or hung from above) [default: the cell's, else 40].
-    #[arg(long, value_name = "MM")]
-    pub stand: Option<String>,
+    #[arg(long, value_name = "MM", value_parser = number)]
+    pub stand: Option<f64>,
     /// Grid points per axis over the region (ends included).
     #[arg(long, value_name = "NX,NY,NZ", default_value = "10,10,5")]
     pub grid: String,
     /// Also score this position, mm (repeatable): spots the cell offers.
-    #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true)]
-    pub at: Vec<String>,
+    #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true, value_parser = xyz)]
+    pub at: Vec<Xyz>,
     /// Fixture positions in the campaign: the best K, calibrated together.
     #[arg(long, value_name = "K", default_value_t = 1)]
     pub count: usize,
@@ -795,21 +795,23 @@ pub struct PlaceArgs {
     pub top: usize,
     /// Joint grid step of the proxies and the full estimate's compiles, degrees (one value or
     /// six).
-    #[arg(long, value_name = "DEG", default_value = "20")]
-    pub step: String,
+    #[arg(long, value_name = "DEG", default_value = "20", value_parser = steps)]
+    pub step: Steps,
     /// Pool size of the full estimate's compiles.
     #[arg(long, value_name = "N", default_value_t = crate::place::DEFAULT_FULL_CANDIDATES)]
     pub max_candidates: usize,
     /// The bar's noise per reading, µm.
-    #[arg(long, value_name = "UM", default_value = "1.0")]
-    pub bar_noise: String,
+    #[arg(long, value_name = "UM", default_value = "1.0", value_parser = number)]
+    pub bar_noise: f64,
     /// The bar's sample rate, Hz.
-    #[arg(long, value_name = "HZ", default_value = "50")]
-    pub bar_rate: String,
+    #[arg(long, value_name = "HZ", default_value = "50", value_parser = number)]
+    pub bar_rate: f64,
     /// Standard uncertainty of a length and an angle before calibration, mm,deg: what a
-    /// parameter the data do not determine costs [default: 1,0.05].
-    #[arg(long, value_name = "MM,DEG", allow_hyphen_values = true)]
-    pub prior: Option<String>,
+    /// parameter the data do not determine costs [default: 1,0.05]. The grammar is
+    /// calibrate's; a set-up value has nothing to act on here (the score takes the set-up as
+    /// given) and is refused.
+    #[arg(long, value_name = "MM,DEG[,SETUP_MM]", allow_hyphen_values = true, value_parser = prior)]
+    pub prior: Option<Prior>,
     /// Ranked positions printed (the cell's fixture, --at positions and the campaign are
     /// printed too).
     #[arg(long, value_name = "N", default_value_t = 10)]
@@ -854,5 +856,129 @@ fn positive_um(v: &str) -> Result<f64, String> {
     match v.parse::<f64>() {
         Ok(x) if x.is_finite() && x > 0.0 => Ok(x),
         _ => Err(format!("'{v}' is not a positive number of micrometres")),
+    }
+}
+
+// ---- value parsers: numbers, vectors and ranges, in clap's error form (exit 2) -------------
+
+/// `X,Y,Z` in mm: three finite numbers.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Xyz(pub [f64; 3]);
+
+impl Xyz {
+    /// The point in metres.
+    pub fn m(&self) -> nalgebra::Vector3<f64> {
+        nalgebra::Vector3::from(self.0) * crate::units::MM
+    }
+}
+
+/// `MIN..MAX`: two finite numbers, MIN ≤ MAX.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Range(pub f64, pub f64);
+
+/// A joint grid step in degrees: one for every joint or six, each 0.1 to 180.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Steps(pub [f64; 6]);
+
+/// Six joint values in degrees.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Joints(pub [f64; 6]);
+
+/// `--prior MM,DEG[,SETUP_MM]`: the standard uncertainty of a length and an angle of the robot
+/// before calibration and, optionally, of the given set-up (fixture, MAP, length zero).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Prior {
+    pub length_mm: f64,
+    pub angle_deg: f64,
+    pub setup_mm: Option<f64>,
+}
+
+fn finite_list(s: &str) -> Result<Vec<f64>, String> {
+    s.split(',')
+        .map(|x| x.trim().parse::<f64>().ok().filter(|x| x.is_finite()))
+        .collect::<Option<_>>()
+        .ok_or_else(|| "not a comma-separated list of finite numbers".to_string())
+}
+
+/// A finite number.
+pub(super) fn number(s: &str) -> Result<f64, String> {
+    match s.trim().parse::<f64>() {
+        Ok(x) if x.is_finite() => Ok(x),
+        _ => Err("not a finite number".into()),
+    }
+}
+
+pub(super) fn xyz(s: &str) -> Result<Xyz, String> {
+    match finite_list(s)?.as_slice() {
+        &[x, y, z] => Ok(Xyz([x, y, z])),
+        v => Err(format!("{} values, expected X,Y,Z (mm)", v.len())),
+    }
+}
+
+pub(super) fn range(s: &str) -> Result<Range, String> {
+    let (a, b) = s.split_once("..").ok_or("not MIN..MAX")?;
+    let (a, b) = (number(a)?, number(b)?);
+    if a <= b {
+        Ok(Range(a, b))
+    } else {
+        Err("needs MIN <= MAX".into())
+    }
+}
+
+pub(super) fn steps(s: &str) -> Result<Steps, String> {
+    let v = finite_list(s)?;
+    let v: [f64; 6] = match v.len() {
+        1 => [v[0]; 6],
+        6 => std::array::from_fn(|i| v[i]),
+        n => return Err(format!("{n} values, expected 1 or 6")),
+    };
+    if v.iter().any(|x| !(0.1..=180.0).contains(x)) {
+        return Err("each step must be between 0.1 and 180 degrees".into());
+    }
+    Ok(Steps(v))
+}
+
+pub(super) fn joints(s: &str) -> Result<Joints, String> {
+    let v = finite_list(s)?;
+    if v.len() != 6 {
+        return Err(format!("{} values, expected Q1,..,Q6 (deg)", v.len()));
+    }
+    Ok(Joints(std::array::from_fn(|i| v[i])))
+}
+
+pub(super) fn prior(s: &str) -> Result<Prior, String> {
+    let v = finite_list(s)?;
+    if !(v.len() == 2 || v.len() == 3) || v.iter().any(|x| *x <= 0.0) {
+        return Err(
+            "needs a positive length (mm) and angle (deg) of the robot, and optionally of the set-up (mm)"
+                .into(),
+        );
+    }
+    Ok(Prior {
+        length_mm: v[0],
+        angle_deg: v[1],
+        setup_mm: v.get(2).copied(),
+    })
+}
+
+#[cfg(test)]
+mod value_tests {
+    use super::*;
+
+    #[test]
+    fn numbers_vectors_and_ranges_parse_and_bad_ones_are_named() {
+        assert_eq!(xyz("-1, 2,3.5"), Ok(Xyz([-1.0, 2.0, 3.5])));
+        assert!(xyz("1,2").unwrap_err().contains("2 values"));
+        assert!(xyz("1,2,inf").is_err());
+        assert_eq!(range("300..520"), Ok(Range(300.0, 520.0)));
+        assert!(range("520..300").is_err() && range("300").is_err() && range("5..5").is_ok());
+        assert_eq!(steps("20"), Ok(Steps([20.0; 6])));
+        assert!(steps("-5").is_err() && steps("10,10").is_err());
+        assert!(joints("1,2,3,4,5").is_err());
+        assert_eq!(number("NaN"), Err("not a finite number".into()));
+        let p = prior("1,0.05").unwrap();
+        assert_eq!((p.length_mm, p.angle_deg, p.setup_mm), (1.0, 0.05, None));
+        assert_eq!(prior("1,0.05,10").unwrap().setup_mm, Some(10.0));
+        assert!(prior("1").is_err() && prior("0,1").is_err());
     }
 }

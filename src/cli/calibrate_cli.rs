@@ -2,9 +2,7 @@
 //! the calibrated robot file and the reports, all written together or not at all.
 
 use super::args::CalibrateArgs;
-use super::common::{
-    check_outputs, file_err, header_xyz, name, numbers, read_input, write_all_atomic, xyz_mm,
-};
+use super::common::{check_outputs, file_err, header_xyz, name, read_input, write_all_atomic};
 use super::{logruns, usage, Error};
 use crate::calibrate::resync::{self, ResyncError};
 use crate::calibrate::{self, CalibrateOptions, Effects, LengthOffset};
@@ -41,7 +39,7 @@ pub fn calibrate(a: &CalibrateArgs) -> Result<i32, Error> {
         &a.tool,
         programs.first().and_then(|p| p.parsed.header_value("MAP")),
     ) {
-        (Some(s), _) => xyz_mm("--tool", s)?,
+        (Some(s), _) => s.m(),
         (None, Some(h)) => header_xyz(h)
             .ok_or_else(|| usage("the program header's MAP is not X, Y, Z mm: give --tool"))?,
         (None, None) => robot.tool.unwrap_or_else(Vector3::zeros),
@@ -179,11 +177,7 @@ fn check_runs(a: &CalibrateArgs) -> Result<Vec<Vector3<f64>>, Error> {
             "--bar-log: needs --program (the stop-and-measure program it recorded) or --joint-log",
         ));
     }
-    let fixtures: Vec<Vector3<f64>> = a
-        .fixture
-        .iter()
-        .map(|f| xyz_mm("--fixture", f))
-        .collect::<Result<_, _>>()?;
+    let fixtures: Vec<Vector3<f64>> = a.fixture.iter().map(|f| f.m()).collect();
     check_outputs(&[
         Some(a.output.as_path()),
         a.json.as_deref(),
@@ -231,16 +225,10 @@ fn calibrate_options(a: &CalibrateArgs) -> Result<CalibrateOptions, Error> {
         noise: a.noise.map(|u| u * 1e-6),
         ..CalibrateOptions::default()
     };
-    if let Some(p) = &a.prior {
-        let v = numbers("--prior", p, None)?;
-        if !(v.len() == 2 || v.len() == 3) || v.iter().any(|x| *x <= 0.0) {
-            return Err(usage(format!(
-                "--prior: '{p}' needs a positive length (mm) and angle (deg) of the robot, and optionally of the set-up (mm)"
-            )));
-        }
-        opts.prior_length = v[0] * MM;
-        opts.prior_angle = v[1] * DEG;
-        if let Some(s) = v.get(2) {
+    if let Some(p) = a.prior {
+        opts.prior_length = p.length_mm * MM;
+        opts.prior_angle = p.angle_deg * DEG;
+        if let Some(s) = p.setup_mm {
             opts.prior_setup = s * MM;
         }
     }

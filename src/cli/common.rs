@@ -2,7 +2,7 @@
 //! SI values out; the cell and robot resolved from their flags; program dialects and controller
 //! mappings; input files read within their limits, outputs written whole (temp file + rename).
 
-use super::args::CellArgs;
+use super::args::{CellArgs, Range, Steps, Xyz};
 use super::{usage, Error};
 use crate::cell::CellSpec;
 use crate::robot::{self, LoadOptions, Robot};
@@ -41,38 +41,16 @@ pub(super) fn xyz_mm(flag: &str, s: &str) -> Result<Vector3<f64>, Error> {
     Ok(Vector3::new(v[0], v[1], v[2]) * MM)
 }
 
-pub(super) fn scalar(flag: &str, s: &str) -> Result<f64, Error> {
-    Ok(numbers(flag, s, Some(1))?[0])
-}
-
-pub(super) fn bar_range(s: &str) -> Result<(f64, f64), Error> {
-    let (a, b) = s
-        .split_once("..")
-        .ok_or_else(|| usage(format!("--bar: '{s}' is not MIN..MAX (mm)")))?;
-    let (a, b) = (scalar("--bar", a)?, scalar("--bar", b)?);
+pub(super) fn bar_range(r: Range) -> Result<(f64, f64), Error> {
+    let Range(a, b) = r;
     if !(a > 0.0 && b > a) {
-        return Err(usage(format!("--bar: '{s}' needs 0 < MIN < MAX")));
+        return Err(usage(format!("--bar: {a}..{b} needs 0 < MIN < MAX")));
     }
     Ok((a * MM, b * MM))
 }
 
-pub(super) fn steps(s: &str) -> Result<[f64; 6], Error> {
-    let v = numbers("--step", s, None)?;
-    let v: Vec<f64> = match v.len() {
-        1 => vec![v[0]; 6],
-        6 => v,
-        n => {
-            return Err(usage(format!(
-                "--step: '{s}' has {n} values, expected 1 or 6"
-            )))
-        }
-    };
-    if v.iter().any(|&x| !(0.1..=180.0).contains(&x)) {
-        return Err(usage(format!(
-            "--step: '{s}': each step must be between 0.1 and 180 degrees"
-        )));
-    }
-    Ok(std::array::from_fn(|i| v[i] * DEG))
+pub(super) fn steps(s: Steps) -> [f64; 6] {
+    s.0.map(|x| x * DEG)
 }
 
 pub(super) fn load_robot(path: &Path, cell: &CellArgs, spec: &CellSpec) -> Result<Robot, Error> {
@@ -93,17 +71,16 @@ pub(super) fn resolve_cell(a: &CellArgs) -> Result<CellSpec, Error> {
         None => CellSpec::default(),
     };
     if let Some(t) = &a.tool {
-        spec.map = Some(xyz_mm("--tool", t)?);
+        spec.map = Some(t.m());
     }
-    if let Some(b) = &a.bar {
+    if let Some(b) = a.bar {
         (spec.bar_min, spec.bar_max) = bar_range(b)?;
         (spec.stated.bar_min, spec.stated.bar_max) = (true, true);
     }
-    if let Some(f) = &a.floor {
-        spec.floor_z = scalar("--floor", f)? * MM;
+    if let Some(f) = a.floor {
+        spec.floor_z = f * MM;
     }
-    if let Some(b) = &a.ball {
-        let b = scalar("--ball", b)?;
+    if let Some(b) = a.ball {
         if !(b > 0.0 && b < 200.0) {
             return Err(usage(format!(
                 "--ball: {b} mm must be between 0 and 200 mm"
@@ -112,13 +89,12 @@ pub(super) fn resolve_cell(a: &CellArgs) -> Result<CellSpec, Error> {
         spec.ball = b * MM;
         spec.stated.ball = true;
     }
-    set_margins(&mut spec, a.margin.as_deref(), a.joint_margin.as_deref())?;
+    set_margins(&mut spec, a.margin, a.joint_margin)?;
     Ok(spec)
 }
 
 /// `--bar-noise`: the bar's noise per reading (µm), positive.
-pub(super) fn bar_noise(s: &str) -> Result<f64, Error> {
-    let v = scalar("--bar-noise", s)?;
+pub(super) fn bar_noise(v: f64) -> Result<f64, Error> {
     if v <= 0.0 {
         return Err(usage(format!("--bar-noise: {v} µm must be positive")));
     }
@@ -126,8 +102,7 @@ pub(super) fn bar_noise(s: &str) -> Result<f64, Error> {
 }
 
 /// `--bar-rate`: the bar's sample rate (Hz), 1 to 100,000.
-pub(super) fn bar_rate(s: &str) -> Result<f64, Error> {
-    let v = scalar("--bar-rate", s)?;
+pub(super) fn bar_rate(v: f64) -> Result<f64, Error> {
     if !(1.0..=100_000.0).contains(&v) {
         return Err(usage(format!("--bar-rate: {v} Hz is outside 1..100000 Hz")));
     }
@@ -137,11 +112,10 @@ pub(super) fn bar_rate(s: &str) -> Result<f64, Error> {
 /// `--margin MM` and `--joint-margin DEG` over the cell's values, range-checked.
 pub(super) fn set_margins(
     spec: &mut CellSpec,
-    margin: Option<&str>,
-    joint_margin: Option<&str>,
+    margin: Option<f64>,
+    joint_margin: Option<f64>,
 ) -> Result<(), Error> {
     if let Some(m) = margin {
-        let m = scalar("--margin", m)?;
         if !(0.0..=500.0).contains(&m) {
             return Err(usage(format!(
                 "--margin: {m} mm must be between 0 and 500 mm"
@@ -151,7 +125,6 @@ pub(super) fn set_margins(
         spec.stated.margin = true;
     }
     if let Some(m) = joint_margin {
-        let m = scalar("--joint-margin", m)?;
         if !(0.0..=30.0).contains(&m) {
             return Err(usage(format!(
                 "--joint-margin: {m} deg must be between 0 and 30 deg"
@@ -165,12 +138,12 @@ pub(super) fn set_margins(
 
 /// The fixture: the flag, else the cell file's, else (verify) the program header's.
 pub(super) fn resolve_fixture(
-    flag: Option<&str>,
+    flag: Option<Xyz>,
     spec: &CellSpec,
     header: Option<&str>,
 ) -> Result<Vector3<f64>, Error> {
     if let Some(f) = flag {
-        return xyz_mm("--fixture", f);
+        return Ok(f.m());
     }
     if let Some(f) = spec.fixture {
         return Ok(f);

@@ -15,7 +15,7 @@ use crate::compensate::{self, targets, Compensator, Limits, Report};
 use crate::controller::ControllerMap;
 use crate::robot::effects::ThermalState;
 use crate::robot::{self, Frame, LoadOptions, Robot};
-use crate::units::{fmt_fixed, DEG, MM};
+use crate::units::{length_um, DEG, MM};
 use nalgebra::Vector3;
 use std::path::Path;
 
@@ -85,8 +85,8 @@ pub fn compensate(a: &CompensateArgs) -> Result<i32, Error> {
     if tcp.is_some() {
         if let (Some(tn), Some(tc)) = (nominal.tool, calibrated.tool) {
             notes.push(format!(
-                "the tool point is given (--tcp): the calibrated MAP's deviation from nominal ({} µm), which the bar cannot tell from link 6's own, is not applied to it",
-                fmt_fixed((tc - tn).norm() * 1e6, 1)
+                "the TCP is given (--tcp): the calibrated MAP's deviation from nominal ({}), which the bar cannot tell from link 6's own, is not applied to it",
+                length_um((tc - tn).norm() * 1e6)
             ));
         }
     }
@@ -243,7 +243,7 @@ fn tool_points(
                 .map(Frame::translation)
                 .ok_or_else(|| {
                     usage(format!(
-                        "--tcp: required: {} declares no tool point (MAP) and no cell gives one",
+                        "--tcp: required: {} declares no MAP and no cell gives one",
                         a.nominal.display()
                     ))
                 })?;

@@ -3,15 +3,14 @@
 
 use super::args::CompileArgs;
 use super::common::{
-    bar_noise, bar_rate, check_outputs, controller_map, load_robot, numbers, program_name,
-    read_input, resolve_cell, resolve_fixture, resolve_template, scalar, steps, write_all_atomic,
-    write_atomic,
+    bar_noise, bar_rate, check_outputs, controller_map, load_robot, program_name, read_input,
+    resolve_cell, resolve_fixture, resolve_template, steps, write_all_atomic, write_atomic,
 };
 use super::progress::{Bar, Timed};
 use super::{usage, Error};
 use crate::model;
 use crate::pipeline::{self, CompileOptions};
-use crate::units::{fmt_fixed, to_mm, DEG, MM};
+use crate::units::{fmt_fixed, length_um, to_mm, DEG, MM};
 use std::path::Path;
 
 // ---- the compiler -------------------------------------------------------------------------
@@ -23,18 +22,12 @@ pub fn run(a: &CompileArgs) -> Result<i32, Error> {
         return Err(usage("ROBOT and -o are required"));
     };
     let spec = resolve_cell(&a.cell)?;
-    let fixture = resolve_fixture(a.fixture.as_deref(), &spec, None)?;
-    let blend = scalar("--blend", &a.blend)?;
+    let fixture = resolve_fixture(a.fixture, &spec, None)?;
+    let blend = a.blend;
     if !(0.0..=100.0).contains(&blend) {
         return Err(usage(format!("--blend: {blend} mm is outside 0..100 mm")));
     }
-    let start = match &a.start {
-        Some(s) => {
-            let v = numbers("--start", s, Some(6))?;
-            std::array::from_fn(|i| v[i] * DEG)
-        }
-        None => [0.0; 6],
-    };
+    let start = a.start.map_or([0.0; 6], |s| s.0.map(|x| x * DEG));
     if a.max_candidates < 30 {
         return Err(usage("--max-candidates: must be at least 30"));
     }
@@ -52,14 +45,14 @@ pub fn run(a: &CompileArgs) -> Result<i32, Error> {
         report,
         a.html.as_deref(),
     ])?;
-    let step = steps(&a.step)?;
+    let step = steps(a.step);
     let robot = load_robot(robot_path, &a.cell, &spec)?;
     controller_map(&spec, a.cell.cell.as_deref(), dialect, &robot)?;
     let (lo, hi) = robot.limits();
     let start = std::array::from_fn(|i| f64::clamp(start[i], lo[i], hi[i]));
-    let bar_noise = bar_noise(&a.bar_noise)?;
-    let bar_rate = bar_rate(&a.bar_rate)?;
-    let dwell = a.dwell.as_deref().map(|d| dwell(d, bar_rate)).transpose()?;
+    let bar_noise = bar_noise(a.bar_noise)?;
+    let bar_rate = bar_rate(a.bar_rate)?;
+    let dwell = a.dwell.map(|d| dwell(d, bar_rate)).transpose()?;
     let focus = a.focus.as_deref().map(parse_focus).transpose()?;
     let opts = CompileOptions {
         focus,
@@ -157,7 +150,7 @@ fn summary(quiet: bool, output: &Path, out: &pipeline::Compiled) {
     let v = &out.verified;
     say!(
         quiet,
-        "{}: {} poses + {} support ({} identifiable parameters, cond {}), estimated {} s as programmed (support poses and blends included); ordering: {} s in tour order, {} s unsorted (the measurement poses alone, direct moves); verified: min clearance {} mm ({} / {}), bar {}..{} mm; predicted MAP position uncertainty after calibration {} µm RMS over the joint space ({} µm bar noise at {} Hz)",
+        "{}: {} poses + {} support ({} identifiable parameters, cond {}), estimated {} s as programmed (support poses and blends included); ordering: {} s in tour order, {} s unsorted (the measurement poses alone, direct moves); verified: min clearance {} mm ({} / {}), bar {}..{} mm; predicted MAP position uncertainty after calibration {} RMS over the joint space ({} bar noise at {} Hz)",
         output.display(),
         h.poses,
         h.supports,
@@ -171,19 +164,19 @@ fn summary(quiet: bool, output: &Path, out: &pipeline::Compiled) {
         v.min_clearance.b,
         fmt_fixed(to_mm(v.extremes.min_length), 1),
         fmt_fixed(to_mm(v.extremes.max_length), 1),
-        fmt_fixed(h.predicted_std_um, 2),
-        fmt_fixed(h.bar_noise_um, 2),
+        length_um(h.predicted_std_um),
+        length_um(h.bar_noise_um),
         fmt_fixed(h.bar_rate_hz, 0),
     );
     if h.dwell_s > 0.0 {
         say!(
             quiet,
-            "stop-and-measure: exact stop and {} s dwell at each of the {} measurement poses; predicted {} µm RMS over the joint space from the plateau means ({} samples each), {} µm from the same run recorded with a synchronous joint log",
+            "stop-and-measure: exact stop and {} s dwell at each of the {} measurement poses; predicted {} RMS over the joint space from the plateau means ({} samples each), {} from the same run recorded with a synchronous joint log",
             fmt_fixed(h.dwell_s, 2),
             h.measure_mm.len(),
-            fmt_fixed(h.predicted_std_um, 2),
+            length_um(h.predicted_std_um),
             h.plateau_samples,
-            fmt_fixed(h.predicted_continuous_std_um, 2)
+            length_um(h.predicted_continuous_std_um)
         );
     }
 }
@@ -206,8 +199,8 @@ fn warn_extension(output: &Path, dialect: &crate::dialect::Dialect) {
 
 /// `--dwell S`: on the 0.01 s grid every dialect prints exactly (FANUC's WAIT resolves 0.01 s),
 /// long enough for a plateau at the bar's rate.
-fn dwell(d: &str, bar_rate: f64) -> Result<f64, Error> {
-    let d = (scalar("--dwell", d)? * 100.0).round() / 100.0;
+fn dwell(d: f64, bar_rate: f64) -> Result<f64, Error> {
+    let d = (d * 100.0).round() / 100.0;
     if !(0.1..=60.0).contains(&d) {
         return Err(usage(format!("--dwell: {d} s is outside 0.1..60 s")));
     }

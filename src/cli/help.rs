@@ -21,7 +21,7 @@ pub const COMPILE: &str = concat!(
     " --cell ",
     cell!(),
     " -o nj130.nc --json nj130.json --html nj130.html\n",
-    "  # The same robot, the fixture and tool ball given on the command line, for a KUKA\n",
+    "  # The same robot, the fixture position and the MAP given on the command line, for a KUKA\n",
     "  edbbgen ",
     nj130!(),
     " --fixture 258,1468,708 --tool 0,0,100 --dialect krl -o EDBB.src\n",
@@ -182,7 +182,7 @@ compensate a move, a compiled program failed its own verify (nothing is written)
 2  bad input or usage: one line on stderr names the file, the field or the flag; no output \
 file is written.
 3  calibrate only: the geometry is confirmed within the stated bound of nominal, and the \
-set-up (tool point, fixtures, length zeros) is fitted and written.";
+set-up (MAP, fixtures, length zeros) is fitted and written.";
 
 /// Every subcommand's examples, by name (`None`: the compiler).
 pub fn examples(subcommand: Option<&str>) -> Option<&'static str> {

@@ -4,7 +4,7 @@
 
 use super::args::{LdbbArgs, LdbbCircleArgs, SimulateLdbbArgs};
 use super::common::{
-    check_outputs, controller_map, program_name, read_input, resolve_template, scalar, set_margins,
+    check_outputs, controller_map, program_name, read_input, resolve_template, set_margins,
     write_atomic,
 };
 use super::{usage, Error};
@@ -12,7 +12,7 @@ use crate::files::Kind;
 use crate::ldbb::setup::Setup;
 use crate::ldbb::{self, data, program, sim};
 use crate::robot::{self, Robot};
-use crate::units::{fmt_fixed, DEG, MM};
+use crate::units::{fmt_fixed, length_um, DEG, MM};
 use std::path::{Path, PathBuf};
 
 fn read(path: &Path, what: &str, kind: Kind) -> Result<String, Error> {
@@ -88,7 +88,7 @@ fn hash(parts: &[&[u8]]) -> String {
 }
 
 pub fn ldbb(a: &LdbbArgs) -> Result<i32, Error> {
-    let step = scalar("--grid-step", &a.grid_step)?;
+    let step = a.grid_step;
     let opts = ldbb::Options {
         grid_step: step * DEG,
         sine: match a.sine.as_str() {
@@ -178,17 +178,16 @@ pub fn ldbb(a: &LdbbArgs) -> Result<i32, Error> {
 }
 
 pub fn circle(a: &LdbbCircleArgs) -> Result<i32, Error> {
-    let positive = |flag: &str, v: &str, max: f64| -> Result<f64, Error> {
-        let x = scalar(flag, v)?;
+    let positive = |flag: &str, x: f64, max: f64| -> Result<f64, Error> {
         if !(x > 0.0 && x <= max) {
             return Err(usage(format!("{flag}: {x} must be in (0, {max}]")));
         }
         Ok(x)
     };
     let mut opts = program::ProgramOptions {
-        step: positive("--step", &a.step, 10.0)? * DEG,
-        blend: positive("--blend", &a.blend, 50.0)? * MM,
-        stroke: positive("--stroke", &a.stroke, 50.0)? * MM,
+        step: positive("--step", a.step, 10.0)? * DEG,
+        blend: positive("--blend", a.blend, 50.0)? * MM,
+        stroke: positive("--stroke", a.stroke, 50.0)? * MM,
         program_name: String::new(),
     };
     let template = resolve_template(&a.dialect, a.template.as_deref())?;
@@ -209,7 +208,7 @@ pub fn circle(a: &LdbbCircleArgs) -> Result<i32, Error> {
         None => None,
     };
     let mut spec = program::cell(&setup, base, &opts).map_err(|e| file_err(&a.setup, e))?;
-    set_margins(&mut spec, a.margin.as_deref(), a.joint_margin.as_deref())?;
+    set_margins(&mut spec, a.margin, a.joint_margin)?;
     let robot = load_robot(Some(&a.robot), &setup, &a.setup, &a.package_path)?
         .ok_or_else(|| usage("ROBOT: required"))?;
     // A mapping the cell's [controller] cannot give is the cell's error, named as such.
@@ -239,7 +238,7 @@ pub fn circle(a: &LdbbCircleArgs) -> Result<i32, Error> {
     let v = &out.verified;
     say!(
         a.quiet,
-        "{}: LDBB loaded circle test, {} loads x {} circles, {} moves, {} s of motion; verified: min clearance {} mm ({} / {}), bar {}..{} mm, path within {} µm of the circle",
+        "{}: LDBB loaded circle test, {} loads x {} circles, {} moves, {} s of motion; verified: min clearance {} mm ({} / {}), bar {}..{} mm, path within {} of the circle",
         a.output.display(),
         setup.loads.len(),
         setup.repeats,
@@ -250,7 +249,7 @@ pub fn circle(a: &LdbbCircleArgs) -> Result<i32, Error> {
         v.min_clearance.b,
         fmt_fixed(v.extremes.min_length / MM, 3),
         fmt_fixed(v.extremes.max_length / MM, 3),
-        fmt_fixed(out.path_deviation * 1e6, 2),
+        length_um(out.path_deviation * 1e6),
     );
     Ok(0)
 }

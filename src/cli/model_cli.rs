@@ -9,14 +9,14 @@ use super::{usage, Error};
 use crate::model::{self, IdentifyOptions, MeasurementModel, Status};
 use crate::pipeline;
 use crate::robot::Robot;
-use crate::units::{fmt_fixed, to_mm};
+use crate::units::{fmt_fixed, length_um, to_mm};
 use nalgebra::{DMatrix, Vector3};
 
 // ---- model --------------------------------------------------------------------------------
 
 pub fn run(a: &ModelArgs) -> Result<i32, Error> {
     let spec = resolve_cell(&a.cell)?;
-    let fixture = resolve_fixture(a.fixture.as_deref(), &spec, None)?;
+    let fixture = resolve_fixture(a.fixture, &spec, None)?;
     if a.samples < 60 {
         return Err(usage("--samples: must be at least 60"));
     }
@@ -45,7 +45,7 @@ pub fn run(a: &ModelArgs) -> Result<i32, Error> {
     let jm = DMatrix::from_fn(rows.len(), ids.len(), |i, k| rows[i][ids[k]] / norms[k]);
     let obs = model::observability(&jm);
     // What this pose set would buy: one reading per pose at the bar's noise.
-    let bar_noise = bar_noise(&a.bar_noise)?;
+    let bar_noise = bar_noise(a.bar_noise)?;
     let space =
         crate::calibrate::predict::workspace(&robot, pipeline::PREDICTION_POSES, a.cell.seed);
     let predicted = crate::calibrate::predict::spread(&crate::calibrate::predict::after_readings(
@@ -114,10 +114,10 @@ pub fn run(a: &ModelArgs) -> Result<i32, Error> {
         );
         say!(
             a.cell.quiet,
-            "predicted MAP position uncertainty after calibrating from these poses (one reading each, {} µm bar noise): {} µm RMS, {} µm p95 over the joint space",
-            fmt_fixed(bar_noise, 2),
-            fmt_fixed(predicted.rms * 1e6, 2),
-            fmt_fixed(predicted.p95 * 1e6, 2)
+            "predicted MAP position uncertainty after calibrating from these poses (one reading each, {} bar noise): {} RMS, {} p95 over the joint space",
+            length_um(bar_noise),
+            length_um(predicted.rms * 1e6),
+            length_um(predicted.p95 * 1e6)
         );
     }
     for w in &warnings {

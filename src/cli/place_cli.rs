@@ -2,10 +2,9 @@
 //! the JSON report, the HTML page and the winners' cell files, all written together or not at
 //! all.
 
-use super::args::PlaceArgs;
+use super::args::{PlaceArgs, Prior};
 use super::common::{
-    bar_noise, bar_rate, load_robot, numbers, read_input, resolve_cell, scalar, steps,
-    write_all_atomic, xyz_mm,
+    bar_noise, bar_rate, load_robot, numbers, read_input, resolve_cell, steps, write_all_atomic,
 };
 use super::progress::Bar;
 use super::{usage, Error};
@@ -112,23 +111,23 @@ fn settings(
     out
 }
 
-/// `--prior MM,DEG`: what a parameter the data do not determine costs.
-fn prior(p: &str) -> Result<crate::calibrate::predict::Prior, Error> {
-    let mut prior = crate::calibrate::predict::Prior::default();
-    let v = numbers("--prior", p, Some(2))?;
-    if !(v[0] > 0.0 && v[1] > 0.0) {
-        return Err(usage(format!(
-            "--prior: '{p}' needs a positive length (mm) and angle (deg)"
-        )));
+/// `--prior MM,DEG`: what a parameter the data do not determine costs. calibrate's third
+/// value, the set-up's prior, has nothing to act on here: the score takes the set-up as given.
+fn prior(p: Prior) -> Result<crate::calibrate::predict::Prior, Error> {
+    if p.setup_mm.is_some() {
+        return Err(usage(
+            "--prior: place takes MM,DEG: its score takes the set-up (fixture, MAP) as given, so a set-up prior has nothing to act on",
+        ));
     }
-    prior.length = v[0] * MM;
-    prior.angle = v[1] * DEG;
-    Ok(prior)
+    Ok(crate::calibrate::predict::Prior {
+        length: p.length_mm * MM,
+        angle: p.angle_deg * DEG,
+        ..Default::default()
+    })
 }
 
 /// `--stand MM`: the radius of the fixture's stand, 0 to 500 mm.
-fn stand(v: &str) -> Result<f64, Error> {
-    let r = scalar("--stand", v)?;
+fn stand(r: f64) -> Result<f64, Error> {
     if !(0.0..=500.0).contains(&r) {
         return Err(usage(format!(
             "--stand: {r} mm must be between 0 and 500 mm"
@@ -205,16 +204,12 @@ pub fn place(a: &PlaceArgs) -> Result<i32, Error> {
     // Everything about the command line first.
     let spec = resolve_cell(&a.cell)?;
     let current = match &a.fixture {
-        Some(f) => Some(xyz_mm("--fixture", f)?),
+        Some(f) => Some(f.m()),
         None => spec.fixture,
     };
     let region_flag = a.region.as_deref().map(region).transpose()?;
     let grid = grid(&a.grid)?;
-    let at: Vec<Vector3<f64>> = a
-        .at
-        .iter()
-        .map(|s| xyz_mm("--at", s).map(|v| place::rounded([to_mm(v.x), to_mm(v.y), to_mm(v.z)])))
-        .collect::<Result<_, _>>()?;
+    let at: Vec<Vector3<f64>> = a.at.iter().map(|s| place::rounded(s.0)).collect();
     if !(1..=10).contains(&a.count) {
         return Err(usage(format!("--count: {} must be from 1 to 10", a.count)));
     }
@@ -224,16 +219,11 @@ pub fn place(a: &PlaceArgs) -> Result<i32, Error> {
     if a.max_candidates < 30 {
         return Err(usage("--max-candidates: must be at least 30"));
     }
-    let step = steps(&a.step)?;
-    let bar_noise = bar_noise(&a.bar_noise)?;
-    let bar_rate = bar_rate(&a.bar_rate)?;
-    let prior = a
-        .prior
-        .as_deref()
-        .map(prior)
-        .transpose()?
-        .unwrap_or_default();
-    let stand = a.stand.as_deref().map(stand).transpose()?;
+    let step = steps(a.step);
+    let bar_noise = bar_noise(a.bar_noise)?;
+    let bar_rate = bar_rate(a.bar_rate)?;
+    let prior = a.prior.map(prior).transpose()?.unwrap_or_default();
+    let stand = a.stand.map(stand).transpose()?;
     let cell_text = match &a.cell.cell {
         Some(p) => Some(read_input(p, "the cell", crate::files::Kind::Config)?),
         None => None,

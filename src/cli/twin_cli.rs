@@ -1,9 +1,9 @@
 //! `simulate`, `diagnose` and `circle`: flags → checked options → twin/diagnose stages → files.
 
-use super::args::{CircleArgs, DiagnoseArgs, SimulateArgs};
+use super::args::{CircleArgs, DiagnoseArgs, Range, SimulateArgs, Xyz};
 use super::common::{
-    check_outputs, controller_map, file_err, header_xyz, program_dialect, read_input, scalar,
-    write_all_atomic, write_atomic, xyz_mm,
+    check_outputs, controller_map, file_err, header_xyz, program_dialect, read_input,
+    write_all_atomic, write_atomic,
 };
 use super::{logruns, usage, Error};
 use crate::model::{MeasurementModel, N_PARAMS};
@@ -21,22 +21,21 @@ fn load(path: &Path) -> Result<Robot, Error> {
     Ok(robot::load(path, &Default::default())?)
 }
 
-fn tool_or_robot(flag: Option<&str>, robot: &Robot) -> Result<Vector3<f64>, Error> {
+fn tool_or_robot(flag: Option<Xyz>, robot: &Robot) -> Vector3<f64> {
     match flag {
-        Some(s) => xyz_mm("--tool", s),
-        None => Ok(robot.tool.unwrap_or_else(Vector3::zeros)),
+        Some(s) => s.m(),
+        None => robot.tool.unwrap_or_else(Vector3::zeros),
     }
 }
 
 pub fn simulate(a: &SimulateArgs) -> Result<i32, Error> {
-    let (flag, given) = match &a.rate {
+    let (flag, rate) = match a.rate {
         Some(r) => {
             eprintln!("edbbgen: warning: --rate is now spelled --bar-rate (like the compiler's); --rate will be removed");
             ("--rate", r)
         }
-        None => ("--bar-rate", &a.bar_rate),
+        None => ("--bar-rate", a.bar_rate),
     };
-    let rate = scalar(flag, given)?;
     if !(1.0..=10_000.0).contains(&rate) {
         return Err(usage(format!("{flag}: {rate} Hz is outside 1..10000 Hz")));
     }
@@ -76,7 +75,7 @@ pub fn simulate(a: &SimulateArgs) -> Result<i32, Error> {
     let truth_text = read(&a.truth, "truth", crate::files::Kind::Config)?;
     let truth = Truth::from_toml(&truth_text).map_err(|e| file_err(&a.truth, e))?;
     let fixture = match &a.fixture {
-        Some(s) => xyz_mm("--fixture", s)?,
+        Some(s) => s.m(),
         None => parsed
             .header_value("fixture")
             .and_then(header_xyz)
@@ -85,9 +84,9 @@ pub fn simulate(a: &SimulateArgs) -> Result<i32, Error> {
             })?,
     };
     let map = match (&a.tool, parsed.header_value("MAP").and_then(header_xyz)) {
-        (Some(s), _) => xyz_mm("--tool", s)?,
+        (Some(s), _) => s.m(),
         (None, Some(m)) => m,
-        (None, None) => tool_or_robot(None, &robot)?,
+        (None, None) => tool_or_robot(None, &robot),
     };
     let model = MeasurementModel::new(&robot, fixture, map);
     if let Some(bar_path) = &a.bar_log {
@@ -163,36 +162,29 @@ fn log_options(
     rate: f64,
     parsed: &crate::dialect::Parsed,
 ) -> Result<twin::logsim::LogOptions, Error> {
-    let joint_rate = scalar("--joint-rate", &a.joint_rate)?;
+    let joint_rate = a.joint_rate;
     if !(1.0..=10_000.0).contains(&joint_rate) {
         return Err(usage(format!(
             "--joint-rate: {joint_rate} Hz is outside 1..10000 Hz"
         )));
     }
-    let drift = scalar("--clock-drift", &a.clock_drift)?;
+    let drift = a.clock_drift;
     if drift.abs() > 10_000.0 {
         return Err(usage(format!(
             "--clock-drift: {drift} ppm is beyond the ±10000 ppm of any clock"
         )));
     }
-    let (p0, p1) = a
-        .pause
-        .split_once("..")
-        .ok_or_else(|| usage(format!("--pause: '{}' is not MIN..MAX (s)", a.pause)))?;
-    let (p0, p1) = (scalar("--pause", p0)?, scalar("--pause", p1)?);
-    if !(0.0 <= p0 && p0 <= p1) {
-        return Err(usage(format!(
-            "--pause: '{}' needs 0 <= MIN <= MAX",
-            a.pause
-        )));
+    let Range(p0, p1) = a.pause;
+    if p0 < 0.0 {
+        return Err(usage(format!("--pause: {p0}..{p1} needs 0 <= MIN <= MAX")));
     }
-    let move_scale = scalar("--move-scale", &a.move_scale)?;
+    let move_scale = a.move_scale;
     if !(0.2..=5.0).contains(&move_scale) {
         return Err(usage(format!(
             "--move-scale: {move_scale} is outside 0.2..5"
         )));
     }
-    let dropout = scalar("--dropout", &a.dropout)?;
+    let dropout = a.dropout;
     if !(0.0..1.0).contains(&dropout) {
         return Err(usage(format!(
             "--dropout: {dropout} is not a probability below 1"
@@ -224,10 +216,10 @@ fn log_options(
     Ok(twin::logsim::LogOptions {
         bar_rate: rate,
         joint_rate,
-        offset: scalar("--clock-offset", &a.clock_offset)?,
+        offset: a.clock_offset,
         drift: drift * 1e-6,
         pause: (p0, p1),
-        zero: scalar("--bar-zero", &a.bar_zero)? * MM,
+        zero: a.bar_zero * MM,
         gaps: a.gaps,
         dropout,
         missing: poses("--missing", &a.missing)?,
@@ -242,11 +234,7 @@ fn log_options(
 }
 
 pub fn diagnose(a: &DiagnoseArgs) -> Result<i32, Error> {
-    let flag_fixture = a
-        .fixture
-        .as_deref()
-        .map(|f| xyz_mm("--fixture", f))
-        .transpose()?;
+    let flag_fixture = a.fixture.map(|f| f.m());
     if a.bar_log.is_some() && a.program.is_none() && a.joint_log.is_none() {
         return Err(usage(
             "--bar-log: needs --program (the stop-and-measure program it recorded) or --joint-log",
@@ -263,10 +251,10 @@ pub fn diagnose(a: &DiagnoseArgs) -> Result<i32, Error> {
         &a.tool,
         program.as_ref().and_then(|p| p.parsed.header_value("MAP")),
     ) {
-        (Some(s), _) => xyz_mm("--tool", s)?,
+        (Some(s), _) => s.m(),
         (None, Some(h)) => header_xyz(h)
             .ok_or_else(|| usage("the program header's MAP is not X, Y, Z mm: give --tool"))?,
-        (None, None) => tool_or_robot(None, &robot)?,
+        (None, None) => tool_or_robot(None, &robot),
     };
     let (m, fixture, text_hash, source, extra, lines) = match (&a.measured, &a.bar_log) {
         (Some(path), _) => {
@@ -370,14 +358,13 @@ pub fn diagnose(a: &DiagnoseArgs) -> Result<i32, Error> {
 }
 
 pub fn circle(a: &CircleArgs) -> Result<i32, Error> {
-    let fixture = xyz_mm("--fixture", &a.fixture)?;
-    let diameter = scalar("--diameter", &a.diameter)?;
-    let speed = scalar("--speed", &a.speed)?;
+    let fixture = a.fixture.m();
+    let (diameter, speed) = (a.diameter, a.speed);
     if !(diameter > 0.0 && speed > 0.0) {
         return Err(usage("--diameter and --speed must be positive"));
     }
     let robot = load(&a.robot)?;
-    let map = tool_or_robot(a.tool.as_deref(), &robot)?;
+    let map = tool_or_robot(a.tool, &robot);
     let model = MeasurementModel::new(&robot, fixture, map);
     let opts = twin::circle::CircleOptions {
         diameter: diameter * MM,

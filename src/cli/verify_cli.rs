@@ -10,7 +10,7 @@ use super::Error;
 use crate::model::MeasurementModel;
 use crate::pipeline;
 use crate::robot::Robot;
-use crate::units::{fmt_fixed, to_mm, DEG};
+use crate::units::{fmt_fixed, length_mm, to_mm, DEG};
 use std::path::Path;
 
 // ---- verify -------------------------------------------------------------------------------
@@ -47,7 +47,7 @@ pub fn run(a: &VerifyArgs) -> Result<i32, Error> {
             msg: "the program commands no motion: nothing to verify".into(),
         });
     }
-    let fixture = resolve_fixture(a.fixture.as_deref(), &spec, parsed.header_value("fixture"))?;
+    let fixture = resolve_fixture(a.fixture, &spec, parsed.header_value("fixture"))?;
     // The bar range, margins and blend: flag or cell, else the program header's.
     let stated = crate::verify::HeaderLimits::read(&parsed).map_err(|msg| Error::File {
         path: a.program.display().to_string(),
@@ -178,11 +178,11 @@ pub(super) fn verify_trace(
                     .max_by(|x, y| x.miss_mm.total_cmp(&y.miss_mm));
                 say!(
                     a.cell.quiet,
-                    "{}: ok: {} samples; {} measurement poses passed within {} mm at the MAP{}; executed {} s, estimated {} s; bar {}..{} mm; max cone angles {} deg (socket), {} deg (cup)",
+                    "{}: ok: {} samples; {} measurement poses passed within {} at the MAP{}; executed {} s, estimated {} s; bar {}..{} mm; max cone angles {} deg (socket), {} deg (cup)",
                     path.display(),
                     r.samples,
                     r.poses.len(),
-                    fmt_fixed(r.worst_miss_mm, 3),
+                    length_mm(r.worst_miss_mm),
                     worst.map_or(String::new(), |w| format!(" (worst: pose {}, line {})", w.pose, w.line)),
                     fmt_fixed(r.executed_s, 2),
                     fmt_fixed(r.estimated_s, 2),

@@ -20,7 +20,7 @@ use crate::calibrate::{self, CalibrateError, CalibrateOptions, Calibration, Repo
 use crate::diagnose::Run;
 use crate::model::{is_angle, MeasurementModel, Params, FIX, MAP, N_PARAMS, PARAM_NAMES, THETA};
 use crate::robot::Robot;
-use crate::units::{fmt_fixed, DEG, MM};
+use crate::units::{fmt_fixed, length_um, DEG, MM};
 use nalgebra::Vector3;
 use serde::Serialize;
 
@@ -172,7 +172,7 @@ fn decimals(std: f64) -> usize {
 fn describe(c: &Change, i: usize) -> String {
     let d = decimals(c.std);
     let amount = format!(
-        "{} {} +/- {} {}",
+        "{} {} ± {} {}",
         fmt_fixed(c.change, d),
         c.unit,
         fmt_fixed(c.std, d),
@@ -262,14 +262,14 @@ pub fn compare(
     raw.sort_by(f64::total_cmp);
 
     let spread = format!(
-        "the MAP moved {} µm RMS, {} µm p95 over the joint space",
-        fmt_fixed(map_change_um.rms, 1),
-        fmt_fixed(map_change_um.p95, 1)
+        "the MAP moved {} RMS, {} p95 over the joint space",
+        length_um(map_change_um.rms),
+        length_um(map_change_um.p95)
     );
     let verdict = if moved.is_empty() {
         format!(
-            "unchanged within {} µm: no parameter moved beyond {} times its combined uncertainty; {spread}",
-            fmt_fixed(map_change_um.p95, 1),
+            "unchanged within {}: no parameter moved beyond {} times its combined uncertainty; {spread}",
+            length_um(map_change_um.p95),
             fmt_fixed(THRESHOLD, 1)
         )
     } else {
@@ -405,9 +405,9 @@ pub fn calibrate_against(
     if !cal.report.calibrated && robot_determined && h.calibrated >= h.nominal {
         cal.report.calibrated = true;
         cal.report.verdict = format!(
-            "calibrated: the baseline stands; held out, the refit predicts the readings to {} µm RMS against {} µm with the baseline robot",
-            fmt_fixed(h.calibrated, 3),
-            fmt_fixed(h.nominal, 3)
+            "calibrated: the baseline stands; held out, the refit predicts the readings to {} RMS against {} with the baseline robot",
+            length_um(h.calibrated),
+            length_um(h.nominal)
         );
     }
     cal.summary = calibrate::summary(&cal.report);
@@ -418,9 +418,9 @@ pub fn calibrate_against(
         );
     }
     cal.summary += &format!(
-        "since {}: residual with the baseline robot {} µm; {}\n",
+        "since {}: residual with the baseline robot {}; {}\n",
         baseline_label,
-        fmt_fixed(drift.rms_with_baseline_um, 3),
+        length_um(drift.rms_with_baseline_um),
         drift.verdict
     );
     Ok((cal, drift))

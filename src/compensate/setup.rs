@@ -146,7 +146,7 @@ pub fn predicted_accuracy(
         ))
     });
     if predicted.is_some() && tcp_given {
-        notes.push("the calibration's predicted uncertainty is the MAP's: at another tool point the flange's orientation uncertainty adds, times their distance".into());
+        notes.push("the calibration's predicted uncertainty is the MAP's: at another TCP the flange's orientation uncertainty adds, times their distance".into());
     }
     if predicted.is_none() {
         notes.push("the calibration's predicted accuracy is not known here: give --calibration REPORT.json".into());

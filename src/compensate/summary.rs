@@ -3,7 +3,7 @@
 
 use super::offsets;
 use super::Report;
-use crate::units::fmt_fixed;
+use crate::units::{fmt_fixed, length_um};
 
 /// The lines `compensate` prints: what was compensated, the mastering offsets, the accuracy
 /// each route gives, the notes.
@@ -11,14 +11,14 @@ pub fn text(r: &Report) -> String {
     let mut s = String::new();
     if let Some(t) = &r.targets {
         s += &format!(
-            "{}: compensated {} of {} targets ({}); the calibrated robot missed them by {} µm RMS, {} µm max; at the written joints {} µm max\n",
+            "{}: compensated {} of {} targets ({}); the calibrated robot missed them by {} RMS, {} max; at the written joints {} max\n",
             t.file,
             t.compensated,
             t.rows,
             t.kind,
-            fmt_fixed(t.before_um.rms, 1),
-            fmt_fixed(t.before_um.max, 1),
-            fmt_fixed(t.residual_um.max, 3)
+            length_um(t.before_um.rms),
+            length_um(t.before_um.max),
+            length_um(t.residual_um.max)
         );
         if t.orientation_free > 0 {
             s += &format!(
@@ -48,13 +48,13 @@ pub fn text(r: &Report) -> String {
     }
     if let Some(p) = &r.program {
         s += &format!(
-            "{} ({}): {} moves compensated, axis values with {} decimals: TCP error at the printed values {} µm RMS, {} µm max{}\n",
+            "{} ({}): {} moves compensated, axis values with {} decimals: TCP error at the printed values {} RMS, {} max{}\n",
             p.file,
             p.dialect,
             p.moves,
             p.decimals,
-            fmt_fixed(p.printed_residual_um.rms, 3),
-            fmt_fixed(p.printed_residual_um.max, 3),
+            length_um(p.printed_residual_um.rms),
+            length_um(p.printed_residual_um.max),
             if p.retimed_lines.is_empty() {
                 String::new()
             } else {
@@ -76,7 +76,7 @@ pub fn text(r: &Report) -> String {
         );
         for (a, line) in m.axes.iter().zip(&m.instructions) {
             let std = match a.std {
-                Some(v) => format!(" +/- {}", fmt_fixed(v, 6)),
+                Some(v) => format!(" ± {}", fmt_fixed(v, 6)),
                 None => String::new(),
             };
             s += &format!(
@@ -91,19 +91,19 @@ pub fn text(r: &Report) -> String {
     }
     let acc = &r.accuracy;
     s += &format!(
-        "TCP accuracy over the joint space ({} random poses, registered): nothing applied {} µm RMS, {} µm p95; offsets only {} µm RMS (model)",
+        "TCP accuracy over the joint space ({} random poses, registered): nothing applied {} RMS, {} p95; offsets only {} RMS (model)",
         acc.poses,
-        fmt_fixed(acc.uncompensated_um.rms, 1),
-        fmt_fixed(acc.uncompensated_um.p95, 1),
-        fmt_fixed(acc.offsets_only_model_um.rms, 1)
+        length_um(acc.uncompensated_um.rms),
+        length_um(acc.uncompensated_um.p95),
+        length_um(acc.offsets_only_model_um.rms)
     );
     match (&acc.predicted_offsets_only_um, &acc.predicted_full_um) {
         (Some(o), Some(f)) => {
             s += &format!(
-                ", {} µm RMS predicted; full compensation {} µm RMS, {} µm p95 predicted (the calibration's)\n",
-                fmt_fixed(o.rms, 1),
-                fmt_fixed(f.rms, 2),
-                fmt_fixed(f.p95, 2)
+                ", {} RMS predicted; full compensation {} RMS, {} p95 predicted (the calibration's)\n",
+                length_um(o.rms),
+                length_um(f.rms),
+                length_um(f.p95)
             );
         }
         _ => s += "\n",

@@ -26,7 +26,7 @@ use crate::model::{MeasurementModel, N_PARAMS};
 use crate::twin::effects::Effect;
 use crate::twin::measured::Form;
 use crate::twin::Measured;
-use crate::units::{fmt_fixed, to_deg, DEG, MM};
+use crate::units::{fmt_fixed, length_um, to_deg, DEG, MM};
 use fit::{accumulate, effect_cols, kept_rms, lag1, model_cols, rms, score, solve, Col};
 use nalgebra::{DMatrix, DVector};
 use rayon::prelude::*;
@@ -1355,9 +1355,9 @@ fn noise_phrase(r: &Report) -> String {
     let how = r.noise_source_text();
     match r.noise_source {
         N::Unknown => format!("reading noise {how}"),
-        N::Neighbours => format!("reading noise <= {} µm ({how})", fmt_fixed(r.noise_um, 2)),
-        N::Sequence => format!("bar noise ~{} µm", fmt_fixed(r.noise_um, 2)),
-        _ => format!("reading noise ~{} µm ({how})", fmt_fixed(r.noise_um, 2)),
+        N::Neighbours => format!("reading noise ≤ {} ({how})", length_um(r.noise_um)),
+        N::Sequence => format!("bar noise ~{}", length_um(r.noise_um)),
+        _ => format!("reading noise ~{} ({how})", length_um(r.noise_um)),
     }
 }
 
@@ -1396,12 +1396,12 @@ fn summary(r: &Report, timed: bool) -> String {
             noise_phrase(r)
         )
     };
-    s += &format!("nominal model: RMS {} µm", fmt_fixed(r.rms_nominal_um, 2));
+    s += &format!("nominal model: RMS {}", length_um(r.rms_nominal_um));
     if let Some(w) = &r.nominal_where {
         s += &format!(
-            ", largest at {} (peak {} µm)",
+            ", largest at {} (peak {})",
             span(w, timed),
-            fmt_fixed(w.peak_um, 1)
+            length_um(w.peak_um)
         );
     }
     s.push('\n');
@@ -1411,9 +1411,9 @@ fn summary(r: &Report, timed: bool) -> String {
             None => st.effect.to_string(),
         };
         s += &format!(
-            "  + {name:<24} RMS {} µm, held out {} µm\n",
-            fmt_fixed(st.rms_after_um, 3),
-            fmt_fixed(st.cv_rms_um, 3)
+            "  + {name:<24} RMS {}, held out {}\n",
+            length_um(st.rms_after_um),
+            length_um(st.cv_rms_um)
         );
     }
     if r.unexplained {
@@ -1438,14 +1438,14 @@ fn summary(r: &Report, timed: bool) -> String {
         s.push('\n');
     } else if r.noise_source == noise::NoiseSource::Unknown {
         s += &format!(
-            "residual RMS {} µm, lag-1 autocorrelation {}: whether it is at the noise level needs the noise\n",
-            fmt_fixed(r.rms_final_um, 3),
+            "residual RMS {}, lag-1 autocorrelation {}: whether it is at the noise level needs the noise\n",
+            length_um(r.rms_final_um),
             fmt_fixed(r.lag1_final, 3)
         );
     } else {
         s += &format!(
-            "residual at the noise level: RMS {} µm, lag-1 autocorrelation {}\n",
-            fmt_fixed(r.rms_final_um, 3),
+            "residual at the noise level: RMS {}, lag-1 autocorrelation {}\n",
+            length_um(r.rms_final_um),
             fmt_fixed(r.lag1_final, 3)
         );
     }

@@ -3,7 +3,7 @@
 
 use super::Diagnosis;
 use crate::plot::{break_gaps, envelope, run_axis, Figure, Panel, PlotError, Series};
-use crate::units::fmt_fixed;
+use crate::units::length_um;
 
 /// Pixel columns of a panel: long runs are reduced to a min/max envelope at this width.
 const COLUMNS: usize = 900;
@@ -19,7 +19,7 @@ pub fn svg(d: &Diagnosis) -> Result<String, PlotError> {
             let pts: Vec<(f64, f64)> = x.iter().zip(r).map(|(t, v)| (*t, v * 1e6)).collect();
             let rms = (r.iter().map(|v| v * v).sum::<f64>() / r.len().max(1) as f64).sqrt() * 1e6;
             Panel {
-                title: format!("{label} — RMS {} µm", fmt_fixed(rms, 3)),
+                title: format!("{label} — RMS {}", length_um(rms)),
                 x_label: x_label.into(),
                 y_label: "measured − model [µm]".into(),
                 series: vec![Series::line(

@@ -34,7 +34,7 @@ pub mod sim;
 pub mod stiffness;
 
 use crate::robot::Robot;
-use crate::units::DEG;
+use crate::units::{fmt_sig, length_um, DEG};
 use data::{Loaded, Reference};
 use fit::Sine;
 use serde::Serialize;
@@ -942,18 +942,18 @@ pub fn summary(a: &Analysis) -> String {
             (lo.min(*c), hi.max(*c))
         });
     let mut s = format!(
-        "{} rows: {} loads x {} repeats; compliance along the bar {:.4}..{:.4} µm/N (RMS {:.4}); linearity spread {:.1} µm\n",
+        "{} rows: {} loads x {} repeats; compliance along the bar {}..{} µm/N (RMS {}); linearity spread {}\n",
         r.rows,
         a.loads.len(),
         r.repeats,
-        cmin / UM,
-        cmax / UM,
-        r.compliance_rms_um_per_n,
-        r.linearity_spread_um
+        fmt_sig(cmin / UM, 3),
+        fmt_sig(cmax / UM, 3),
+        fmt_sig(r.compliance_rms_um_per_n, 3),
+        length_um(r.linearity_spread_um)
     );
     let sf = &r.sine_fit;
     s += &format!(
-        "centring sine ({}): a {:.4} mm, b {:.4}, phi {:.2} deg; kinematic error RMS {:.2} µm",
+        "centring sine ({}): a {:.4} mm, b {:.4}, phi {:.2} deg; kinematic error RMS {}",
         match sf.model {
             SineModel::Linear => "linear, b = 1",
             SineModel::Nonlinear => "nonlinear, b free",
@@ -961,12 +961,12 @@ pub fn summary(a: &Analysis) -> String {
         sf.a_mm,
         sf.b,
         sf.phi_deg,
-        r.kinematic_error_rms_um
+        length_um(r.kinematic_error_rms_um)
     );
     if let Some(rf) = &r.reference {
         s += &format!(
-            "; reference: mean |difference| {:.1} µm",
-            rf.mean_abs_difference_um
+            "; reference: mean |difference| {}",
+            length_um(rf.mean_abs_difference_um)
         );
     }
     s.push('\n');

@@ -13,7 +13,7 @@
 
 use super::{Analysis, SineModel};
 use crate::plot::{Figure, Legend, Panel, PlotError, Series};
-use crate::units::DEG;
+use crate::units::{length_um, DEG};
 
 const UM: f64 = 1e-6;
 /// Width of a single-panel figure and height of every panel (px).
@@ -101,8 +101,8 @@ pub fn compensated(a: &Analysis) -> Panel {
         .collect();
     panel(
         &format!(
-            "Fig. 14 (a): compliance-compensated trajectories (linearity spread {:.1} µm)",
-            a.report.linearity_spread_um
+            "Fig. 14 (a): compliance-compensated trajectories (linearity spread {})",
+            length_um(a.report.linearity_spread_um)
         ),
         "deflection at zero load [µm]",
         s,
@@ -164,10 +164,14 @@ pub fn kinematic(a: &Analysis) -> Panel {
     }
     let title = match &a.report.reference {
         Some(r) => format!(
-            "Fig. 15: kinematic error along the bar (RMS {:.1} µm; mean |difference| to the reference {:.1} µm)",
-            a.report.kinematic_error_rms_um, r.mean_abs_difference_um
+            "Fig. 15: kinematic error along the bar (RMS {}; mean |difference| to the reference {})",
+            length_um(a.report.kinematic_error_rms_um),
+            length_um(r.mean_abs_difference_um)
         ),
-        None => format!("Fig. 15: kinematic error along the bar (RMS {:.1} µm)", a.report.kinematic_error_rms_um),
+        None => format!(
+            "Fig. 15: kinematic error along the bar (RMS {})",
+            length_um(a.report.kinematic_error_rms_um)
+        ),
     };
     panel(&title, "error [µm]", s)
 }

@@ -4,7 +4,7 @@
 
 use super::{Candidate, Placement, Source, Status, SCHEMA};
 use crate::robot::Robot;
-use crate::units::{fmt_fixed, to_deg, to_mm};
+use crate::units::{fmt_fixed, fmt_given, length_um, to_deg, to_mm};
 use serde::Serialize;
 
 #[derive(Clone, Debug, Serialize)]
@@ -308,19 +308,9 @@ fn f3(v: &[f64; 3]) -> String {
     )
 }
 
-/// Micrometres for text: 3 significant digits, at least 2 decimals below 10.
+/// Micrometres for a table cell: three significant digits ([`crate::units::fmt_sig`]).
 pub fn um(v: f64) -> String {
-    if !v.is_finite() {
-        return "-".into();
-    }
-    let d = if v >= 100.0 {
-        0
-    } else if v >= 10.0 {
-        1
-    } else {
-        2
-    };
-    fmt_fixed(v, d)
+    crate::units::fmt_sig(v, 3)
 }
 
 /// One row of the ranking table (text and HTML share it): rank, fixture, score, estimate,
@@ -354,7 +344,7 @@ pub fn row(c: &CandidateReport) -> Vec<String> {
 pub const ROW_HEAD: [&str; 10] = [
     "rank",
     "fixture [mm]",
-    "score [um]",
+    "score [µm]",
     "by",
     "admitted",
     "ident.",
@@ -423,12 +413,12 @@ pub fn text(rep: &Report, show: usize) -> String {
         c.usable, c.out_of_reach, c.no_room, c.no_valid_pose, c.too_few_poses, c.compile_failed
     );
     t += &format!(
-        "  score: predicted MAP position uncertainty after calibrating from a program compiled there (1 sigma, RMS over {} joint poses, after rigid registration; bar noise {} µm at {} Hz; held parameters at the prior {} mm / {} deg)\n",
+        "  score: predicted MAP position uncertainty after calibrating from a program compiled there (1 sigma, RMS over {} joint poses, after rigid registration; bar noise {} at {} Hz; held parameters at the prior {} mm / {} deg)\n",
         s.workspace_poses,
-        fmt_fixed(s.bar_noise_um, 2),
+        length_um(s.bar_noise_um),
         fmt_fixed(s.bar_rate_hz, 0),
-        fmt_fixed(s.prior.length_mm, 2),
-        fmt_fixed(s.prior.angle_deg, 3),
+        fmt_given(s.prior.length_mm),
+        fmt_given(s.prior.angle_deg),
     );
     t += &format!(
         "  by compile: step {} deg, at most {} candidates (the best {} by proxy); by proxy: step {} deg, {} poses, one reading per selected pose, x {} (median compile/proxy)\n\n",
@@ -474,20 +464,20 @@ pub fn text(rep: &Report, show: usize) -> String {
     if let Some(b) = &rep.best {
         let is_current = rep.current.as_ref().is_some_and(|c| c.index == b.index);
         t += &format!(
-            "best: {}{} mm, {} µm (rank 1 of {usable})",
+            "best: {}{} mm, {} (rank 1 of {usable})",
             if is_current {
                 "the cell's fixture, "
             } else {
                 ""
             },
             f3(&b.fixture_mm),
-            b.score_um.map_or_else(|| "-".into(), um)
+            b.score_um.map_or_else(|| "-".into(), length_um)
         );
         if let (false, Some(cur), Some(ratio)) = (is_current, &rep.current, b.ratio) {
             t += &format!(
-                "; {} x better than the cell's fixture ({} µm, rank {} of {usable})",
+                "; {} x better than the cell's fixture ({}, rank {} of {usable})",
                 fmt_fixed(ratio, 2),
-                cur.score_um.map_or_else(|| "-".into(), um),
+                cur.score_um.map_or_else(|| "-".into(), length_um),
                 cur.rank.map_or_else(|| "-".into(), |r| r.to_string())
             );
         }
@@ -511,21 +501,21 @@ pub fn text(rep: &Report, show: usize) -> String {
         for (k, (&i, f)) in c.members.iter().zip(&c.fixtures_mm).enumerate() {
             let m = &rep.candidates[i];
             t += &format!(
-                "  {}  {} mm  (rank {}, {} µm alone)\n",
+                "  {}  {} mm  (rank {}, {} alone)\n",
                 k + 1,
                 f3(f),
                 m.rank.map_or_else(|| "-".into(), |r| r.to_string()),
-                m.score_um.map_or_else(|| "-".into(), um)
+                m.score_um.map_or_else(|| "-".into(), length_um)
             );
         }
         t += &format!(
-            "  together: {} µm RMS, {} µm p95 over the joint space; {} x better than the best single fixture ({} µm; measured {} times: {} µm)",
-            um(c.predicted_um),
+            "  together: {} RMS, {} p95 over the joint space; {} x better than the best single fixture ({}; measured {} times: {})",
+            length_um(c.predicted_um),
             um(c.predicted_p95_um),
             fmt_fixed(c.gain_over_best_single, 2),
-            um(c.best_single_um),
+            length_um(c.best_single_um),
             c.count,
-            um(c.best_single_repeated_um)
+            length_um(c.best_single_repeated_um)
         );
         if let Some(g) = c.gain_over_current {
             t += &format!(", {} x better than the cell's fixture", fmt_fixed(g, 2));

@@ -5,7 +5,7 @@
 
 use super::{Block, Page, ReportError, Section};
 use crate::calibrate::{plot, Calibration, Report};
-use crate::units::fmt_fixed;
+use crate::units::{fmt_fixed, fmt_sig, length_um};
 
 fn num(v: &serde_json::Value) -> String {
     match v {
@@ -109,17 +109,17 @@ fn facts(r: &Report, robot: &str) -> Vec<(String, String)> {
         (
             "bar noise (from the residual)".into(),
             format!(
-                "{} µm, lag-1 autocorrelation {}",
-                fmt_fixed(r.noise_um, 3),
+                "{}, lag-1 autocorrelation {}",
+                length_um(r.noise_um),
                 fmt_fixed(r.residual_lag1, 2)
             ),
         ),
         (
             "RMS, nominal → calibrated".into(),
             format!(
-                "{} µm → {} µm",
-                fmt_fixed(r.rms_before_um, 3),
-                fmt_fixed(r.rms_after_um, 3)
+                "{} → {}",
+                length_um(r.rms_before_um),
+                length_um(r.rms_after_um)
             ),
         ),
         (
@@ -129,19 +129,19 @@ fn facts(r: &Report, robot: &str) -> Vec<(String, String)> {
         (
             "predicted MAP position uncertainty (1σ, registered)".into(),
             format!(
-                "{} µm RMS where measured; {} µm RMS, {} µm p95 over the joint space",
-                fmt_fixed(p.measured_region_rms, 2),
-                fmt_fixed(p.workspace_rms, 2),
-                fmt_fixed(p.workspace_p95, 2)
+                "{} RMS where measured; {} RMS, {} p95 over the joint space",
+                length_um(p.measured_region_rms),
+                length_um(p.workspace_rms),
+                length_um(p.workspace_p95)
             ),
         ),
         (
             "of which from noise / from parameters held at nominal / from model error".into(),
             format!(
-                "{} µm / {} µm / {} µm RMS over the joint space",
-                fmt_fixed(p.from_noise.workspace_rms, 2),
-                fmt_fixed(p.from_held.workspace_rms, 2),
-                fmt_fixed(p.from_model_error.workspace_rms, 2)
+                "{} / {} / {} RMS over the joint space",
+                length_um(p.from_noise.workspace_rms),
+                length_um(p.from_held.workspace_rms),
+                length_um(p.from_model_error.workspace_rms)
             ),
         ),
     ];
@@ -149,15 +149,15 @@ fn facts(r: &Report, robot: &str) -> Vec<(String, String)> {
     facts.push((
         "held-out residual, nominal → calibrated".into(),
         format!(
-            "{} µm → {} µm RMS ({})",
-            fmt_fixed(r.validation.heldout_rms_um.nominal, 3),
-            fmt_fixed(r.validation.heldout_rms_um.calibrated, 3),
+            "{} → {} RMS ({})",
+            length_um(r.validation.heldout_rms_um.nominal),
+            length_um(r.validation.heldout_rms_um.calibrated),
             r.validation.split
         ),
     ));
     let t = &r.tool;
     facts.push((
-        "tool point (MAP), given → estimated".into(),
+        "MAP, given → estimated".into(),
         format!(
             "{}, {}, {} mm → {}, {}, {} mm (moved {} mm)",
             fmt_fixed(t.given_mm[0], 3),
@@ -195,8 +195,8 @@ fn run_rows(r: &Report) -> Vec<Vec<String>> {
                 run.rows.to_string(),
                 f(run.fixture_mm),
                 run.fixture_fitted_mm.map(f).unwrap_or_default(),
-                fmt_fixed(run.rms_before_um, 3),
-                fmt_fixed(run.rms_after_um, 3),
+                fmt_sig(run.rms_before_um, 3),
+                fmt_sig(run.rms_after_um, 3),
             ]
         })
         .collect()
@@ -254,7 +254,7 @@ fn candidate_rows(r: &Report) -> Vec<Vec<String>> {
                     None => c.effect.to_string(),
                 },
                 c.form.clone(),
-                fmt_fixed(c.heldout_rms_um, 3),
+                fmt_sig(c.heldout_rms_um, 3),
                 if c.adopted { "yes" } else { "no" }.to_string(),
             ]
         })
@@ -314,7 +314,7 @@ fn faults_section(r: &Report) -> Option<Section> {
                     o.run.to_string(),
                     o.row.to_string(),
                     o.t_s.map(|t| fmt_fixed(t, 3)).unwrap_or_default(),
-                    fmt_fixed(o.residual_um, 3),
+                    fmt_sig(o.residual_um, 3),
                 ]
             })
             .collect();
@@ -342,13 +342,13 @@ fn effects_section(r: &Report, effects: Vec<Vec<String>>) -> Section {
                     Some(j) => format!("{} (joint {j})", e.effect),
                     None => e.effect.to_string(),
                 },
-                fmt_fixed(e.workspace_rms_um, 2),
-                fmt_fixed(e.workspace_p95_um, 2),
-                fmt_fixed(e.measured_region_rms_um, 2),
+                fmt_sig(e.workspace_rms_um, 3),
+                fmt_sig(e.workspace_p95_um, 3),
+                fmt_sig(e.measured_region_rms_um, 3),
                 e.at.clone(),
                 if e.delivered { "yes" } else { "no" }.to_string(),
                 fmt_fixed(p.model_workspace_rms, 2),
-                fmt_fixed(e.prediction_without_um, 2),
+                fmt_sig(e.prediction_without_um, 3),
             ]
         })
         .collect();

@@ -9,7 +9,7 @@ use crate::compensate::drift::Drift;
 use crate::compensate::offsets::Mastering;
 use crate::compensate::Report;
 use crate::plot::{Figure, Panel, Series};
-use crate::units::fmt_fixed;
+use crate::units::{fmt_fixed, length_um};
 
 /// Sorted per-pose values as a cumulative curve: (share of poses in %, value).
 fn cumulative(v: &[f64]) -> Vec<(f64, f64)> {
@@ -79,10 +79,6 @@ fn targets_figure(t: &crate::compensate::TargetsReport) -> Figure {
     }
 }
 
-fn um(v: f64, d: usize) -> String {
-    format!("{} µm", fmt_fixed(v, d))
-}
-
 pub fn page(r: &Report, robot: &str) -> Result<Page, ReportError> {
     let a = &r.accuracy;
     let facts = facts(r, robot);
@@ -145,7 +141,7 @@ fn facts(r: &Report, robot: &str) -> Vec<(String, String)> {
         ("calibrated robot".to_string(), robot.to_string()),
         ("nominal robot".to_string(), r.nominal.clone()),
         (
-            "tool point (flange frame)".into(),
+            "TCP (flange frame)".into(),
             format!(
                 "{}, {}, {} mm (nominal); {}, {}, {} mm (calibrated)",
                 fmt_fixed(r.tcp_nominal_mm[0], 3),
@@ -161,8 +157,8 @@ fn facts(r: &Report, robot: &str) -> Vec<(String, String)> {
             "nothing applied".into(),
             format!(
                 "{} RMS, {} p95",
-                um(a.uncompensated_um.rms, 1),
-                um(a.uncompensated_um.p95, 1)
+                length_um(a.uncompensated_um.rms),
+                length_um(a.uncompensated_um.p95)
             ),
         ),
         (
@@ -170,11 +166,14 @@ fn facts(r: &Report, robot: &str) -> Vec<(String, String)> {
             match &a.predicted_offsets_only_um {
                 Some(p) => format!(
                     "{} RMS, {} p95 predicted ({} RMS from the model)",
-                    um(p.rms, 1),
-                    um(p.p95, 1),
-                    um(a.offsets_only_model_um.rms, 1)
+                    length_um(p.rms),
+                    length_um(p.p95),
+                    length_um(a.offsets_only_model_um.rms)
                 ),
-                None => format!("{} RMS from the model", um(a.offsets_only_model_um.rms, 1)),
+                None => format!(
+                    "{} RMS from the model",
+                    length_um(a.offsets_only_model_um.rms)
+                ),
             },
         ),
         (
@@ -182,8 +181,8 @@ fn facts(r: &Report, robot: &str) -> Vec<(String, String)> {
             match &a.predicted_full_um {
                 Some(p) => format!(
                     "{} RMS, {} p95 predicted (the calibration's)",
-                    um(p.rms, 2),
-                    um(p.p95, 2)
+                    length_um(p.rms),
+                    length_um(p.p95)
                 ),
                 None => "not stated: give --calibration REPORT.json".into(),
             },
@@ -197,7 +196,7 @@ fn facts(r: &Report, robot: &str) -> Vec<(String, String)> {
                 t.file,
                 t.compensated,
                 t.rows,
-                um(t.residual_um.max, 3)
+                length_um(t.residual_um.max)
             ),
         ));
     }
@@ -210,7 +209,7 @@ fn facts(r: &Report, robot: &str) -> Vec<(String, String)> {
                 p.dialect,
                 p.moves,
                 p.decimals,
-                um(p.printed_residual_um.rms, 3)
+                length_um(p.printed_residual_um.rms)
             ),
         ));
     }
@@ -257,10 +256,10 @@ pub fn drift_section(d: &Drift) -> Result<Section, ReportError> {
         title: String::new(),
         panels: vec![Panel {
             title: format!(
-                "MAP change since {} over random joint poses, sorted: RMS {} µm, p95 {} µm",
+                "MAP change since {} over random joint poses, sorted: RMS {}, p95 {}",
                 d.baseline,
-                fmt_fixed(d.map_change_um.rms, 2),
-                fmt_fixed(d.map_change_um.p95, 2)
+                length_um(d.map_change_um.rms),
+                length_um(d.map_change_um.p95)
             ),
             x_label: "share of random joint poses [%]".into(),
             y_label: "MAP position change [µm]".into(),
@@ -297,9 +296,9 @@ pub fn drift_section(d: &Drift) -> Result<Section, ReportError> {
             &fig,
         )?,
         Block::text(format!(
-            "A parameter moved when its change exceeds {} combined standard uncertainties (the new fit's and the baseline's in quadrature; the prior where the baseline did not determine it). The new data's residual with the baseline robot: {} µm RMS.",
+            "A parameter moved when its change exceeds {} combined standard uncertainties (the new fit's and the baseline's in quadrature; the prior where the baseline did not determine it). The new data's residual with the baseline robot: {} RMS.",
             fmt_fixed(d.threshold, 1),
-            fmt_fixed(d.rms_with_baseline_um, 3)
+            length_um(d.rms_with_baseline_um)
         )),
         Block::table(
             &["parameter", "baseline", "now", "change", "std", "|change| / std", ""],

@@ -7,7 +7,7 @@ use super::{Block, Page, ReportError, Section};
 use crate::diagnose::{Diagnosis, Report, Where};
 use crate::plot::{break_gaps, Figure, Legend, Panel, Series};
 use crate::twin::Measured;
-use crate::units::{fmt_fixed, to_mm};
+use crate::units::{fmt_fixed, fmt_sig, length_um, to_mm};
 
 const BLUE: usize = 0;
 const RED: usize = 1;
@@ -21,10 +21,10 @@ fn where_text(w: &Where) -> String {
         .map(|(j, r)| format!("q{} {}..{}°", j + 1, fmt_fixed(r[0], 1), fmt_fixed(r[1], 1)))
         .collect();
     format!(
-        "t {}..{} s, peak {} µm; {}",
+        "t {}..{} s, peak {}; {}",
         fmt_fixed(w.t_s[0], 1),
         fmt_fixed(w.t_s[1], 1),
-        fmt_fixed(w.peak_um, 1),
+        length_um(w.peak_um),
         joints.join(", ")
     )
 }
@@ -71,8 +71,8 @@ pub fn page(
             vec![
                 s.effect.to_string(),
                 s.joint.map(|j| j.to_string()).unwrap_or_default(),
-                fmt_fixed(s.rms_after_um, 3),
-                fmt_fixed(s.cv_rms_um, 3),
+                fmt_sig(s.rms_after_um, 3),
+                fmt_sig(s.cv_rms_um, 3),
                 fmt_fixed(s.bic, 1),
             ]
         })
@@ -196,7 +196,7 @@ fn residual_figure(d: &Diagnosis) -> Figure {
                 let rms =
                     (res.iter().map(|e| e * e).sum::<f64>() / res.len().max(1) as f64).sqrt() * 1e6;
                 Panel {
-                    title: format!("{label}: RMS {} µm", fmt_fixed(rms, 3)),
+                    title: format!("{label}: RMS {}", length_um(rms)),
                     x_label: x_label.into(),
                     y_label: "measured − model [µm]".into(),
                     // One colour per step, so every step counts as a series of its own.
@@ -276,19 +276,10 @@ fn facts(r: &Report, robot: &str) -> Vec<(String, String)> {
             "data".into(),
             format!("{} rows over {} s", r.rows, fmt_fixed(r.duration_s, 1)),
         ),
-        (
-            "bar noise (estimated)".into(),
-            format!("{} µm", fmt_fixed(r.noise_um, 2)),
-        ),
-        (
-            "RMS, nominal model".into(),
-            format!("{} µm", fmt_fixed(r.rms_nominal_um, 2)),
-        ),
+        ("bar noise (estimated)".into(), length_um(r.noise_um)),
+        ("RMS, nominal model".into(), length_um(r.rms_nominal_um)),
         ("named effects".into(), named.join(", ")),
-        (
-            "RMS, final model".into(),
-            format!("{} µm", fmt_fixed(r.rms_final_um, 3)),
-        ),
+        ("RMS, final model".into(), length_um(r.rms_final_um)),
         (
             "lag-1 autocorrelation of the final residual".into(),
             fmt_fixed(r.lag1_final, 3),

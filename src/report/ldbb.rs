@@ -5,7 +5,7 @@
 use super::{Block, Page, ReportError, Section};
 use crate::ldbb::stiffness::Stiffness;
 use crate::ldbb::{plot, Analysis, Report, SineModel, SineReport, StiffnessReport};
-use crate::units::fmt_fixed;
+use crate::units::{fmt_fixed, fmt_sig, length_um};
 
 fn sine_row(name: &str, s: &SineReport) -> Vec<String> {
     let sd = |v: Option<f64>, d: usize| v.map(|x| fmt_fixed(x, d)).unwrap_or_else(|| "-".into());
@@ -18,8 +18,8 @@ fn sine_row(name: &str, s: &SineReport) -> Vec<String> {
             format!("{} ± {}", fmt_fixed(s.b, 4), sd(s.std.b, 4))
         },
         format!("{} ± {}", fmt_fixed(s.phi_deg, 2), sd(s.std.phi_deg, 2)),
-        fmt_fixed(s.offset_um, 2),
-        fmt_fixed(s.rms_um, 2),
+        fmt_sig(s.offset_um, 3),
+        fmt_sig(s.rms_um, 3),
     ]
 }
 
@@ -101,16 +101,13 @@ fn facts(r: &Report, source: &str) -> Vec<(String, String)> {
         ("angle grid".into(), format!("{} deg", r.grid_step_deg)),
         (
             "LVDT noise (robust, per sample)".into(),
-            format!("{} µm", fmt_fixed(r.noise_um, 2)),
+            length_um(r.noise_um),
         ),
         (
             "compliance along the bar".into(),
-            format!("RMS {} µm/N", fmt_fixed(r.compliance_rms_um_per_n, 4)),
+            format!("RMS {}/N", length_um(r.compliance_rms_um_per_n)),
         ),
-        (
-            "linearity spread".into(),
-            format!("{} µm", fmt_fixed(r.linearity_spread_um, 1)),
-        ),
+        ("linearity spread".into(), length_um(r.linearity_spread_um)),
         (
             "centring sine".into(),
             format!(
@@ -127,17 +124,17 @@ fn facts(r: &Report, source: &str) -> Vec<(String, String)> {
         ),
         (
             "kinematic error along the bar".into(),
-            format!("RMS {} µm", fmt_fixed(r.kinematic_error_rms_um, 2)),
+            format!("RMS {}", length_um(r.kinematic_error_rms_um)),
         ),
     ];
     if let Some(rf) = &r.reference {
         facts.push((
             "against the reference".into(),
             format!(
-                "mean |difference| {} µm (RMS {} µm; {} µm without the first harmonic)",
-                fmt_fixed(rf.mean_abs_difference_um, 2),
-                fmt_fixed(rf.rms_difference_um, 2),
-                fmt_fixed(rf.mean_abs_difference_first_harmonic_removed_um, 2)
+                "mean |difference| {} (RMS {}; {} without the first harmonic)",
+                length_um(rf.mean_abs_difference_um),
+                length_um(rf.rms_difference_um),
+                length_um(rf.mean_abs_difference_first_harmonic_removed_um)
             ),
         ));
     }
@@ -181,10 +178,10 @@ fn stiffness_section(st: &Stiffness, sr: &StiffnessReport) -> Section {
         .collect();
     let mut blocks = vec![
         Block::text(format!(
-            "c(θ) = uᵀ Jₚ K⁻¹ Jₚᵀ u with Jₚ the tool ball's positional Jacobian at the {} joint angles and u the bar direction. A stiffness is given where the circle determines it (relative standard uncertainty ≤ {} %); the fit leaves {} µm/N RMS.",
+            "c(θ) = uᵀ Jₚ K⁻¹ Jₚᵀ u with Jₚ the tool ball's positional Jacobian at the {} joint angles and u the bar direction. A stiffness is given where the circle determines it (relative standard uncertainty ≤ {} %); the fit leaves {}/N RMS.",
             if sr.joint_angles == "recorded" { "recorded" } else { "IK" },
             fmt_fixed(sr.relative_std_limit * 100.0, 0),
-            fmt_fixed(sr.fit_rms_um_per_n, 4)
+            length_um(sr.fit_rms_um_per_n)
         )),
         Block::table(&["joint", "stiffness [N·m/rad]", "std", "why not determined"], rows),
     ];

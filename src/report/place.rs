@@ -7,7 +7,7 @@ use super::{Block, Page, ReportError, Section};
 use crate::place::report::{row, shown, um, Report, ROW_HEAD};
 use crate::plot::{Figure, Legend, Mark, Panel, Series};
 use crate::robot::{kinematics::chain_frames, Robot};
-use crate::units::{fmt_fixed, to_mm};
+use crate::units::{fmt_fixed, length_um, to_mm};
 
 /// Palette indices (see `plot::PALETTE`).
 const BLUE: usize = 0;
@@ -251,12 +251,12 @@ fn facts(rep: &Report) -> Vec<(String, String)> {
         (
             "score".into(),
             format!(
-                "predicted MAP position uncertainty after calibration (1σ, RMS over {} joint poses, registered); bar noise {} µm at {} Hz; prior {} mm / {}°",
+                "predicted MAP position uncertainty after calibration (1σ, RMS over {} joint poses, registered); bar noise {} at {} Hz; prior {} mm / {}°",
                 s.workspace_poses,
-                fmt_fixed(s.bar_noise_um, 2),
+                length_um(s.bar_noise_um),
                 fmt_fixed(s.bar_rate_hz, 0),
-                fmt_fixed(s.prior.length_mm, 2),
-                fmt_fixed(s.prior.angle_deg, 3)
+                crate::units::fmt_given(s.prior.length_mm),
+                crate::units::fmt_given(s.prior.angle_deg)
             ),
         ),
     ];

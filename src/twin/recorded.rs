@@ -17,7 +17,7 @@ use crate::logs::{self, BarLog, ClockReport, JointLog, PlateauReport};
 use crate::model::MeasurementModel;
 use crate::robot::Robot;
 use crate::stats::median;
-use crate::units::{fmt_fixed, to_mm};
+use crate::units::{fmt_fixed, length_um, to_mm};
 use serde::Serialize;
 
 /// The program a bar log recorded, read back.
@@ -256,9 +256,9 @@ fn stop_and_measure(
         .collect();
     if let Some(worst) = spreads.iter().copied().reduce(f64::max) {
         summary.push(format!(
-            "plateau spread: median {} µm, largest {} µm",
-            fmt_fixed(median(&spreads).unwrap_or(worst) * 1e6, 2),
-            fmt_fixed(worst * 1e6, 2)
+            "plateau spread: median {}, largest {}",
+            length_um(median(&spreads).unwrap_or(worst) * 1e6),
+            length_um(worst * 1e6)
         ));
     }
     let extra = RunExtra {
