@@ -75,25 +75,21 @@ pub fn fmt_sig(v: f64, sig: usize) -> String {
 /// fits its size, µm below a millimetre, mm below a metre, m above ("0.990 µm", "174 µm",
 /// "6.53 mm"). The one formatter of every measured length, error and uncertainty in text.
 pub fn length_um(um: f64) -> String {
-    length_um_sig(um, 3)
-}
-
-/// [`length_um`] to `sig` significant digits.
-pub fn length_um_sig(um: f64, sig: usize) -> String {
+    const SIG: usize = 3;
     if !um.is_finite() {
         return "-".into();
     }
     // The unit is chosen by the printed value: 999.7 µm prints as 1.00 mm.
-    let a: f64 = fmt_sig(um, sig)
+    let a: f64 = fmt_sig(um, SIG)
         .trim_start_matches('-')
         .parse()
         .unwrap_or(0.0);
     if a >= 1e6 {
-        format!("{} m", fmt_sig(um * 1e-6, sig))
+        format!("{} m", fmt_sig(um * 1e-6, SIG))
     } else if a >= 1e3 {
-        format!("{} mm", fmt_sig(um * 1e-3, sig))
+        format!("{} mm", fmt_sig(um * 1e-3, SIG))
     } else {
-        format!("{} µm", fmt_sig(um, sig))
+        format!("{} µm", fmt_sig(um, SIG))
     }
 }
 
@@ -114,17 +110,6 @@ pub fn fmt_given(v: f64) -> String {
     } else {
         s
     }
-}
-
-/// A value with its standard uncertainty, both to the decimal place of the uncertainty's
-/// second significant digit ("0.0098 ± 0.0012"); `u` of 0 or not finite prints `v` alone to
-/// three significant digits.
-pub fn fmt_with_std(v: f64, u: f64) -> String {
-    if !(u.is_finite() && u > 0.0) {
-        return fmt_sig(v, 3);
-    }
-    let d = (1 - u.log10().floor() as i32).max(0) as usize;
-    format!("{} ± {}", fmt_fixed(v, d), fmt_fixed(u, d))
 }
 
 /// The inverse-time feed word for a move of `seconds`: 60/t rounded *down* to 4 decimals, so
@@ -175,7 +160,5 @@ mod tests {
         assert_eq!(fmt_given(1.0), "1");
         assert_eq!(fmt_given(0.05), "0.05");
         assert_eq!(fmt_given(10.0), "10");
-        assert_eq!(fmt_with_std(0.0098, 0.00012), "0.00980 ± 0.00012");
-        assert_eq!(fmt_with_std(93.1234, 0.06), "93.123 ± 0.060");
     }
 }

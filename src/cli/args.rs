@@ -832,11 +832,7 @@ pub struct PlaceArgs {
 /// otherwise, exit 2).
 fn tcp_frame(s: &str) -> Result<crate::robot::Frame, String> {
     use crate::units::{DEG, MM};
-    let v: Vec<f64> = s
-        .split(',')
-        .map(|x| x.trim().parse::<f64>().ok().filter(|x| x.is_finite()))
-        .collect::<Option<_>>()
-        .ok_or_else(|| format!("'{s}' is not a list of numbers"))?;
+    let v = finite_list(s)?;
     match v.len() {
         3 => Ok(crate::robot::Frame::translation(
             nalgebra::Vector3::new(v[0], v[1], v[2]) * MM,
@@ -879,6 +875,13 @@ pub struct Range(pub f64, pub f64);
 /// A joint grid step in degrees: one for every joint or six, each 0.1 to 180.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Steps(pub [f64; 6]);
+
+impl Steps {
+    /// The steps in radians.
+    pub fn rad(&self) -> [f64; 6] {
+        self.0.map(|x| x * crate::units::DEG)
+    }
+}
 
 /// Six joint values in degrees.
 #[derive(Clone, Copy, Debug, PartialEq)]

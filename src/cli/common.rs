@@ -2,7 +2,7 @@
 //! SI values out; the cell and robot resolved from their flags; program dialects and controller
 //! mappings; input files read within their limits, outputs written whole (temp file + rename).
 
-use super::args::{CellArgs, Range, Steps, Xyz};
+use super::args::{CellArgs, Range, Xyz};
 use super::{usage, Error};
 use crate::cell::CellSpec;
 use crate::robot::{self, LoadOptions, Robot};
@@ -47,10 +47,6 @@ pub(super) fn bar_range(r: Range) -> Result<(f64, f64), Error> {
         return Err(usage(format!("--bar: {a}..{b} needs 0 < MIN < MAX")));
     }
     Ok((a * MM, b * MM))
-}
-
-pub(super) fn steps(s: Steps) -> [f64; 6] {
-    s.0.map(|x| x * DEG)
 }
 
 pub(super) fn load_robot(path: &Path, cell: &CellArgs, spec: &CellSpec) -> Result<Robot, Error> {

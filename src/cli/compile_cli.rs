@@ -4,7 +4,7 @@
 use super::args::CompileArgs;
 use super::common::{
     bar_noise, bar_rate, check_outputs, controller_map, load_robot, program_name, read_input,
-    resolve_cell, resolve_fixture, resolve_template, steps, write_all_atomic, write_atomic,
+    resolve_cell, resolve_fixture, resolve_template, write_all_atomic, write_atomic,
 };
 use super::progress::{Bar, Timed};
 use super::{usage, Error};
@@ -45,7 +45,7 @@ pub fn run(a: &CompileArgs) -> Result<i32, Error> {
         report,
         a.html.as_deref(),
     ])?;
-    let step = steps(a.step);
+    let step = a.step.rad();
     let robot = load_robot(robot_path, &a.cell, &spec)?;
     controller_map(&spec, a.cell.cell.as_deref(), dialect, &robot)?;
     let (lo, hi) = robot.limits();

@@ -4,7 +4,7 @@
 
 use super::args::{PlaceArgs, Prior};
 use super::common::{
-    bar_noise, bar_rate, load_robot, numbers, read_input, resolve_cell, steps, write_all_atomic,
+    bar_noise, bar_rate, load_robot, numbers, read_input, resolve_cell, write_all_atomic,
 };
 use super::progress::Bar;
 use super::{usage, Error};
@@ -219,7 +219,7 @@ pub fn place(a: &PlaceArgs) -> Result<i32, Error> {
     if a.max_candidates < 30 {
         return Err(usage("--max-candidates: must be at least 30"));
     }
-    let step = steps(a.step);
+    let step = a.step.rad();
     let bar_noise = bar_noise(a.bar_noise)?;
     let bar_rate = bar_rate(a.bar_rate)?;
     let prior = a.prior.map(prior).transpose()?.unwrap_or_default();
