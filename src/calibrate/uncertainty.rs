@@ -259,7 +259,9 @@ fn effect_model_spread<const N: usize>(
         let Effect::CyclicError(j) = t.effect else {
             continue;
         };
-        let h = t.basis.orders().into_iter().max().unwrap_or(0);
+        // The contiguous orders 1..H: screened single orders past them are stationary, their
+        // form over the whole turn bounded by their own amplitude (in the covariance already).
+        let h = t.basis.low_orders();
         let mut worst: [Vec<f64>; N] = std::array::from_fn(|i| vec![0.0; poses[i].len()]);
         // Orders past the fit's own limit included (the problem's harmonics are defined up to
         // BOUND_HARMONIC): a cyclic error fitted with every order the fit allows has its form
@@ -267,7 +269,7 @@ fn effect_model_spread<const N: usize>(
         for extra in 1..=2 {
             debug_assert!(h + extra <= fit::BOUND_HARMONIC);
             let mut cols = base.clone();
-            for o in h + 1..=h + extra {
+            for o in (h + 1..=h + extra).filter(|o| !t.basis.orders().contains(o)) {
                 cols.push(fit::Col::Cyc(j, o, false));
                 cols.push(fit::Col::Cyc(j, o, true));
             }

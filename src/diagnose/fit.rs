@@ -82,7 +82,7 @@ impl Param {
 pub enum Basis {
     Standard,
     KnownMasses,
-    Harmonics(u8),
+    Harmonics(u64),
     Lag,
     Temperature,
     LagLinks(u8),
@@ -94,9 +94,14 @@ pub enum Basis {
 /// measured; over part of it [`harmonic_cap`] allows fewer).
 pub const MAX_HARMONIC: usize = 6;
 
-/// Highest harmonic order a problem's harmonics are defined for: the fit's orders and the two
-/// richer ones the prediction bounds the form's error with (`calibrate`'s effect-model spread).
+/// Highest harmonic order of the contiguous orders 1..H and the two richer ones the
+/// prediction bounds the form's error with (`calibrate`'s effect-model spread).
 pub const BOUND_HARMONIC: usize = MAX_HARMONIC + 2;
+
+/// Highest harmonic order a cyclic error can take as a single stationary order (a gear mesh
+/// or a tooth-count harmonic of a transmission: `diagnose`'s order screen), and the highest a
+/// problem's harmonics are defined for.
+pub const MAX_ORDER: usize = 40;
 
 /// The highest harmonic order of a cyclic error that joint j's measured angles determine over
 /// the range it can turn through (`range`, its limits in rad; `None`: the whole turn): the
@@ -170,10 +175,20 @@ impl Basis {
     /// The harmonic orders of a cyclic error's mask, ascending.
     pub fn orders(&self) -> Vec<usize> {
         match *self {
-            Basis::Harmonics(mask) => (1..=MAX_HARMONIC)
+            Basis::Harmonics(mask) => (1..=MAX_ORDER)
                 .filter(|h| mask & (1 << (h - 1)) != 0)
                 .collect(),
             _ => Vec::new(),
+        }
+    }
+
+    /// The highest of a cyclic error's contiguous low orders 1..H (0 without order 1): the
+    /// orders the gap rule and the richer-order bound speak of; orders past
+    /// [`MAX_HARMONIC`] are single stationary orders, bounded by their own amplitude.
+    pub fn low_orders(&self) -> usize {
+        match *self {
+            Basis::Harmonics(mask) => (mask.trailing_ones() as usize).min(MAX_HARMONIC),
+            _ => 0,
         }
     }
 
@@ -285,8 +300,34 @@ impl Estimate {
         }
     }
 
-    /// Adds an effect with zero coefficients (a lag starts at time constant `tau0`).
+    /// Adds an effect with zero coefficients (a lag starts at time constant `tau0`). A cyclic
+    /// error of a joint that has one already gains the new orders: one term per joint, its
+    /// orders' coefficients kept, the new ones zero, the term moved last (the effect added).
     pub fn add_effect(&mut self, effect: Effect, basis: Basis, tau0: f64) {
+        if let (Effect::CyclicError(_), Basis::Harmonics(new)) = (effect, basis) {
+            if let Some(i) = self.effects.iter().position(|t| t.effect == effect) {
+                let old = self.effects.remove(i);
+                let Basis::Harmonics(had) = old.basis else {
+                    unreachable!("a cyclic error's basis is its harmonics")
+                };
+                let merged = Basis::Harmonics(had | new);
+                let was = old.basis.orders();
+                let coef = merged
+                    .orders()
+                    .into_iter()
+                    .flat_map(|h| {
+                        let k = was.iter().position(|&o| o == h);
+                        [0, 1].map(|c| k.map_or(0.0, |k| old.coef[2 * k + c]))
+                    })
+                    .collect();
+                self.effects.push(Term {
+                    effect,
+                    basis: merged,
+                    coef,
+                });
+                return;
+            }
+        }
         let n = effect_cols(effect, basis).len();
         let mut coef = vec![0.0; n];
         if effect == Effect::ThermalDrift && basis.is_lag() {
@@ -521,7 +562,7 @@ pub struct Problem {
     /// turns far less than a turn, the data tell a zero offset from a harmonic's constant part
     /// only by the harmonic's form, while the zero plus the error's mean over the measured
     /// range is what they determine (and the best constant a DH table can hold there).
-    harmonic_means: [[(f64, f64); BOUND_HARMONIC]; 6],
+    harmonic_means: [[(f64, f64); MAX_ORDER]; 6],
     /// Per joint, the highest harmonic order its measured range determines ([`harmonic_cap`]).
     harmonic_caps: [usize; 6],
     /// Per joint, the range it can turn through (rad; at most one turn): where the robot file
@@ -594,9 +635,9 @@ fn derivatives(t: &[f64], q: &[[f64; 6]]) -> (Vec<[f64; 6]>, Vec<[f64; 6]>) {
     (qdot, qdd)
 }
 
-/// The means of sin(h·q) and cos(h·q), h = 1..BOUND_HARMONIC, over each joint's measured range
+/// The means of sin(h·q) and cos(h·q), h = 1..MAX_ORDER, over each joint's measured range
 /// [min q, max q], uniformly (closed form).
-fn harmonic_means(q: &[[f64; 6]]) -> [[(f64, f64); BOUND_HARMONIC]; 6] {
+fn harmonic_means(q: &[[f64; 6]]) -> [[(f64, f64); MAX_ORDER]; 6] {
     std::array::from_fn(|j| {
         let (lo, hi) = q
             .iter()
@@ -1554,6 +1595,147 @@ fn accumulate_with(
     st
 }
 
+/// The sums an order screen needs: for each candidate (joint j, harmonic order h) the normal
+/// equations per fold of the model's columns `base` and that order's two columns
+/// (`Col::Cyc(j, h, ..)`), as [`accumulate`] would give them for `base` plus those two, from
+/// one pass that forms only the products a single added order needs (base × base, base ×
+/// candidate, each candidate's own 2 × 2 and right-hand side): six joints of 34 orders cost
+/// about as much as the model's own columns, not 400 columns more.
+pub(crate) fn screen_orders(
+    problem: &Problem,
+    est: &Estimate,
+    base: &[Col],
+    cand: &[(usize, usize)],
+    folds: usize,
+) -> Vec<Stats> {
+    let prep = prepare(problem, est);
+    let cb = base.len();
+    let m = 2 * cand.len();
+    let cols: Vec<Col> = base
+        .iter()
+        .copied()
+        .chain(
+            cand.iter()
+                .flat_map(|&(j, h)| [Col::Cyc(j, h, false), Col::Cyc(j, h, true)]),
+        )
+        .collect();
+    let folds = folds.max(1);
+    // Per chunk: base × base (upper, row-major), base × candidate (cb × m), each candidate
+    // column pair's own products (3 per pair), the right-hand sides, rᵀr, rows.
+    type Sums = (Vec<f64>, Vec<f64>, Vec<f64>, Vec<f64>, f64, usize);
+    let parts: Vec<(Sums, usize)> = chunks(&problem.ranges, folds)
+        .into_par_iter()
+        .map(|(rows, f)| {
+            let mut nbb = vec![0.0; cb * cb];
+            let mut cross = vec![0.0; cb * m];
+            let mut own = vec![0.0; 3 * cand.len()];
+            let mut b = vec![0.0; cb + m];
+            let (mut rr, mut kept) = (0.0, 0);
+            let mut x = vec![0.0; cb + m];
+            for k in rows {
+                let w = problem.weight[k];
+                if w <= 0.0 {
+                    continue;
+                }
+                let r = problem.row_values(est, &prep, k, &cols, &mut x) * w;
+                for v in x.iter_mut() {
+                    *v *= w;
+                }
+                kept += 1;
+                rr += r * r;
+                for (bv, xv) in b.iter_mut().zip(&x) {
+                    *bv += xv * r;
+                }
+                let (xb, xc) = x.split_at(cb);
+                for a in 0..cb {
+                    let xa = xb[a];
+                    if xa == 0.0 {
+                        continue;
+                    }
+                    for (n, xv) in nbb[a * cb + a..a * cb + cb].iter_mut().zip(&xb[a..]) {
+                        *n += xa * xv;
+                    }
+                    for (n, xv) in cross[a * m..a * m + m].iter_mut().zip(xc) {
+                        *n += xa * xv;
+                    }
+                }
+                for (p, o) in own.chunks_exact_mut(3).enumerate() {
+                    let (c, s) = (xc[2 * p], xc[2 * p + 1]);
+                    o[0] += c * c;
+                    o[1] += c * s;
+                    o[2] += s * s;
+                }
+            }
+            ((nbb, cross, own, b, rr, kept), f)
+        })
+        .collect();
+    let mut per_fold: Vec<Sums> = (0..folds)
+        .map(|_| {
+            (
+                vec![0.0; cb * cb],
+                vec![0.0; cb * m],
+                vec![0.0; 3 * cand.len()],
+                vec![0.0; cb + m],
+                0.0,
+                0,
+            )
+        })
+        .collect();
+    // Summed in the chunks' order: the same sums on any thread count.
+    for ((nbb, cross, own, b, rr, kept), f) in parts {
+        let t = &mut per_fold[f];
+        for (a, v) in t.0.iter_mut().zip(&nbb) {
+            *a += v;
+        }
+        for (a, v) in t.1.iter_mut().zip(&cross) {
+            *a += v;
+        }
+        for (a, v) in t.2.iter_mut().zip(&own) {
+            *a += v;
+        }
+        for (a, v) in t.3.iter_mut().zip(&b) {
+            *a += v;
+        }
+        t.4 += rr;
+        t.5 += kept;
+    }
+    (0..cand.len())
+        .map(|p| {
+            let c = cb + 2;
+            let mut st = Stats {
+                c,
+                n: Vec::with_capacity(folds),
+                b: Vec::with_capacity(folds),
+                rr: Vec::with_capacity(folds),
+                rows: Vec::with_capacity(folds),
+                residual: Vec::new(),
+            };
+            for (nbb, cross, own, b, rr, kept) in &per_fold {
+                let n = DMatrix::from_fn(c, c, |r, q| {
+                    let (lo, hi) = (r.min(q), r.max(q));
+                    match (lo < cb, hi < cb) {
+                        (true, true) => nbb[lo * cb + hi],
+                        (true, false) => cross[lo * m + 2 * p + (hi - cb)],
+                        _ => own[3 * p + (lo - cb) + (hi - cb)],
+                    }
+                });
+                let bv = DVector::from_fn(c, |r, _| {
+                    if r < cb {
+                        b[r]
+                    } else {
+                        b[cb + 2 * p + (r - cb)]
+                    }
+                });
+                st.n.push(n);
+                st.b.push(bv);
+                st.rr.push(*rr);
+                st.rows.push(*kept);
+            }
+            st
+        })
+        .collect()
+}
+
 /// Every row's regressors (weighted), weighted residual and weight, for the step scan: the
 /// rows in order, `cols.len()` values each.
 pub(crate) fn rows_of(
@@ -2012,6 +2194,86 @@ pub fn correlation_time(r: &[f64]) -> f64 {
 
 #[cfg(test)]
 mod tests {
+
+    /// The order screen's per-candidate sums are those of a full accumulation of the model's
+    /// columns and that order's two, fold by fold.
+    #[test]
+    fn the_order_screen_sums_what_a_full_accumulation_of_each_order_sums() {
+        let robot = crate::model::tests::nj130();
+        let model = MeasurementModel::new(&robot, Vector3::new(1.2, 0.0, 0.5), Vector3::zeros());
+        let mut s = 11u64;
+        let mut next = || {
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (s >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let q: Vec<[f64; 6]> = (0..700)
+            .map(|_| std::array::from_fn(|_| (next() - 0.5) * 3.0))
+            .collect();
+        let m = Measured {
+            t: (0..q.len()).map(|i| i as f64).collect(),
+            length: q.iter().map(|p| 1.0 + 1e-4 * (17.0 * p[0]).sin()).collect(),
+            q,
+            form: Form::Static { timed: false },
+            ..Measured::default()
+        };
+        let mut problem = Problem::new(
+            &model,
+            &[Run {
+                measured: &m,
+                fixture: model.nominal.fix,
+            }],
+        );
+        problem.weight[3] = 0.0;
+        let mut est = Estimate::nominal(&problem);
+        est.add_effect(Effect::CyclicError(1), Basis::Harmonics(0b11), 0.0);
+        est.effects[0].coef = vec![1e-4, -2e-4, 3e-5, 0.0];
+        let free = [Param::Shared(THETA + 1), Param::Shared(A + 2)];
+        let base = model_cols(&est, &free);
+        let cand = [(0, 17), (1, 9), (5, 40)];
+        let got = screen_orders(&problem, &est, &base, &cand, 5);
+        for (p, &(j, h)) in cand.iter().enumerate() {
+            let mut cols = base.clone();
+            cols.extend([Col::Cyc(j, h, false), Col::Cyc(j, h, true)]);
+            let want = accumulate(&problem, &est, &cols, 5);
+            for f in 0..5 {
+                let scale = want.n[f].amax();
+                assert!(
+                    (&got[p].n[f] - &want.n[f]).amax() <= 1e-12 * scale,
+                    "{j} {h} {f}"
+                );
+                assert!((&got[p].b[f] - &want.b[f]).amax() <= 1e-12 * want.b[f].amax().max(1e-30));
+                assert!((got[p].rr[f] - want.rr[f]).abs() <= 1e-12 * want.rr[f]);
+                assert_eq!(got[p].rows[f], want.rows[f]);
+            }
+        }
+    }
+
+    /// A cyclic error gains orders in one term, its fitted coefficients kept.
+    #[test]
+    fn a_cyclic_error_gains_orders_in_one_term_with_its_coefficients_kept() {
+        let mut est = Estimate {
+            p: [0.0; N_PARAMS],
+            fixtures: Vec::new(),
+            offsets: Vec::new(),
+            effects: Vec::new(),
+        };
+        est.add_effect(Effect::CyclicError(2), Basis::Harmonics(0b101), 0.0);
+        est.add_effect(Effect::Backlash(0), Basis::Standard, 0.0);
+        est.effects[0].coef = vec![1.0, 2.0, 3.0, 4.0];
+        est.add_effect(
+            Effect::CyclicError(2),
+            Basis::Harmonics(1 << 16 | 0b10),
+            0.0,
+        );
+        assert_eq!(est.effects.len(), 2);
+        let t = &est.effects[1];
+        assert_eq!(t.basis.orders(), vec![1, 2, 3, 17]);
+        assert_eq!(t.coef, vec![1.0, 2.0, 0.0, 0.0, 3.0, 4.0, 0.0, 0.0]);
+        assert_eq!(t.basis.low_orders(), 3);
+        assert_eq!(Basis::Harmonics(1 << 16).low_orders(), 0);
+    }
     use super::*;
     use std::f64::consts::PI;
 
@@ -2070,11 +2332,27 @@ mod tests {
     fn a_problems_harmonics_reach_past_the_fits_orders_for_the_prediction_bound() {
         // calibrate's effect-model spread compares a cyclic error of orders 1..H with orders
         // up to H + 2 for every H the fit can choose, MAX_HARMONIC included (without that
-        // bound six fitted orders would have none).
+        // bound six fitted orders would have none), and the screen's single orders up to
+        // MAX_ORDER.
         let q = swept(0, &[(-110.0, 100.0)]);
         let means = harmonic_means(&q);
-        assert_eq!(means[0].len(), MAX_HARMONIC + 2);
-        let (s, c) = means[0][BOUND_HARMONIC - 1];
-        assert!(s.is_finite() && c.is_finite() && s.abs() <= 1.0 && c.abs() <= 1.0);
+        assert!(means[0].len() >= BOUND_HARMONIC);
+        assert_eq!(means[0].len(), MAX_ORDER);
+        for (s, c) in means[0] {
+            assert!(s.is_finite() && c.is_finite() && s.abs() <= 1.0 && c.abs() <= 1.0);
+        }
+        // The mean of an order over the range, against a brute-force average.
+        let (lo, hi) = (-110f64.to_radians(), 100f64.to_radians());
+        let h = 17.0;
+        let m = 100_000;
+        let avg = (0..m)
+            .map(|i| (h * (lo + (hi - lo) * (i as f64 + 0.5) / m as f64)).sin())
+            .sum::<f64>()
+            / m as f64;
+        assert!(
+            (means[0][16].0 - avg).abs() < 1e-6,
+            "{} {avg}",
+            means[0][16].0
+        );
     }
 }
