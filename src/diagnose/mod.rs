@@ -1260,9 +1260,9 @@ fn score_moves(
 /// taken by orders 7 and 8), and where the data did not reach it then extrapolates a form the
 /// robot does not have. So an order is screened past the richest smooth form the prediction
 /// bounds ([`fit::BOUND_HARMONIC`]), on a joint the data turn through at least two of its
-/// periods, and a candidate only when it also lowers the held-out error by [`HELDOUT_GAIN`]
-/// beside every order 1..BOUND_HARMONIC of its joint: what it predicts, no smooth error of
-/// the joint could.
+/// periods, and a candidate only when it also lowers the held-out error by the gain
+/// [`order_gain`] asks beside every order 1..BOUND_HARMONIC of its joint (what it predicts, no
+/// smooth error of the joint could) and every block of the data shows it ([`in_every_block`]).
 fn order_moves(
     problem: &Problem,
     g: &Grown,
@@ -1715,6 +1715,40 @@ fn summary(r: &Report, timed: bool) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Per-fold sums of an order's two columns alone whose own fit in fold f is `z[f]`.
+    fn folds_with(z: &[[f64; 2]]) -> fit::Stats {
+        let n = DMatrix::from_row_slice(2, 2, &[100.0, 20.0, 20.0, 50.0]);
+        fit::Stats {
+            c: 2,
+            n: vec![n.clone(); z.len()],
+            b: z.iter().map(|v| &n * DVector::from_row_slice(v)).collect(),
+            rr: vec![1.0; z.len()],
+            rows: vec![100; z.len()],
+            residual: Vec::new(),
+        }
+    }
+
+    /// A line every block shows with the same amplitude and phase passes; the same mean
+    /// vector carried by one block alone, or a phase that turns from block to block, does not.
+    #[test]
+    fn a_line_is_one_every_block_of_the_data_shows() {
+        let wobble = |f: usize| 0.05 * ((f * 7 % 5) as f64 - 2.0);
+        let steady: Vec<[f64; 2]> = (0..8).map(|f| [1.0 + wobble(f), 0.5 - wobble(f)]).collect();
+        assert!(in_every_block(&folds_with(&steady), &[0, 1]));
+        let mut one = vec![[0.0, 0.0]; 8];
+        one[5] = [8.0, 4.0];
+        assert!(!in_every_block(&folds_with(&one), &[0, 1]));
+        let turning: Vec<[f64; 2]> = (0..8)
+            .map(|f| {
+                let a = 0.3 + f as f64 * std::f64::consts::TAU / 8.0;
+                [a.cos(), a.sin()]
+            })
+            .collect();
+        assert!(!in_every_block(&folds_with(&turning), &[0, 1]));
+        // Too few blocks to tell.
+        assert!(!in_every_block(&folds_with(&steady[..2]), &[0, 1]));
+    }
 
     #[test]
     fn a_small_standard_uncertainty_keeps_two_significant_digits() {
