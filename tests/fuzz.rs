@@ -273,6 +273,40 @@ proptest! {
     }
 }
 
+/// A user's template that asks a filter for more decimals than a number carries, or a column
+/// wider than a line, fails to render with one line naming the limit: no panic, no gigabyte.
+#[test]
+fn absurd_decimals_and_widths_in_a_user_template_are_errors() {
+    let ngc = read("src/dialect/ngc/ngc.j2");
+    let fanuc = read("src/dialect/fanuc/fanuc.j2");
+    for (source, name, limit) in [
+        (ngc.replacen("| f(3)", "| f(4000000000)", 1), "ngc", "15"),
+        (ngc.replacen("| f(3)", "| ceil(70000)", 1), "ngc", "15"),
+        (
+            fanuc.replacen("rjust(4)", "rjust(3000000000)", 1),
+            "fanuc",
+            "256",
+        ),
+    ] {
+        assert_ne!(source, if name == "ngc" { &ngc } else { &fanuc }[..]);
+        let template = edbbgen::dialect::Template {
+            source,
+            dialect: edbbgen::dialect::by_name(name).unwrap(),
+            user: true,
+        };
+        let e = edbbgen::emit::render(&template, &program()).unwrap_err();
+        one_line(&e);
+        assert!(e.contains(limit), "{e}");
+    }
+    // Within the limits the filters still print.
+    let template = edbbgen::dialect::Template {
+        source: ngc.replacen("| f(3)", "| f(15)", 1),
+        dialect: edbbgen::dialect::by_name("ngc").unwrap(),
+        user: true,
+    };
+    assert!(edbbgen::emit::render(&template, &program()).is_ok());
+}
+
 /// A small loaded-circle recording (two loads, one run each, 90 samples) in the CSV contract,
 /// and a setup that matches it.
 fn ldbb_seed() -> (String, String) {

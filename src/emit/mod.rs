@@ -105,20 +105,43 @@ pub fn target(
     p
 }
 
+/// Decimals a template may ask of a number (an f64 carries about 16 significant digits; a
+/// controller reads far fewer), and the widest column it may pad to.
+const MAX_DECIMALS: usize = 15;
+const MAX_WIDTH: usize = 256;
+
+/// A template's count argument `n` if at most `max`, else a template error naming the limit
+/// (a user's template asking for a billion decimals is an error, not a panic or a gigabyte).
+fn digits(n: usize, max: usize) -> Result<usize, minijinja::Error> {
+    if n <= max {
+        Ok(n)
+    } else {
+        Err(minijinja::Error::new(
+            minijinja::ErrorKind::InvalidOperation,
+            format!("{n} is more than the {max} a filter takes"),
+        ))
+    }
+}
+
 /// Renders `program` with `template`. The output always ends with one newline.
 pub fn render(template: &Template, program: &Program) -> Result<String, String> {
     let mut env = Environment::new();
     env.set_undefined_behavior(minijinja::UndefinedBehavior::Strict);
-    env.add_filter("f", |v: f64, decimals: usize| fmt_fixed(v, decimals));
+    env.add_filter("f", |v: f64, decimals: usize| {
+        Ok::<_, minijinja::Error>(fmt_fixed(v, digits(decimals, MAX_DECIMALS)?))
+    });
     env.add_filter("feed", inverse_time_feed);
-    env.add_filter("ceil", |v: f64, decimals: usize| ceil_fixed(v, decimals));
+    env.add_filter("ceil", |v: f64, decimals: usize| {
+        Ok::<_, minijinja::Error>(ceil_fixed(v, digits(decimals, MAX_DECIMALS)?))
+    });
     env.add_filter("pct", percent);
     // Text inside an RS274 comment: parentheses would end or nest it.
     env.add_filter("comment", |v: String| v.replace('(', "[").replace(')', "]"));
     env.add_filter("wrap", wrap);
     env.add_filter("say", say);
     env.add_filter("rjust", |v: Value, width: usize| {
-        format!("{:>width$}", v.to_string())
+        let width = digits(width, MAX_WIDTH)?;
+        Ok::<_, minijinja::Error>(format!("{:>width$}", v.to_string()))
     });
     env.add_filter("ident", |v: String, max: usize| ident(&v, max));
     for (name, source) in crate::dialect::bundled() {
