@@ -2201,15 +2201,10 @@ mod tests {
     fn the_order_screen_sums_what_a_full_accumulation_of_each_order_sums() {
         let robot = crate::model::tests::nj130();
         let model = MeasurementModel::new(&robot, Vector3::new(1.2, 0.0, 0.5), Vector3::zeros());
-        let mut s = 11u64;
-        let mut next = || {
-            s = s
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (s >> 11) as f64 / (1u64 << 53) as f64
-        };
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
         let q: Vec<[f64; 6]> = (0..700)
-            .map(|_| std::array::from_fn(|_| (next() - 0.5) * 3.0))
+            .map(|_| std::array::from_fn(|_| rng.random_range(-1.5..1.5)))
             .collect();
         let m = Measured {
             t: (0..q.len()).map(|i| i as f64).collect(),

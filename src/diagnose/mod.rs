@@ -1282,26 +1282,17 @@ fn order_moves(
     // Beside the model, each joint's richer smooth form: its orders 1..BOUND_HARMONIC the
     // model lacks. An order must predict what none of those could (a line of the spectrum,
     // not a stretch of it that mimics a lower order over the measured range).
-    let richer: Vec<Vec<usize>> = {
-        let mut at = base.len();
-        (0..6)
-            .map(|j| {
-                let had = mask_of(j);
-                let k = (1..=fit::BOUND_HARMONIC)
-                    .filter(|h| had & (1 << (h - 1)) == 0)
-                    .count();
-                at += 2 * k;
-                (at - 2 * k..at).collect()
-            })
-            .collect()
-    };
     let mut wide: Vec<Col> = base.to_vec();
-    for j in 0..6 {
-        let had = mask_of(j);
-        for h in (1..=fit::BOUND_HARMONIC).filter(|h| had & (1 << (h - 1)) == 0) {
-            wide.extend([Col::Cyc(j, h, false), Col::Cyc(j, h, true)]);
-        }
-    }
+    let richer: Vec<Vec<usize>> = (0..6)
+        .map(|j| {
+            let had = mask_of(j);
+            let from = wide.len();
+            for h in (1..=fit::BOUND_HARMONIC).filter(|h| had & (1 << (h - 1)) == 0) {
+                wide.extend([Col::Cyc(j, h, false), Col::Cyc(j, h, true)]);
+            }
+            (from..wide.len()).collect()
+        })
+        .collect();
     if 2 * (wide.len() + 2) > kept {
         return Vec::new();
     }
